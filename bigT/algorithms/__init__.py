@@ -1,0 +1,1 @@
+"""bigT.algorithms layer (see DESIGN.md)."""

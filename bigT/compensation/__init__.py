@@ -1,0 +1,1 @@
+"""bigT.compensation layer (see DESIGN.md)."""

@@ -1,0 +1,34 @@
+"""Tunables, in one place (DESIGN.md: never as magic numbers in kernels).
+
+Each value is a default; the public functions take keyword arguments that override
+it for one call.
+"""
+
+from __future__ import annotations
+
+# --- storage -----------------------------------------------------------------------
+#: Rows (and columns) of one square tile of the block-CSR grid.
+DEFAULT_TILE_SIZE = 8192
+#: Elements per zarr chunk of a tile's indices/data arrays (4 MiB of float32).
+CHUNK_ELEMENTS = 1 << 20
+#: zstd level for the tile arrays: level 1 is close to the best ratio on index
+#: arrays at several times the speed of the default level 3.
+ZSTD_LEVEL = 1
+#: ``BlockCSR.to_scipy`` refuses beyond this many bytes of CSR arrays.
+TO_SCIPY_MAX_BYTES = 4 << 30
+
+# --- images ------------------------------------------------------------------------
+#: Edge of one image tile (pixels) for the image-tile-major pixel order.
+DEFAULT_IMAGE_TILE = (8, 8)
+
+# --- inverse -----------------------------------------------------------------------
+#: Absolute threshold below which entries of each series term are dropped.
+DEFAULT_PRUNE = 1e-5
+#: Random probes z used to estimate ||I - T X||_F by r = z - T (X z).
+RESIDUAL_PROBES = 4
+#: Power iterations used to estimate the spectral radius of M before the first product.
+SPECTRAL_RADIUS_ITERATIONS = 30
+
+# --- compensation -------------------------------------------------------------------
+#: Frames streamed against each row tile of X at once.
+DEFAULT_BATCH = 64

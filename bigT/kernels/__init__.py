@@ -1,0 +1,1 @@
+"""bigT.kernels layer (see DESIGN.md)."""

@@ -1,0 +1,1 @@
+"""bigT.scenes layer (see DESIGN.md)."""

@@ -1,0 +1,1 @@
+"""bigT.schedule layer (see DESIGN.md)."""

@@ -1,0 +1,1 @@
+"""bigT.storage layer (see DESIGN.md)."""

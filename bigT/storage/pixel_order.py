@@ -1,0 +1,132 @@
+"""Mapping between images and matrix indices.
+
+A transport matrix maps projector pixels to camera pixels; the matrix index of a
+pixel depends on the *pixel order* recorded in the store:
+
+``"row-major"``
+    index = r * W + c, the order of ``image.ravel()``.
+``"tile-major"``
+    the image is cut into tiles of ``image_tile = (th, tw)`` pixels (the last tile row
+    and column may be smaller); tiles are numbered in row-major order and the pixels
+    of one tile are contiguous, in row-major order inside the tile. Far-apart image
+    regions then fall into different matrix tiles, so more matrix tiles are zero
+    (DESIGN.md, "Pixel order matters").
+
+The permutation stored with a matrix is ``perm`` with ``matrix_index k <-> row-major
+pixel perm[k]``; it is derived from the image shape and tile, never stored twice.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from ..config import DEFAULT_IMAGE_TILE
+from ..errors import ImageError, ShapeMismatchError
+
+PIXEL_ORDERS = ("row-major", "tile-major")
+
+
+@dataclass(frozen=True)
+class PixelOrder:
+    """How the pixels of an ``image_shape`` image are numbered in a matrix.
+
+    Parameters
+    ----------
+    image_shape : (int, int)
+        (H, W) of the image; the matrix side is n = H * W.
+    order : {"row-major", "tile-major"}
+    image_tile : (int, int)
+        (th, tw) of one image tile; used by "tile-major" only.
+    """
+
+    image_shape: tuple[int, int]
+    order: str = "row-major"
+    image_tile: tuple[int, int] = field(default=DEFAULT_IMAGE_TILE)
+
+    def __post_init__(self):
+        shape = tuple(int(s) for s in self.image_shape)
+        tile = tuple(int(s) for s in self.image_tile)
+        if len(shape) != 2 or min(shape) < 1:
+            raise ShapeMismatchError(f"image_shape must be (H, W) with H, W >= 1, got {self.image_shape}")
+        if self.order not in PIXEL_ORDERS:
+            raise ValueError(f"pixel_order must be one of {PIXEL_ORDERS}, got {self.order!r}")
+        if len(tile) != 2 or min(tile) < 1:
+            raise ShapeMismatchError(f"image_tile must be (th, tw) with th, tw >= 1, got {self.image_tile}")
+        object.__setattr__(self, "image_shape", shape)
+        object.__setattr__(self, "image_tile", tile)
+
+    @property
+    def n(self) -> int:
+        """Number of pixels, the matrix side."""
+        return self.image_shape[0] * self.image_shape[1]
+
+    @cached_property
+    def permutation(self) -> np.ndarray:
+        """(n,) int64: row-major pixel index of each matrix index."""
+        H, W = self.image_shape
+        if self.order == "row-major":
+            return np.arange(H * W, dtype=np.int64)
+        th, tw = self.image_tile
+        rows, cols = np.divmod(np.arange(H * W, dtype=np.int64), W)
+        # Sort pixels by (tile row, tile col, row in tile, col in tile).
+        key = np.lexsort((cols % tw, rows % th, cols // tw, rows // th))
+        return key.astype(np.int64)
+
+    @cached_property
+    def inverse_permutation(self) -> np.ndarray:
+        """(n,) int64: matrix index of each row-major pixel index."""
+        inv = np.empty(self.n, dtype=np.int64)
+        inv[self.permutation] = np.arange(self.n, dtype=np.int64)
+        return inv
+
+    def to_matrix(self, images: np.ndarray) -> np.ndarray:
+        """Images to matrix-ordered vectors.
+
+        Parameters
+        ----------
+        images : ndarray, shape (H, W) or (K, H, W)
+
+        Returns
+        -------
+        ndarray, shape (n,) or (n, K)
+        """
+        images = np.asarray(images)
+        H, W = self.image_shape
+        if images.shape[-2:] != (H, W) or images.ndim not in (2, 3):
+            raise ImageError(f"image of shape {images.shape} does not match the matrix's image shape {(H, W)}")
+        flat = images.reshape(-1, H * W)[:, self.permutation]
+        return flat[0] if images.ndim == 2 else np.ascontiguousarray(flat.T)
+
+    def to_images(self, vectors: np.ndarray) -> np.ndarray:
+        """Matrix-ordered vectors back to images.
+
+        Parameters
+        ----------
+        vectors : ndarray, shape (n,) or (n, K)
+
+        Returns
+        -------
+        ndarray, shape (H, W) or (K, H, W)
+        """
+        vectors = np.asarray(vectors)
+        if vectors.shape[0] != self.n or vectors.ndim not in (1, 2):
+            raise ShapeMismatchError(f"vectors of shape {vectors.shape} do not have n = {self.n} rows")
+        cols = vectors.reshape(self.n, -1).T
+        images = cols[:, self.inverse_permutation].reshape(-1, *self.image_shape)
+        return images[0] if vectors.ndim == 1 else images
+
+    def to_attrs(self) -> dict:
+        """JSON-serialisable description stored in the zarr attributes."""
+        return {"image_shape": list(self.image_shape), "pixel_order": self.order,
+                "image_tile": list(self.image_tile)}
+
+    @classmethod
+    def from_attrs(cls, attrs: dict) -> "PixelOrder | None":
+        """Inverse of :meth:`to_attrs`; None when the matrix maps no image."""
+        if not attrs.get("image_shape"):
+            return None
+        return cls(tuple(attrs["image_shape"]), attrs.get("pixel_order", "row-major"),
+                   tuple(attrs.get("image_tile") or DEFAULT_IMAGE_TILE))
