@@ -32,3 +32,21 @@ SPECTRAL_RADIUS_ITERATIONS = 30
 # --- compensation -------------------------------------------------------------------
 #: Frames streamed against each row tile of X at once.
 DEFAULT_BATCH = 64
+
+# --- kernels -------------------------------------------------------------------------
+#: Threads the kernel wrappers split row ranges over (None: one per CPU core). Pass
+#: ``n_threads=1`` from code that already runs tiles in parallel (e.g. dask threads).
+KERNEL_THREADS = None
+#: Row ranges per thread, cut to equal work, so one slow range does not idle a core.
+KERNEL_CHUNKS_PER_THREAD = 4
+#: Products with fewer multiply-adds than this run on the calling thread only.
+KERNEL_MIN_PARALLEL_WORK = 200_000
+#: spgemm emits a row by scanning its column span [lo, hi] of the dense accumulator
+#: (no sort) when span <= ratio * (multiply-adds of the row); otherwise it sorts the
+#: list of touched columns.
+SPGEMM_DENSE_SCAN_RATIO = 4.0
+#: Threads streaming tile rows of X (or T) against one frame batch: reading one tile
+#: row overlaps the product of another.
+COMPENSATE_WORKERS = 2
+#: Series terms n of the matrix-free path when neither the user nor X's metadata says.
+DEFAULT_COMPENSATION_TERMS = 4

@@ -1,1 +1,27 @@
-"""bigT.kernels layer (see DESIGN.md)."""
+"""bigT.kernels: numba kernels on raw CSR arrays, with checked scipy.sparse wrappers.
+
+No zarr or dask here (DESIGN.md): the schedule layer feeds tiles in and gets
+``scipy.sparse.csr_array`` (sorted, duplicate-free) back.
+"""
+
+from .csr import (
+    add_diag_scaled,
+    choose_index_dtype,
+    diagonal,
+    prune,
+    scale_cols,
+    scale_rows,
+    spgemm,
+    spmm_dense,
+)
+
+__all__ = [
+    "spgemm",
+    "add_diag_scaled",
+    "scale_rows",
+    "scale_cols",
+    "diagonal",
+    "prune",
+    "spmm_dense",
+    "choose_index_dtype",
+]

@@ -1,0 +1,391 @@
+"""Unchecked numba kernels on raw CSR arrays.
+
+Every function here takes ``indptr``, ``indices``, ``data`` arrays (and row ranges) and
+trusts them: the checked wrappers in :mod:`bigT.kernels.csr` validate first. All are
+``nogil`` so the wrappers can run disjoint row ranges on several Python threads.
+
+Conventions: ``indptr`` has the dtype of ``indices`` (int32 or int64); input rows are
+sorted and duplicate-free unless a docstring says otherwise; values are accumulated in
+float64 and rounded once to the output dtype.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# The status codes of check_csr_internal.
+CSR_OK = 0
+CSR_BAD_INDPTR = 1
+CSR_INDEX_OUT_OF_RANGE = 2
+CSR_NOT_FINITE = 3
+
+
+@njit(nogil=True, cache=True)
+def check_csr_internal(indptr, indices, data, n_cols):
+    """One pass over a CSR matrix: structure, index range, finiteness, sortedness.
+
+    Parameters
+    ----------
+    indptr : (n_rows + 1,) int32 or int64
+    indices : (nnz,) int32 or int64
+    data : (nnz,) float32 or float64
+    n_cols : int
+
+    Returns
+    -------
+    status : int
+        ``CSR_OK`` or the first problem found (``CSR_BAD_INDPTR``,
+        ``CSR_INDEX_OUT_OF_RANGE``, ``CSR_NOT_FINITE``).
+    where : int
+        The row (indptr problems) or the position in ``indices``/``data``.
+    canonical : bool
+        Every row strictly increasing (sorted and duplicate-free).
+    """
+    n_rows = indptr.shape[0] - 1
+    nnz = indices.shape[0]
+    if indptr[0] != 0 or indptr[n_rows] != nnz or data.shape[0] != nnz:
+        return CSR_BAD_INDPTR, 0, False
+    canonical = True
+    for i in range(n_rows):
+        start = indptr[i]
+        stop = indptr[i + 1]
+        if stop < start:
+            return CSR_BAD_INDPTR, i, False
+        prev = -1
+        for p in range(start, stop):
+            j = indices[p]
+            if j < 0 or j >= n_cols:
+                return CSR_INDEX_OUT_OF_RANGE, p, False
+            if j <= prev:
+                canonical = False
+            prev = j
+            v = data[p]
+            if not np.isfinite(v):
+                return CSR_NOT_FINITE, p, False
+    return CSR_OK, 0, canonical
+
+
+@njit(nogil=True, cache=True)
+def row_work_internal(a_indptr, a_indices, b_indptr):
+    """Multiply-adds of each row of A @ B (an upper bound on that row's nnz).
+
+    Returns
+    -------
+    (n_rows,) int64
+    """
+    n_rows = a_indptr.shape[0] - 1
+    work = np.zeros(n_rows, np.int64)
+    for i in range(n_rows):
+        w = 0
+        for p in range(a_indptr[i], a_indptr[i + 1]):
+            k = a_indices[p]
+            w += b_indptr[k + 1] - b_indptr[k]
+        work[i] = w
+    return work
+
+
+@njit(nogil=True, cache=True)
+def _grow(arr, used, need):
+    """A copy of ``arr[:used]`` in a buffer of at least ``need`` (doubling)."""
+    cap = max(need, 2 * arr.shape[0], 16)
+    out = np.empty(cap, arr.dtype)
+    out[:used] = arr[:used]
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _top_k_compact(indices, data, start, stop, top_k):
+    """Keep the ``top_k`` largest |data| of the sorted row ``[start, stop)``.
+
+    Ties in |v| go to the smaller column (stable sort of a column-sorted row), and the
+    kept entries stay in column order. Returns the row's new end.
+    """
+    if stop - start <= top_k:
+        return stop
+    mags = np.empty(stop - start, np.float64)
+    for t in range(stop - start):
+        mags[t] = -abs(data[start + t])
+    order = np.argsort(mags, kind="mergesort")
+    keep = np.sort(order[:top_k])
+    # keep is increasing and keep[t] >= t, so moving forward in place never overwrites
+    # an entry still to be read.
+    for t in range(top_k):
+        indices[start + t] = indices[start + keep[t]]
+        data[start + t] = data[start + keep[t]]
+    return start + top_k
+
+
+@njit(nogil=True, cache=True)
+def spgemm_rows_internal(
+    r0, r1, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, n_cols,
+    threshold, top_k, dense_scan_ratio, capacity,
+):
+    """Rows ``[r0, r1)`` of A @ B, pruned inside the row loop, in one pass.
+
+    Gustavson's row-by-row product with a dense float64 accumulator ``acc`` (the SPA)
+    and a marker array: ``mark[j] == i - r0`` says column j was touched in row i. Both
+    are only as long as B has columns and are reused for every row, so the per-row
+    cost is the multiply-adds plus the emission of the row:
+
+    * dense-scan emission, when the row's column span (known without touching the
+      products, since B's rows are sorted: ``lo = min first column``, ``hi = max last
+      column`` of the B rows hit) is at most ``dense_scan_ratio`` times the row's
+      multiply-adds: the scatter loop stores unconditionally (no branch), and the
+      span is walked in column order, so the row comes out sorted with no sort;
+    * list emission otherwise (sparse rows over a wide span): touched columns are
+      listed on first touch, the entries that survive pruning are written, and only
+      those kept column indices are sorted.
+
+    An entry is kept when ``|v| >= threshold`` with v already rounded to the output
+    dtype (so the test sees the value that is stored); ``threshold = 0`` keeps every
+    structurally computed entry, as scipy does. Then, when ``top_k >= 0``, each row
+    keeps its top_k largest |v| (ties to the smaller column).
+
+    The result goes into buffers grown by doubling (no symbolic pass: a second pass
+    would repeat all multiply-adds, and the pruned nnz is not known from structure).
+
+    Parameters
+    ----------
+    r0, r1 : int
+        Row range of A.
+    a_indptr, a_indices, a_data : CSR arrays of A, (n_rows + 1,), (nnz_a,), (nnz_a,)
+    b_indptr, b_indices, b_data : CSR arrays of B (rows sorted), same index dtype
+    n_cols : int
+        Columns of B.
+    threshold : float
+        Absolute pruning threshold, >= 0.
+    top_k : int
+        Entries kept per row; -1 for all.
+    dense_scan_ratio : float
+        See above.
+    capacity : int
+        Initial buffer length (grown as needed).
+
+    Returns
+    -------
+    row_nnz : (r1 - r0,) int64
+    indices : (capacity,) dtype of ``b_indices``; the first ``row_nnz.sum()`` are used
+    data : (capacity,) dtype of ``a_data``; likewise
+    """
+    n = r1 - r0
+    row_nnz = np.zeros(n, np.int64)
+    out_j = np.empty(max(capacity, 16), b_indices.dtype)
+    out_v = np.empty(max(capacity, 16), a_data.dtype)
+    acc = np.zeros(n_cols, np.float64)
+    mark = np.full(n_cols, -1, np.int32)
+    touched = np.empty(n_cols, b_indices.dtype)
+    pos = 0
+    for ii in range(n):
+        i = r0 + ii
+        a_start = a_indptr[i]
+        a_stop = a_indptr[i + 1]
+        work = 0
+        lo = n_cols
+        hi = -1
+        for p in range(a_start, a_stop):
+            k = a_indices[p]
+            bs = b_indptr[k]
+            be = b_indptr[k + 1]
+            if be > bs:
+                work += be - bs
+                if b_indices[bs] < lo:
+                    lo = b_indices[bs]
+                if b_indices[be - 1] > hi:
+                    hi = b_indices[be - 1]
+        if work == 0:
+            continue
+        span = hi - lo + 1
+        bound = min(work, span)
+        if pos + bound > out_j.shape[0]:
+            out_j = _grow(out_j, pos, pos + bound)
+            out_v = _grow(out_v, pos, pos + bound)
+        start = pos
+        marker = np.int32(ii)
+        if span <= dense_scan_ratio * work:
+            for p in range(a_start, a_stop):
+                k = a_indices[p]
+                a = np.float64(a_data[p])
+                for q in range(b_indptr[k], b_indptr[k + 1]):
+                    j = b_indices[q]
+                    acc[j] += a * b_data[q]
+                    mark[j] = marker
+            for j in range(lo, hi + 1):
+                if mark[j] == marker:
+                    out_v[pos] = acc[j]
+                    acc[j] = 0.0
+                    if abs(out_v[pos]) >= threshold:
+                        out_j[pos] = j
+                        pos += 1
+        else:
+            cnt = 0
+            for p in range(a_start, a_stop):
+                k = a_indices[p]
+                a = np.float64(a_data[p])
+                for q in range(b_indptr[k], b_indptr[k + 1]):
+                    j = b_indices[q]
+                    if mark[j] != marker:
+                        mark[j] = marker
+                        touched[cnt] = j
+                        cnt += 1
+                    acc[j] += a * b_data[q]
+            for t in range(cnt):
+                j = touched[t]
+                out_v[pos] = acc[j]
+                if abs(out_v[pos]) >= threshold:
+                    out_j[pos] = j
+                    pos += 1
+                else:
+                    acc[j] = 0.0
+            out_j[start:pos].sort()
+            for p in range(start, pos):
+                j = out_j[p]
+                out_v[p] = acc[j]
+                acc[j] = 0.0
+        if top_k >= 0:
+            pos = _top_k_compact(out_j, out_v, start, pos, top_k)
+        row_nnz[ii] = pos - start
+    return row_nnz, out_j, out_v
+
+
+@njit(nogil=True, cache=True)
+def prune_internal(indptr, indices, data, threshold, top_k):
+    """Drop |v| < threshold, then keep the top_k largest |v| per row (-1: all).
+
+    Returns ``(indptr, indices, data)`` of the result, new arrays of the input dtypes.
+    """
+    n_rows = indptr.shape[0] - 1
+    out_p = np.zeros(n_rows + 1, indptr.dtype)
+    out_j = np.empty(indices.shape[0], indices.dtype)
+    out_v = np.empty(data.shape[0], data.dtype)
+    pos = 0
+    for i in range(n_rows):
+        start = pos
+        for p in range(indptr[i], indptr[i + 1]):
+            v = data[p]
+            if abs(v) >= threshold:
+                out_j[pos] = indices[p]
+                out_v[pos] = v
+                pos += 1
+        if top_k >= 0:
+            pos = _top_k_compact(out_j, out_v, start, pos, top_k)
+        out_p[i + 1] = pos
+    return out_p, out_j[:pos].copy(), out_v[:pos].copy()
+
+
+@njit(nogil=True, cache=True)
+def add_diag_scaled_internal(
+    a_indptr, a_indices, a_data, d, b_indptr, b_indices, b_data, out_dtype_proto
+):
+    """C = A + diag(d) B by merging each pair of sorted rows in one pass.
+
+    The union of both patterns is kept (an entry that cancels to 0 stays, like the
+    structural entries of spgemm). nnz(C) <= nnz(A) + nnz(B) bounds the buffers.
+
+    Parameters
+    ----------
+    a_*, b_* : CSR arrays of A and B, same shape, same index dtype, sorted rows
+    d : (n_rows,) float
+    out_dtype_proto : (0,) array of the output dtype
+
+    Returns
+    -------
+    indptr, indices, data of C
+    """
+    n_rows = a_indptr.shape[0] - 1
+    cap = a_indices.shape[0] + b_indices.shape[0]
+    out_p = np.zeros(n_rows + 1, np.int64)
+    out_j = np.empty(cap, a_indices.dtype)
+    out_v = np.empty(cap, out_dtype_proto.dtype)
+    pos = 0
+    for i in range(n_rows):
+        di = np.float64(d[i])
+        p = a_indptr[i]
+        pe = a_indptr[i + 1]
+        q = b_indptr[i]
+        qe = b_indptr[i + 1]
+        while p < pe and q < qe:
+            ja = a_indices[p]
+            jb = b_indices[q]
+            if ja < jb:
+                out_j[pos] = ja
+                out_v[pos] = a_data[p]
+                p += 1
+            elif jb < ja:
+                out_j[pos] = jb
+                out_v[pos] = di * b_data[q]
+                q += 1
+            else:
+                out_j[pos] = ja
+                out_v[pos] = np.float64(a_data[p]) + di * b_data[q]
+                p += 1
+                q += 1
+            pos += 1
+        while p < pe:
+            out_j[pos] = a_indices[p]
+            out_v[pos] = a_data[p]
+            p += 1
+            pos += 1
+        while q < qe:
+            out_j[pos] = b_indices[q]
+            out_v[pos] = di * b_data[q]
+            q += 1
+            pos += 1
+        out_p[i + 1] = pos
+    return out_p, out_j[:pos].copy(), out_v[:pos].copy()
+
+
+@njit(nogil=True, cache=True)
+def scale_rows_internal(indptr, data, d, out):
+    """out[p] = d[i] * data[p] for p in row i. ``out`` may be ``data``."""
+    for i in range(indptr.shape[0] - 1):
+        di = d[i]
+        for p in range(indptr[i], indptr[i + 1]):
+            out[p] = di * data[p]
+
+
+@njit(nogil=True, cache=True)
+def scale_cols_internal(indices, data, d, out):
+    """out[p] = data[p] * d[indices[p]]. ``out`` may be ``data``."""
+    for p in range(indices.shape[0]):
+        out[p] = data[p] * d[indices[p]]
+
+
+@njit(nogil=True, cache=True)
+def diagonal_internal(indptr, indices, data, out):
+    """out[i] = A[i, i] (sums duplicates, works on unsorted rows)."""
+    for i in range(out.shape[0]):
+        s = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            if indices[p] == i:
+                s += data[p]
+        out[i] = s
+
+
+@njit(nogil=True, cache=True)
+def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
+    """out[r0:r1] += A[r0:r1] @ x for a dense x of shape (n_cols, k), C-contiguous.
+
+    Each row is summed in float64 (a k-vector kept in registers/L1 for k <= 64) and
+    added to ``out`` once, so ``out`` is read and written once per row.
+    """
+    k = x.shape[1]
+    if k == 1:
+        for i in range(r0, r1):
+            s = 0.0
+            for p in range(indptr[i], indptr[i + 1]):
+                s += np.float64(data[p]) * x[indices[p], 0]
+            out[i, 0] += s
+        return
+    tmp = np.zeros(k, np.float64)
+    for i in range(r0, r1):
+        for c in range(k):
+            tmp[c] = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            a = np.float64(data[p])
+            xrow = x[indices[p]]
+            for c in range(k):
+                tmp[c] += a * xrow[c]
+        orow = out[i]
+        for c in range(k):
+            orow[c] += tmp[c]

@@ -1,0 +1,487 @@
+"""Checked wrappers over the CSR kernels: scipy.sparse in, ``csr_array`` out.
+
+Every wrapper validates its inputs (shapes, index ranges, finite values: one numba
+pass, always on), converts them to one index dtype and one float dtype, and calls the
+unchecked kernels of :mod:`bigT.kernels._csr_kernels`. Results are
+``scipy.sparse.csr_array`` with sorted, duplicate-free indices.
+
+Dtypes: the result dtype is numpy's promotion of the inputs (float32 with float32 is
+float32; anything with float64 is float64; integers and bools are promoted to a float).
+Sums are accumulated in float64 and rounded once to the result dtype: the accumulator is
+one row long and lives in cache, so it costs nothing measurable, and a float32 result
+is then the correctly rounded value of a float64 sum instead of ~400 float32 roundings.
+
+Threads: products split the rows into ranges of equal work (multiply-adds) and run the
+``nogil`` kernels on a shared ``ThreadPoolExecutor`` (one thread per core by default,
+``bigT.config.KERNEL_THREADS``). A thread pool rather than numba's ``prange``
+because (1) each range writes its pruned rows into its own growable buffers, which
+``prange`` cannot express without a symbolic pass; (2) the schedule layer calls these
+kernels from dask's worker threads, and numba's default ``workqueue`` threading layer
+is not thread-safe under concurrent callers (and nested parallelism would
+oversubscribe the cores); with plain threads, a caller that already parallelises over
+tiles passes ``n_threads=1``; (3) no ``parallel=True`` compile, so ``cache=True``
+works for every kernel.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import config
+from ..errors import InvalidMatrixError, ShapeMismatchError
+from . import _csr_kernels as K
+
+INT32_MAX = np.iinfo(np.int32).max
+
+__all__ = [
+    "spgemm",
+    "add_diag_scaled",
+    "scale_rows",
+    "scale_cols",
+    "diagonal",
+    "prune",
+    "spmm_dense",
+    "choose_index_dtype",
+]
+
+
+# --- helpers -----------------------------------------------------------------------
+
+_pools: dict[int, ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
+
+
+def _n_threads(n_threads):
+    if n_threads is None:
+        n_threads = config.KERNEL_THREADS
+    if n_threads is None:
+        n_threads = os.cpu_count() or 1
+    n_threads = int(n_threads)
+    if n_threads < 1:
+        raise ValueError(f"n_threads must be >= 1, got {n_threads}")
+    return n_threads
+
+
+def _pool(n_threads):
+    with _pools_lock:
+        pool = _pools.get(n_threads)
+        if pool is None:
+            pool = ThreadPoolExecutor(n_threads, thread_name_prefix="bigT-kernel")
+            _pools[n_threads] = pool
+        return pool
+
+
+def _split_rows(work, n_chunks):
+    """Row boundaries cutting ``work`` (per-row cost) into ``n_chunks`` equal parts."""
+    n_rows = work.shape[0]
+    if n_rows == 0:
+        return np.zeros(1, np.int64)
+    cum = np.cumsum(work, dtype=np.int64)
+    targets = cum[-1] * np.arange(1, n_chunks, dtype=np.float64) / n_chunks
+    cuts = np.searchsorted(cum, targets, side="left") + 1
+    bounds = np.unique(np.concatenate(([0], np.minimum(cuts, n_rows), [n_rows])))
+    return bounds.astype(np.int64)
+
+
+def _run_ranges(func, bounds, n_threads):
+    """``func(r0, r1)`` over consecutive ranges, results in range order."""
+    ranges = [(int(bounds[t]), int(bounds[t + 1])) for t in range(len(bounds) - 1)]
+    if n_threads == 1 or len(ranges) <= 1:
+        return [func(r0, r1) for r0, r1 in ranges]
+    return list(_pool(n_threads).map(lambda r: func(*r), ranges))
+
+
+def choose_index_dtype(max_index, nnz, index_dtype=None):
+    """int32 when both the largest index and nnz fit in it, else int64.
+
+    Parameters
+    ----------
+    max_index : int
+        Largest index value to store (e.g. columns - 1, rows).
+    nnz : int
+        Number of stored entries (the last ``indptr`` value).
+    index_dtype : dtype-like, optional
+        Force a dtype; int32 is refused when it cannot hold the values.
+    """
+    fits32 = max(int(max_index), int(nnz)) <= INT32_MAX
+    if index_dtype is None:
+        return np.dtype(np.int32) if fits32 else np.dtype(np.int64)
+    index_dtype = np.dtype(index_dtype)
+    if index_dtype == np.int64:
+        return index_dtype
+    if index_dtype == np.int32:
+        if not fits32:
+            raise InvalidMatrixError(
+                f"index_dtype=int32 cannot hold max index {max_index} / nnz {nnz}"
+            )
+        return index_dtype
+    raise ValueError(f"index_dtype must be int32 or int64, got {index_dtype}")
+
+
+def _float_dtype(*dtypes, name="inputs"):
+    dt = np.result_type(*dtypes)
+    if dt.kind == "c":
+        raise InvalidMatrixError(f"{name}: complex values are not supported ({dt})")
+    if dt.kind in "biu" or dt == np.float16:
+        dt = np.result_type(dt, np.float32)
+    if dt not in (np.float32, np.float64):
+        raise InvalidMatrixError(f"{name}: dtype {dt} is not supported (float32/float64)")
+    return np.dtype(dt)
+
+
+_CSR_MESSAGES = {
+    K.CSR_BAD_INDPTR: "malformed CSR indptr (not starting at 0, decreasing, or not "
+    "ending at nnz) near row {where}",
+    K.CSR_INDEX_OUT_OF_RANGE: "column index out of range at position {where}",
+    K.CSR_NOT_FINITE: "NaN or Inf value at position {where}",
+}
+
+
+class _CSR:
+    """Validated raw arrays of one CSR operand."""
+
+    __slots__ = ("shape", "indptr", "indices", "data")
+
+    def __init__(self, shape, indptr, indices, data):
+        self.shape = shape
+        self.indptr = indptr
+        self.indices = indices
+        self.data = data
+
+    @property
+    def nnz(self):
+        return int(self.indptr[-1])
+
+
+def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True):
+    """Validate ``A`` and return its raw arrays in the requested dtypes.
+
+    ``dtype=None`` keeps A's float dtype; ``index_dtype`` defaults to int32 when the
+    shape and nnz allow it. With ``canonical``, rows are sorted and duplicates summed
+    (on a copy) when they are not already.
+    """
+    if not sp.issparse(A):
+        raise InvalidMatrixError(f"{name} must be a scipy.sparse matrix, got {type(A).__name__}")
+    if A.ndim != 2:
+        raise ShapeMismatchError(f"{name} must be 2-D, got shape {A.shape}")
+    if A.format != "csr":
+        A = A.tocsr()
+    n_rows, n_cols = (int(s) for s in A.shape)
+    fdt = _float_dtype(A.dtype, name=name) if dtype is None else np.dtype(dtype)
+    idt = choose_index_dtype(max(n_rows, n_cols), A.nnz, index_dtype)
+    indptr = np.asarray(A.indptr)
+    indices = np.asarray(A.indices)
+    data = np.asarray(A.data)
+    if indptr.shape != (n_rows + 1,):
+        raise InvalidMatrixError(f"{name}: indptr has shape {indptr.shape}, expected ({n_rows + 1},)")
+    if indices.shape != data.shape or indices.ndim != 1:
+        raise InvalidMatrixError(f"{name}: indices and data differ in shape")
+    nnz = int(indptr[-1]) if n_rows >= 0 else 0
+    indices = indices[:nnz]
+    data = data[:nnz]
+    if data.dtype.kind == "c":
+        raise InvalidMatrixError(f"{name}: complex values are not supported ({data.dtype})")
+    indptr = np.ascontiguousarray(indptr, dtype=idt)
+    indices = np.ascontiguousarray(indices, dtype=idt)
+    data = np.ascontiguousarray(data, dtype=fdt)
+    status, where, is_canonical = K.check_csr_internal(indptr, indices, data, n_cols)
+    if status != K.CSR_OK:
+        raise InvalidMatrixError(f"{name}: " + _CSR_MESSAGES[status].format(where=where))
+    if canonical and not is_canonical:
+        C = sp.csr_array((data, indices, indptr), shape=(n_rows, n_cols), copy=True)
+        C.sum_duplicates()
+        indptr = np.ascontiguousarray(C.indptr, dtype=idt)
+        indices = np.ascontiguousarray(C.indices, dtype=idt)
+        data = np.ascontiguousarray(C.data, dtype=fdt)
+    return _CSR((n_rows, n_cols), indptr, indices, data)
+
+
+def _vector(d, n, name, what):
+    d = np.asarray(d)
+    if d.ndim != 1 or d.shape[0] != n:
+        raise ShapeMismatchError(f"{name} must have shape ({n},) ({what}), got {d.shape}")
+    if d.dtype.kind not in "biuf":
+        raise InvalidMatrixError(f"{name}: dtype {d.dtype} is not supported")
+    if not np.isfinite(d).all():
+        raise InvalidMatrixError(f"{name} holds NaN or Inf")
+    return d
+
+
+def _check_threshold(threshold, top_k):
+    threshold = float(threshold)
+    if not np.isfinite(threshold) or threshold < 0:
+        raise ValueError(f"threshold must be finite and >= 0, got {threshold}")
+    if top_k is None:
+        top_k = -1
+    else:
+        if isinstance(top_k, bool) or int(top_k) != top_k or top_k < 1:
+            raise ValueError(f"top_k must be a positive integer or None, got {top_k!r}")
+        top_k = int(top_k)
+    return threshold, top_k
+
+
+def _csr_result(shape, indptr, indices, data, index_dtype=None):
+    """Build the csr_array, widening to int64 when nnz or the shape need it."""
+    nnz = int(indptr[-1])
+    idt = choose_index_dtype(max(shape), nnz, index_dtype)
+    if indices.dtype != idt:
+        indices = indices.astype(idt)
+    if indptr.dtype != idt:
+        indptr = indptr.astype(idt)
+    C = sp.csr_array((data, indices, indptr), shape=shape, copy=False)
+    C.has_sorted_indices = True
+    C.has_canonical_format = True
+    return C
+
+
+# --- products ------------------------------------------------------------------------
+
+
+def spgemm(A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None):
+    """C = A @ B with pruning fused into the row loop.
+
+    Entries with ``|v| < threshold`` (absolute, tested on the value rounded to the
+    result dtype) are never written; with ``top_k`` each row then keeps its ``top_k``
+    largest |v| (ties go to the smaller column). ``threshold=0`` keeps every
+    structurally computed entry, explicit zeros included, as scipy does.
+
+    One pass (no symbolic pass: it would repeat every multiply-add only to size
+    buffers that pruning then mostly leaves empty): each row range writes into its own
+    doubling buffers, the ranges run on ``n_threads`` threads with the GIL released,
+    and the pieces are concatenated. See ``_csr_kernels.spgemm_rows_internal``.
+
+    Parameters
+    ----------
+    A : scipy.sparse matrix, shape (m, n), float32/float64 (others promoted)
+    B : scipy.sparse matrix, shape (n, p)
+    threshold : float, >= 0
+    top_k : int or None
+    n_threads : int, optional
+        Default ``bigT.config.KERNEL_THREADS`` (None: one per core).
+    index_dtype : {None, int32, int64}
+        Force the index dtype of the result; by default int32 when nnz and the shape
+        fit, int64 otherwise (never a silent overflow).
+
+    Returns
+    -------
+    scipy.sparse.csr_array, shape (m, p), dtype = promotion of A's and B's dtypes.
+
+    Raises
+    ------
+    ShapeMismatchError
+        ``A.shape[1] != B.shape[0]``.
+    InvalidMatrixError
+        Malformed CSR, indices out of range, NaN/Inf values.
+    """
+    threshold, top_k = _check_threshold(threshold, top_k)
+    for X, nm in ((A, "A"), (B, "B")):
+        if sp.issparse(X) and X.ndim != 2:
+            raise ShapeMismatchError(f"{nm} must be 2-D, got shape {X.shape}")
+    if sp.issparse(A) and sp.issparse(B) and A.shape[1] != B.shape[0]:
+        raise ShapeMismatchError(
+            f"B has {B.shape[0]} rows but A has {A.shape[1]} columns "
+            f"(A {A.shape} @ B {B.shape})"
+        )
+    fdt = _float_dtype(
+        A.dtype if sp.issparse(A) else np.float64,
+        B.dtype if sp.issparse(B) else np.float64,
+        name="A, B",
+    )
+    # One index dtype for both operands, so each kernel is compiled for 2 index x 2
+    # float dtypes only; int64 as soon as either operand needs it.
+    idt = np.dtype(np.int32)
+    if sp.issparse(A) and sp.issparse(B):
+        need = max(max(A.shape), max(B.shape), A.nnz, B.nnz)
+        idt = choose_index_dtype(need, 0, index_dtype)
+    a = _as_csr(A, "A", dtype=fdt, index_dtype=idt, canonical=False)
+    b = _as_csr(B, "B", dtype=fdt, index_dtype=idt, canonical=True)
+    m, p = a.shape[0], b.shape[1]
+    if a.nnz == 0 or b.nnz == 0 or m == 0 or p == 0:
+        return _csr_result(
+            (m, p), np.zeros(m + 1, idt), np.zeros(0, idt), np.zeros(0, fdt), index_dtype
+        )
+
+    work = K.row_work_internal(a.indptr, a.indices, b.indptr)
+    total_work = int(work.sum())
+    n_threads = _n_threads(n_threads)
+    if total_work < config.KERNEL_MIN_PARALLEL_WORK:
+        n_threads = 1
+    n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD
+    bounds = _split_rows(work, n_chunks)
+    ratio = float(config.SPGEMM_DENSE_SCAN_RATIO)
+    # Initial buffers: the rows' nnz(A) (a pruned term is about as dense as its
+    # factor), capped by the exact upper bound; they double when short.
+    cum_work = np.concatenate(([0], np.cumsum(work)))
+
+    def run(r0, r1):
+        cap = min(
+            int(cum_work[r1] - cum_work[r0]),
+            int(a.indptr[r1] - a.indptr[r0]) + 16 * (r1 - r0),
+            (r1 - r0) * p,
+        )
+        return K.spgemm_rows_internal(
+            r0, r1, a.indptr, a.indices, a.data, b.indptr, b.indices, b.data, p,
+            threshold, top_k, ratio, cap,
+        )
+
+    pieces = _run_ranges(run, bounds, n_threads)
+    row_nnz = np.concatenate([pc[0] for pc in pieces])
+    nnz = int(row_nnz.sum())
+    out_idt = choose_index_dtype(max(m, p), nnz, index_dtype)
+    indptr = np.empty(m + 1, out_idt)
+    indptr[0] = 0
+    np.cumsum(row_nnz, out=indptr[1:])
+    if len(pieces) == 1:
+        used = nnz
+        indices, data = pieces[0][1][:used], pieces[0][2][:used]
+        if pieces[0][1].shape[0] > 1.25 * used + 1024:
+            indices, data = indices.copy(), data.copy()
+    else:
+        sizes = [int(pc[0].sum()) for pc in pieces]
+        indices = np.concatenate([pc[1][:s] for pc, s in zip(pieces, sizes)])
+        data = np.concatenate([pc[2][:s] for pc, s in zip(pieces, sizes)])
+    return _csr_result((m, p), indptr, indices, data, out_idt)
+
+
+def spmm_dense(A, X, out=None, *, n_threads=None):
+    """A @ X for a sparse A and a dense batch X (images as columns).
+
+    Parameters
+    ----------
+    A : scipy.sparse matrix, shape (m, n)
+    X : ndarray, shape (n,) or (n, k)
+    out : ndarray, shape (m,) or (m, k), optional
+        When given, ``out += A @ X`` in place and ``out`` is returned. Must be a
+        writeable float32/float64 array; C-contiguous is fastest.
+    n_threads : int, optional
+
+    Returns
+    -------
+    ndarray, shape (m,) or (m, k), dtype = promotion of A's and X's dtypes (or
+    ``out``'s dtype). Rows are summed in float64.
+    """
+    if not sp.issparse(A):
+        raise InvalidMatrixError(f"A must be a scipy.sparse matrix, got {type(A).__name__}")
+    X = np.asarray(X)
+    if X.ndim not in (1, 2):
+        raise ShapeMismatchError(f"X must have shape (n,) or (n, k), got {X.shape}")
+    if X.shape[0] != A.shape[1]:
+        raise ShapeMismatchError(
+            f"X has {X.shape[0]} rows but A has {A.shape[1]} columns (A {A.shape} @ X {X.shape})"
+        )
+    fdt = _float_dtype(A.dtype, X.dtype, name="A, X")
+    a = _as_csr(A, "A", dtype=fdt, canonical=False)
+    vector = X.ndim == 1
+    X2 = np.ascontiguousarray(X.reshape(X.shape[0], -1), dtype=fdt)
+    if not np.isfinite(X2).all():
+        raise InvalidMatrixError("X holds NaN or Inf")
+    m, k = a.shape[0], X2.shape[1]
+    if out is None:
+        result = np.zeros((m, k), fdt)
+        target = result
+    else:
+        if not isinstance(out, np.ndarray):
+            raise InvalidMatrixError(f"out must be a numpy array, got {type(out).__name__}")
+        want = (m,) if vector else (m, k)
+        if out.shape != want:
+            raise ShapeMismatchError(f"out must have shape {want}, got {out.shape}")
+        if out.dtype not in (np.float32, np.float64):
+            raise InvalidMatrixError(f"out must be float32 or float64, got {out.dtype}")
+        if not out.flags.writeable:
+            raise InvalidMatrixError("out is not writeable")
+        result = out
+        target = out.reshape(m, k)
+        if not target.flags.c_contiguous or not np.shares_memory(target, out):
+            target = np.ascontiguousarray(target)
+    if a.nnz and m and k:
+        n_threads = _n_threads(n_threads)
+        if a.nnz * k < config.KERNEL_MIN_PARALLEL_WORK:
+            n_threads = 1
+        n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD
+        bounds = _split_rows(np.diff(a.indptr).astype(np.int64) + 1, n_chunks)
+        _run_ranges(
+            lambda r0, r1: K.spmm_dense_rows_internal(
+                r0, r1, a.indptr, a.indices, a.data, X2, target
+            ),
+            bounds,
+            n_threads,
+        )
+        if out is not None and target is not result and not np.shares_memory(target, out):
+            out[...] = target.reshape(out.shape)
+    if out is None and vector:
+        return result.reshape(m)
+    return result
+
+
+# --- element-wise and structural ----------------------------------------------------
+
+
+def add_diag_scaled(A, d, B):
+    """C = A + diag(d) @ B, merging the sorted rows of A and B in one pass.
+
+    Parameters
+    ----------
+    A, B : scipy.sparse matrices of the same shape (m, n)
+    d : array_like, shape (m,)
+
+    Returns
+    -------
+    scipy.sparse.csr_array, shape (m, n), dtype = promotion of A, d, B. The union of
+    both patterns is stored (entries that cancel to 0 are kept).
+    """
+    d = _vector(d, A.shape[0] if sp.issparse(A) else -1, "d", "one factor per row")
+    if sp.issparse(A) and sp.issparse(B) and A.shape != B.shape:
+        raise ShapeMismatchError(f"B has shape {B.shape} but A has shape {A.shape}")
+    fdt = _float_dtype(A.dtype, d.dtype, B.dtype, name="A, d, B")
+    idt = choose_index_dtype(max(max(A.shape), A.nnz, B.nnz), 0)
+    a = _as_csr(A, "A", dtype=fdt, index_dtype=idt)
+    b = _as_csr(B, "B", dtype=fdt, index_dtype=idt)
+    indptr, indices, data = K.add_diag_scaled_internal(
+        a.indptr, a.indices, a.data, np.ascontiguousarray(d, np.float64),
+        b.indptr, b.indices, b.data, np.zeros(0, fdt),
+    )
+    return _csr_result(a.shape, indptr, indices, data)
+
+
+def scale_rows(A, d):
+    """diag(d) @ A. d: (m,). Returns csr_array, dtype = promotion of A and d."""
+    d = _vector(d, A.shape[0] if sp.issparse(A) else -1, "d", "one factor per row")
+    fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
+    a = _as_csr(A, "A", dtype=fdt)
+    out = np.empty_like(a.data)
+    K.scale_rows_internal(a.indptr, a.data, np.ascontiguousarray(d, fdt), out)
+    return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
+
+
+def scale_cols(A, d):
+    """A @ diag(d). d: (n,). Returns csr_array, dtype = promotion of A and d."""
+    d = _vector(d, A.shape[1] if sp.issparse(A) else -1, "d", "one factor per column")
+    fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
+    a = _as_csr(A, "A", dtype=fdt)
+    out = np.empty_like(a.data)
+    K.scale_cols_internal(a.indices, a.data, np.ascontiguousarray(d, fdt), out)
+    return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
+
+
+def diagonal(A):
+    """The main diagonal of A, shape (min(m, n),), A's float dtype."""
+    a = _as_csr(A, "A", canonical=False)
+    out = np.zeros(min(a.shape), a.data.dtype)
+    K.diagonal_internal(a.indptr, a.indices, a.data, out)
+    return out
+
+
+def prune(A, threshold=0.0, top_k=None):
+    """A without its entries |v| < threshold, then the top_k largest |v| per row.
+
+    Returns csr_array of A's float dtype (sorted, duplicates summed before pruning).
+    """
+    threshold, top_k = _check_threshold(threshold, top_k)
+    a = _as_csr(A, "A")
+    indptr, indices, data = K.prune_internal(a.indptr, a.indices, a.data, threshold, top_k)
+    return _csr_result(a.shape, indptr, indices, data)
