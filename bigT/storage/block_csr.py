@@ -1,0 +1,643 @@
+"""Reading a bigT block-CSR store: :func:`open` and :class:`BlockCSR`.
+
+The tile index (which tiles of which tile row are stored, and their nnz) is read once
+on open and kept in memory; a tile read touches only that tile's three arrays.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import scipy.sparse as sp
+import zarr
+from zarr.storage import LocalStore
+
+from .. import config
+from ..errors import (
+    BigTError,
+    CorruptStoreError,
+    IncompleteStoreError,
+    MemoryLimitError,
+    ShapeMismatchError,
+    StoreError,
+)
+from . import _format as fmt
+from .pixel_order import PixelOrder
+
+
+# --- small helpers -----------------------------------------------------------------
+
+def atomic_write_json(path: Path, obj: dict) -> None:
+    """Write ``obj`` as JSON to ``path`` via a temporary file and ``os.replace``.
+
+    A reader sees the old file or the new one, never a torn one; this is what makes
+    the tile-row completion markers and metadata updates atomic.
+    """
+    text = json.dumps(obj, indent=2, allow_nan=False)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{id(obj):x}.tmp")
+    try:
+        with io.open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def group_json(attributes: dict) -> dict:
+    return {"zarr_format": 3, "node_type": "group", "attributes": attributes}
+
+
+def _read_bigt_attrs(path: Path) -> dict:
+    if not path.exists():
+        raise StoreError("no such store", path)
+    if not path.is_dir():
+        raise StoreError("not a bigT store (not a directory)", path)
+    meta = fmt.read_json(path / "zarr.json")
+    if meta.get("zarr_format") != 3 or meta.get("node_type") != "group":
+        raise StoreError("not a bigT store (zarr.json is not a zarr v3 group)", path)
+    attrs = (meta.get("attributes") or {}).get(fmt.ATTRS_KEY)
+    if not isinstance(attrs, dict) or attrs.get("format") != fmt.FORMAT_NAME:
+        raise StoreError(f"not a bigT store (zarr group without attrs['{fmt.ATTRS_KEY}'] "
+                         f"of format {fmt.FORMAT_NAME!r})", path)
+    version = attrs.get("version")
+    if not isinstance(version, int) or version > fmt.FORMAT_VERSION:
+        raise StoreError(f"unsupported {fmt.FORMAT_NAME} version {version!r} "
+                         f"(this bigT reads up to {fmt.FORMAT_VERSION})", path)
+    return attrs
+
+
+def _check_redirect(target: str, root: Path) -> Path:
+    p = PurePosixPath(target)
+    if not target or p.is_absolute() or ".." in p.parts:
+        raise StoreError(f"invalid redirect {target!r}: must be a relative path inside the store", root)
+    return root.joinpath(*p.parts)
+
+
+def _row_marker(path: Path, i: int) -> dict | None:
+    """The completion record of tile row ``i``, or None when the row is not complete."""
+    try:
+        with io.open(path / fmt.row_path(i) / "zarr.json", "rb") as f:
+            meta = json.load(f)
+    except (OSError, ValueError):
+        return None
+    rec = (meta.get("attributes") or {}).get(fmt.ROW_ATTRS_KEY) or {}
+    return rec if rec.get("complete") is True else None
+
+
+# --- the store ---------------------------------------------------------------------
+
+def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
+    """Open a bigT block-CSR store for reading.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Directory of the zarr v3 group. A group whose ``attrs["bigT"]["redirect"]``
+        names a sub-path is followed (one level): that is a versioned store.
+    allow_incomplete : bool
+        Open a store whose writing was interrupted; tile rows not marked complete then
+        read as empty (``.missing_tile_rows`` lists them).
+
+    Raises
+    ------
+    StoreError
+        Not a bigT store; a redirect that is invalid or points at another redirect.
+    IncompleteStoreError
+        Some tile rows are not marked complete, or the writer never finalized.
+    CorruptStoreError
+        The tile index is damaged or disagrees with the recorded nnz.
+    """
+    root = Path(os.fspath(path))
+    attrs = _read_bigt_attrs(root)
+    redirected_from = None
+    if "redirect" in attrs:
+        target = _check_redirect(attrs["redirect"], root)
+        redirected_from = root
+        attrs = _read_bigt_attrs(target)
+        if "redirect" in attrs:
+            raise StoreError("redirect points at another redirect (one level is followed)", root)
+        root = target
+    return BlockCSR(root, attrs, allow_incomplete=allow_incomplete, redirected_from=redirected_from)
+
+
+class BlockCSR:
+    """A sparse matrix stored as a grid of CSR tiles in a zarr v3 group.
+
+    Use :func:`bigT.storage.open` or :func:`bigT.storage.from_scipy` to get one.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        Directory of the store actually read (the redirect target, if any).
+    shape : (int, int)
+    dtype : numpy.dtype
+        float32 or float64.
+    nnz : int
+    tile_size : int
+    grid : (int, int)
+        (n_tile_rows, n_tile_cols); the last tile row/column may be ragged.
+    pixel_order : PixelOrder or None
+    metadata : dict
+        Free JSON metadata (the inverse engine records term, prune, residual there).
+    tile_indptr : (n_tile_rows + 1,) int64
+    tile_indices : (n_tiles_stored,) int64
+        Tile columns of the stored tiles, tile row by tile row, ascending.
+    tile_nnz : (n_tiles_stored,) int64
+    """
+
+    def __init__(self, path: Path, attrs: dict, *, allow_incomplete: bool = False,
+                 redirected_from: Path | None = None):
+        self.path = Path(path)
+        self.redirected_from = redirected_from
+        self._attrs = attrs
+        try:
+            self.shape = tuple(int(s) for s in attrs["shape"])
+            self.tile_size = int(attrs["tile_size"])
+            self.dtype = np.dtype(attrs["dtype"])
+            self.inner_format = attrs.get("inner_format", "csr")
+            self.complete = bool(attrs.get("complete", False))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CorruptStoreError(f"bad bigT attributes ({exc!r})", self.path) from None
+        if len(self.shape) != 2 or min(self.shape) < 0 or self.tile_size < 1:
+            raise CorruptStoreError(f"bad shape {self.shape} or tile_size {self.tile_size}", self.path)
+        if self.dtype.name not in fmt.DTYPES:
+            raise CorruptStoreError(f"unsupported dtype {self.dtype.name}", self.path)
+        if self.inner_format not in fmt.INNER_FORMATS:
+            raise StoreError(f"inner_format {self.inner_format!r} is not supported by this bigT "
+                             f"(supported: {', '.join(fmt.INNER_FORMATS)})", self.path)
+        ts = self.tile_size
+        self.grid = (-(-self.shape[0] // ts), -(-self.shape[1] // ts))
+        self.pixel_order = PixelOrder.from_attrs(attrs)
+        self.metadata = dict(attrs.get("metadata") or {})
+        self._store = LocalStore(self.path, read_only=True)
+        self._arrays: dict[tuple[int, int], tuple] = {}
+        self.missing_tile_rows: list[int] = []
+        if self.complete:
+            self._load_index()
+        else:
+            self._scan_rows(allow_incomplete)
+        self._row_starts = self.tile_indptr[:-1]
+
+    # --- index ---------------------------------------------------------------------
+
+    def _load_index(self):
+        try:
+            arrays = [np.asarray(zarr.open_array(self._store, path=name, mode="r")[...], dtype=np.int64)
+                      for name in fmt.INDEX_ARRAYS]
+        except BigTError:
+            raise
+        except Exception as exc:
+            raise CorruptStoreError(f"cannot read the tile index ({type(exc).__name__}: {exc})",
+                                    self.path) from None
+        indptr, indices, nnz = arrays
+        n_rows, n_cols = self.grid
+        problem = None
+        if indptr.shape != (n_rows + 1,) or indptr[0] != 0 or np.any(np.diff(indptr) < 0):
+            problem = "tile_indptr is not a valid index pointer for the tile grid"
+        elif indices.shape != (indptr[-1],) or nnz.shape != indices.shape:
+            problem = "tile_indices/tile_nnz lengths disagree with tile_indptr"
+        elif indices.size and (indices.min() < 0 or indices.max() >= n_cols):
+            problem = "tile_indices out of range (a chunk file is missing or damaged)"
+        elif nnz.size and nnz.min() < 1:
+            problem = "tile_nnz holds non-positive counts (a chunk file is missing or damaged)"
+        elif int(nnz.sum()) != int(self._attrs.get("nnz", -1)):
+            problem = f"tile_nnz sums to {int(nnz.sum())}, attrs record nnz={self._attrs.get('nnz')}"
+        else:
+            for i in range(n_rows):
+                if np.any(np.diff(indices[indptr[i]:indptr[i + 1]]) <= 0):
+                    problem = f"tile_indices of tile row {i} not strictly increasing"
+                    break
+        if problem:
+            raise CorruptStoreError(problem, self.path)
+        self.tile_indptr, self.tile_indices, self.tile_nnz = indptr, indices, nnz
+        self.nnz = int(nnz.sum())
+
+    def _scan_rows(self, allow_incomplete: bool):
+        n_rows = self.grid[0]
+        cols, counts, lengths = [], [], []
+        for i in range(n_rows):
+            rec = _row_marker(self.path, i)
+            if rec is None:
+                self.missing_tile_rows.append(i)
+                c, k = [], []
+            else:
+                c, k = list(rec.get("tile_columns", [])), list(rec.get("tile_nnz", []))
+            cols.extend(c)
+            counts.extend(k)
+            lengths.append(len(c))
+        if not allow_incomplete:
+            missing = self.missing_tile_rows
+            if missing:
+                first = ", ".join(str(i) for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
+                msg = (f"incomplete store: {len(missing)} of {n_rows} tile rows are missing "
+                       f"(rows {first}); resume writing with resume=True")
+            else:
+                msg = "incomplete store: all tile rows written but the writer never finalized; " \
+                      "resume writing with resume=True and finalize()"
+            raise IncompleteStoreError(msg, self.path)
+        self.tile_indptr = np.concatenate([[0], np.cumsum(lengths, dtype=np.int64)]).astype(np.int64)
+        self.tile_indices = np.asarray(cols, dtype=np.int64)
+        self.tile_nnz = np.asarray(counts, dtype=np.int64)
+        self.nnz = int(self.tile_nnz.sum())
+
+    # --- geometry ------------------------------------------------------------------
+
+    @property
+    def n_tiles_stored(self) -> int:
+        return int(self.tile_indices.size)
+
+    def _check_tile_row(self, i: int) -> int:
+        i = int(i)
+        if not 0 <= i < self.grid[0]:
+            raise ShapeMismatchError(f"tile row {i} out of range [0, {self.grid[0]})", self.path)
+        return i
+
+    def tile_row_range(self, i: int) -> tuple[int, int]:
+        """(start, stop) matrix rows of tile row ``i``."""
+        i = self._check_tile_row(i)
+        return i * self.tile_size, min((i + 1) * self.tile_size, self.shape[0])
+
+    def tile_col_range(self, j: int) -> tuple[int, int]:
+        """(start, stop) matrix columns of tile column ``j``."""
+        j = int(j)
+        if not 0 <= j < self.grid[1]:
+            raise ShapeMismatchError(f"tile column {j} out of range [0, {self.grid[1]})", self.path)
+        return j * self.tile_size, min((j + 1) * self.tile_size, self.shape[1])
+
+    def tile_shape(self, i: int, j: int) -> tuple[int, int]:
+        r0, r1 = self.tile_row_range(i)
+        c0, c1 = self.tile_col_range(j)
+        return r1 - r0, c1 - c0
+
+    def tile_columns(self, i: int) -> np.ndarray:
+        """(k,) int64: tile columns of the stored tiles of tile row ``i``, ascending."""
+        i = self._check_tile_row(i)
+        return self.tile_indices[self.tile_indptr[i]:self.tile_indptr[i + 1]]
+
+    def _position(self, i: int, j: int) -> int:
+        """Index of tile (i, j) in tile_indices, or -1 when the tile is not stored."""
+        i = self._check_tile_row(i)
+        self.tile_col_range(j)
+        lo, hi = self.tile_indptr[i], self.tile_indptr[i + 1]
+        k = lo + int(np.searchsorted(self.tile_indices[lo:hi], j))
+        return k if k < hi and self.tile_indices[k] == j else -1
+
+    def has_tile(self, i: int, j: int) -> bool:
+        return self._position(i, j) >= 0
+
+    # --- tiles ---------------------------------------------------------------------
+
+    def _corrupt(self, i, j, problem) -> CorruptStoreError:
+        return CorruptStoreError(f"tile ({i}, {j}): {problem}", self.path)
+
+    def _tile_arrays(self, i: int, j: int):
+        arrays = self._arrays.get((i, j))
+        if arrays is None:
+            base = fmt.tile_path(i, j)
+            arrays = tuple(zarr.open_array(self._store, path=f"{base}/{name}", mode="r")
+                           for name in fmt.TILE_ARRAYS)
+            self._arrays[(i, j)] = arrays
+        return arrays
+
+    def _read_tile(self, i: int, j: int, k: int) -> sp.csr_array:
+        rows, cols = self.tile_shape(i, j)
+        nnz = int(self.tile_nnz[k])
+        try:
+            a_ptr, a_ind, a_dat = self._tile_arrays(i, j)
+            indptr, indices, data = a_ptr[...], a_ind[...], a_dat[...]
+        except BigTError:
+            raise
+        except Exception as exc:
+            self._arrays.pop((i, j), None)
+            raise self._corrupt(i, j, f"unreadable ({type(exc).__name__}: {exc})") from None
+        # Cheap checks, always on: zarr reads a missing chunk as the fill value (-1 or
+        # NaN), which none of these arrays may hold.
+        if indptr.shape != (rows + 1,) or indices.shape != (nnz,) or data.shape != (nnz,):
+            raise self._corrupt(i, j, "array lengths disagree with the tile index")
+        if indptr[0] != 0 or indptr[-1] != nnz or np.any(indptr[1:] < indptr[:-1]):
+            raise self._corrupt(i, j, "indptr is not monotone from 0 to the tile nnz "
+                                      "(a chunk file is missing or damaged)")
+        if nnz and (indices.min() < 0 or indices.max() >= cols):
+            raise self._corrupt(i, j, "column indices out of range (a chunk file is missing or damaged)")
+        if not np.isfinite(data).all():
+            raise self._corrupt(i, j, "non-finite values (a chunk file is missing or damaged)")
+        out = sp.csr_array((data, indices, indptr), shape=(rows, cols))
+        out.has_sorted_indices = True  # written sorted; verify() checks it
+        return out
+
+    def get_tile(self, i: int, j: int) -> sp.csr_array:
+        """Tile (i, j) as a csr_array of shape ``tile_shape(i, j)`` (local indices).
+
+        An empty csr_array of that shape when the tile is not stored.
+        """
+        k = self._position(i, j)
+        if k < 0:
+            return sp.csr_array(self.tile_shape(i, j), dtype=self.dtype)
+        return self._read_tile(int(i), int(j), k)
+
+    def iter_tiles(self, i: int):
+        """Yield ``(j, tile)`` for the stored tiles of tile row ``i``."""
+        i = self._check_tile_row(i)
+        for k in range(self.tile_indptr[i], self.tile_indptr[i + 1]):
+            j = int(self.tile_indices[k])
+            yield j, self._read_tile(i, j, int(k))
+
+    def get_tile_row(self, i: int) -> sp.csr_array:
+        """Tile row ``i`` as a csr_array of shape (rows_i, n_cols), global columns."""
+        r0, r1 = self.tile_row_range(i)
+        rows = r1 - r0
+        tiles = list(self.iter_tiles(i))
+        if not tiles:
+            return sp.csr_array((rows, self.shape[1]), dtype=self.dtype)
+        counts = np.zeros(rows, dtype=np.int64)
+        for _, t in tiles:
+            counts += np.diff(t.indptr)
+        indptr = np.zeros(rows + 1, dtype=np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        idx_dtype = np.int32 if self.shape[1] < 2**31 and indptr[-1] < 2**31 else np.int64
+        indices = np.empty(indptr[-1], dtype=idx_dtype)
+        data = np.empty(indptr[-1], dtype=self.dtype)
+        fill = indptr[:-1].copy()
+        # Tiles in ascending column order: appending each tile's part of a row keeps the
+        # row's columns sorted.
+        for j, t in tiles:
+            c0 = j * self.tile_size
+            lens = np.diff(t.indptr)
+            dest = np.repeat(fill - t.indptr[:-1], lens) + np.arange(t.nnz)
+            indices[dest] = t.indices + c0
+            data[dest] = t.data
+            fill += lens
+        out = sp.csr_array((data, indices, indptr.astype(idx_dtype)), shape=(rows, self.shape[1]))
+        out.has_sorted_indices = True
+        return out
+
+    def diagonal(self) -> np.ndarray:
+        """(min(shape),) array of dtype: the main diagonal, reading diagonal tiles only."""
+        n = min(self.shape)
+        out = np.zeros(n, dtype=self.dtype)
+        for i in range(min(self.grid)):
+            k = self._position(i, i)
+            if k < 0:
+                continue
+            d = self._read_tile(i, i, k).diagonal()
+            r0 = i * self.tile_size
+            out[r0:r0 + d.size] = d[:n - r0]
+        return out
+
+    def csr_bytes(self) -> int:
+        """Bytes of the CSR arrays of the whole matrix in memory (int64 index)."""
+        return self.nnz * (self.dtype.itemsize + 8) + (self.shape[0] + 1) * 8
+
+    def to_scipy(self, max_bytes: int | None = None, output_order: str = "matrix") -> sp.csr_array:
+        """The whole matrix in memory as a csr_array.
+
+        Parameters
+        ----------
+        max_bytes : int, optional
+            Refuse (MemoryLimitError) beyond this many bytes of CSR arrays; default
+            ``config.TO_SCIPY_MAX_BYTES``.
+        output_order : {"matrix", "row-major"}
+            "matrix": as stored. "row-major": rows and columns permuted back to
+            row-major image order (needs a pixel order; the same as "matrix" without).
+        """
+        if output_order not in ("matrix", "row-major"):
+            raise ValueError(f"output_order must be 'matrix' or 'row-major', got {output_order!r}")
+        limit = config.TO_SCIPY_MAX_BYTES if max_bytes is None else int(max_bytes)
+        need = self.csr_bytes()
+        if need > limit:
+            raise MemoryLimitError(f"to_scipy needs about {need / 2**20:.1f} MiB of CSR arrays, "
+                                   f"over the limit of {limit / 2**20:.1f} MiB; stream tile rows "
+                                   f"(get_tile_row) or raise max_bytes", self.path)
+        if self.grid[0] == 0:
+            out = sp.csr_array(self.shape, dtype=self.dtype)
+        else:
+            out = sp.vstack([self.get_tile_row(i) for i in range(self.grid[0])], format="csr")
+            out = sp.csr_array(out)
+        if output_order == "row-major" and self.pixel_order is not None:
+            inv = self.pixel_order.inverse_permutation
+            out = sp.csr_array(out[inv][:, inv])
+            out.sort_indices()
+        out.has_sorted_indices = True
+        return out
+
+    # --- products ------------------------------------------------------------------
+
+    def matmul(self, x: np.ndarray) -> np.ndarray:
+        """``A @ x`` for dense x of shape (n_cols,) or (n_cols, k), streaming tile rows.
+
+        Returns an array of shape (n_rows,) or (n_rows, k) and the promoted float dtype.
+        """
+        x = np.asarray(x)
+        if x.ndim not in (1, 2) or x.shape[0] != self.shape[1]:
+            raise ShapeMismatchError(f"cannot multiply a {self.shape} matrix by an array of shape "
+                                     f"{x.shape}: need ({self.shape[1]},) or ({self.shape[1]}, k)",
+                                     self.path)
+        dtype = np.result_type(self.dtype, x.dtype, np.float32)
+        X = np.ascontiguousarray(x.reshape(self.shape[1], -1), dtype=dtype)
+        Y = np.zeros((self.shape[0], X.shape[1]), dtype=dtype)
+        spmm = _spmm_dense()
+        for i in range(self.grid[0]):
+            r0, r1 = self.tile_row_range(i)
+            for j, tile in self.iter_tiles(i):
+                c0 = j * self.tile_size
+                xs = X[c0:c0 + tile.shape[1]]
+                if spmm is None:
+                    Y[r0:r1] += tile @ xs
+                else:
+                    spmm(tile, xs, out=Y[r0:r1])
+        return Y[:, 0] if x.ndim == 1 else Y
+
+    def __matmul__(self, x):
+        if sp.issparse(x):
+            return NotImplemented
+        return self.matmul(x)
+
+    # --- metadata, checks, summary ---------------------------------------------------
+
+    def update_metadata(self, **items) -> None:
+        """Merge ``items`` into the free metadata dict, atomically on disk."""
+        try:
+            json.dumps(items, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise BigTError(f"metadata is not JSON-serialisable ({exc})", self.path) from None
+        meta_path = self.path / "zarr.json"
+        meta = fmt.read_json(meta_path)
+        attrs = meta.setdefault("attributes", {}).setdefault(fmt.ATTRS_KEY, {})
+        merged = dict(attrs.get("metadata") or {})
+        merged.update(items)
+        attrs["metadata"] = merged
+        atomic_write_json(meta_path, meta)
+        self.metadata = merged
+
+    def _missing_chunk_files(self, limit: int | None = None) -> list[str]:
+        """Chunk files the stored tiles need but that are not on disk (stat only)."""
+        missing = []
+        chunk = config.CHUNK_ELEMENTS
+        for i in range(self.grid[0]):
+            rows = self.tile_shape(i, 0)[0] if self.grid[1] else 0
+            for k in range(self.tile_indptr[i], self.tile_indptr[i + 1]):
+                j = int(self.tile_indices[k])
+                base = self.path / fmt.tile_path(i, j)
+                for name, length in (("indptr", rows + 1), ("indices", int(self.tile_nnz[k])),
+                                     ("data", int(self.tile_nnz[k]))):
+                    arr_dir = base / name
+                    if not (arr_dir / "zarr.json").is_file():
+                        missing.append(f"{fmt.tile_path(i, j)}/{name}/zarr.json")
+                        continue
+                    try:
+                        arr = self._tile_arrays(i, j)[fmt.TILE_ARRAYS.index(name)]
+                        n_chunks = -(-length // arr.chunks[0])
+                        keys = [arr.metadata.encode_chunk_key((c,)) for c in range(n_chunks)]
+                    except Exception:
+                        n_chunks = -(-length // chunk)
+                        keys = [f"c/{c}" for c in range(n_chunks)]
+                    for key in keys:
+                        if not (arr_dir / key).is_file():
+                            missing.append(f"{fmt.tile_path(i, j)}/{name}/{key}")
+                    if limit and len(missing) >= limit:
+                        return missing
+        return missing
+
+    def check_chunks_exist(self) -> None:
+        """Cheap existence check of every chunk file; CorruptStoreError naming the first missing."""
+        missing = self._missing_chunk_files(limit=1)
+        if missing:
+            raise CorruptStoreError(f"missing chunk file {missing[0]}", self.path)
+
+    def verify(self) -> dict:
+        """Full check of every tile and every chunk file.
+
+        Checks that every chunk file exists, that every checksum matches, the CSR
+        structure of every tile (monotone indptr, sorted duplicate-free in-range
+        indices, finite data) and that the per-tile nnz add up to the recorded nnz.
+
+        Returns
+        -------
+        dict
+            ``{"tiles": n_tiles_checked, "nnz": nnz}``.
+
+        Raises
+        ------
+        CorruptStoreError
+            Naming the store and the first bad tile or chunk.
+        """
+        self.check_chunks_exist()
+        total = 0
+        for i in range(self.grid[0]):
+            if self.complete:
+                rec = _row_marker(self.path, i)
+                if rec is None:
+                    raise CorruptStoreError(f"tile row {i} has no completion marker", self.path)
+                if list(rec.get("tile_columns", [])) != self.tile_columns(i).tolist():
+                    raise CorruptStoreError(f"tile row {i}: completion marker disagrees with the "
+                                            "tile index", self.path)
+            for j, t in self.iter_tiles(i):
+                if t.nnz == 0:
+                    raise self._corrupt(i, j, "stored tile is empty")
+                d = np.diff(t.indices)
+                starts = t.indptr[1:-1]
+                ok = np.ones(d.size, dtype=bool)
+                ok[starts[(starts > 0) & (starts <= d.size)] - 1] = False  # row boundaries
+                if np.any(d[ok] <= 0):
+                    raise self._corrupt(i, j, "column indices not sorted and duplicate-free within a row")
+                total += t.nnz
+        if total != self.nnz:
+            raise CorruptStoreError(f"tiles hold {total} entries, the index records {self.nnz}", self.path)
+        return {"tiles": self.n_tiles_stored, "nnz": total}
+
+    def info(self) -> dict:
+        """Summary: shape, nnz, density, tile fill, diagonal statistics, bytes on disk."""
+        diag = self.diagonal()
+        n_total = self.grid[0] * self.grid[1]
+        n, m = self.shape
+        return {
+            "path": str(self.path),
+            "redirected_from": None if self.redirected_from is None else str(self.redirected_from),
+            "format": fmt.FORMAT_NAME,
+            "version": int(self._attrs.get("version", fmt.FORMAT_VERSION)),
+            "inner_format": self.inner_format,
+            "complete": self.complete,
+            "missing_tile_rows": list(self.missing_tile_rows),
+            "shape": list(self.shape),
+            "dtype": self.dtype.name,
+            "nnz": self.nnz,
+            "density": self.nnz / (n * m) if n * m else 0.0,
+            "nnz_per_row": self.nnz / n if n else 0.0,
+            "tile_size": self.tile_size,
+            "grid": list(self.grid),
+            "n_tiles_stored": self.n_tiles_stored,
+            "n_tiles_total": n_total,
+            "tile_fill": self.n_tiles_stored / n_total if n_total else 0.0,
+            "diagonal_min": float(diag.min()) if diag.size else None,
+            "diagonal_max": float(diag.max()) if diag.size else None,
+            "zero_diagonal": int(np.count_nonzero(diag == 0)),
+            "bytes_on_disk": fmt.disk_bytes(self.path),
+            "csr_bytes": self.csr_bytes(),
+            "pixel_order": None if self.pixel_order is None else self.pixel_order.to_attrs(),
+            "metadata": dict(self.metadata),
+        }
+
+    def __repr__(self) -> str:
+        return (f"<BlockCSR {self.shape[0]}x{self.shape[1]} {self.dtype.name} nnz={self.nnz} "
+                f"tile_size={self.tile_size} tiles={self.n_tiles_stored} at {str(self.path)!r}>")
+
+
+def _spmm_dense():
+    """``bigT.kernels.spmm_dense`` when the kernels layer provides it, else None."""
+    try:
+        from ..kernels import spmm_dense
+    except ImportError:
+        return None
+    return spmm_dense
+
+
+def set_redirect(path, target: str) -> None:
+    """Point the versioned store at ``path`` to its sub-store ``target``, atomically.
+
+    The inverse engine writes term k into e.g. ``path/terms/k`` with a
+    :class:`BlockCSRWriter`, finalizes it, then calls ``set_redirect(path, "terms/k")``:
+    a reader opening ``path`` sees the old term or the new one, never a mix.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Root directory (created, with a group zarr.json, when missing).
+    target : str
+        Relative POSIX path of a complete bigT store inside ``path``.
+    """
+    root = Path(os.fspath(path))
+    dest = _check_redirect(target, root)
+    attrs = _read_bigt_attrs(dest)
+    if "redirect" in attrs:
+        raise StoreError(f"redirect target {target!r} is itself a redirect", root)
+    if not attrs.get("complete"):
+        raise IncompleteStoreError(f"redirect target {target!r} is not a finalized store", root)
+    root.mkdir(parents=True, exist_ok=True)
+    # Make every level between root and target an explicit zarr v3 group, so another
+    # zarr implementation can walk the hierarchy.
+    level = root
+    for part in PurePosixPath(target).parts[:-1]:
+        level = level / part
+        if not (level / "zarr.json").exists():
+            atomic_write_json(level / "zarr.json", group_json({}))
+    meta_path = root / "zarr.json"
+    meta = fmt.read_json(meta_path) if meta_path.exists() else group_json({})
+    if meta.get("node_type") != "group":
+        raise StoreError("cannot set a redirect: zarr.json is not a group", root)
+    bigt = dict((meta.get("attributes") or {}).get(fmt.ATTRS_KEY) or {})
+    if bigt and bigt.get("format") != fmt.FORMAT_NAME:
+        raise StoreError("cannot set a redirect: attrs['bigT'] belongs to another format", root)
+    bigt.update({"format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
+                 "redirect": PurePosixPath(target).as_posix()})
+    meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = bigt
+    atomic_write_json(meta_path, meta)

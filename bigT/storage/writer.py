@@ -1,0 +1,486 @@
+"""Writing a bigT block-CSR store: :class:`BlockCSRWriter` and :func:`from_scipy`."""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from zarr.storage import LocalStore
+
+from .. import config
+from ..errors import (
+    BigTError,
+    DiskFullError,
+    IncompleteStoreError,
+    InvalidMatrixError,
+    NotSquareError,
+    ShapeMismatchError,
+    StoreError,
+)
+from . import _format as fmt
+from .block_csr import BlockCSR, _read_bigt_attrs, _row_marker, atomic_write_json, group_json
+from .block_csr import open as open_store
+from .pixel_order import PIXEL_ORDERS, PixelOrder
+
+
+def _check_dtype(dtype, where) -> np.dtype:
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt is None or dt.name not in fmt.DTYPES:
+        raise InvalidMatrixError(f"dtype must be float32 or float64, got {dtype!r}", where)
+    return dt
+
+
+def _is_bigt_or_empty(path: Path) -> bool:
+    if path.is_dir() and not any(path.iterdir()):
+        return True
+    try:
+        _read_bigt_attrs(path)
+        return True
+    except StoreError:
+        return False
+
+
+def _remove_existing(path: Path, overwrite: bool) -> None:
+    """Refuse an existing path unless ``overwrite``; never delete what is not a bigT store."""
+    if not path.exists():
+        return
+    if not overwrite:
+        raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
+    if not _is_bigt_or_empty(path):
+        raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
+    shutil.rmtree(path)
+
+
+def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
+    if exc.errno == errno.ENOSPC:
+        return DiskFullError(f"disk full while writing {what}; tile rows completed before it "
+                             f"are kept (resume with resume=True)", path)
+    return None
+
+
+def _split_tiles(indptr, indices, data, n_rows: int, ts: int):
+    """Cut one tile row (CSR with sorted global columns) into its non-empty tiles.
+
+    Yields ``(j, indptr_j, indices_j, data_j)`` in ascending tile column ``j`` with local
+    column indices; a stable sort by tile column keeps each tile's entries in
+    row-major, column-sorted order.
+    """
+    nnz = indices.size
+    if nnz == 0:
+        return
+    tcol = indices // ts
+    row_of = np.repeat(np.arange(n_rows, dtype=np.int64), np.diff(indptr))
+    if tcol[0] == tcol[-1] and np.all(tcol == tcol[0]):
+        order = None
+        js, bounds = tcol[:1], np.array([0, nnz])
+    else:
+        order = np.argsort(tcol, kind="stable")
+        tcol_sorted = tcol[order]
+        js, starts = np.unique(tcol_sorted, return_index=True)
+        bounds = np.append(starts, nnz)
+    for k, j in enumerate(js):
+        sl = slice(bounds[k], bounds[k + 1])
+        sel = sl if order is None else order[sl]
+        counts = np.bincount(row_of[sel], minlength=n_rows)
+        ptr = np.zeros(n_rows + 1, dtype=fmt.INDPTR_DTYPE)
+        np.cumsum(counts, out=ptr[1:])
+        local = (indices[sel] - int(j) * ts).astype(fmt.INDICES_DTYPE)
+        yield int(j), ptr, local, np.ascontiguousarray(data[sel])
+
+
+class BlockCSRWriter:
+    """Write a block-CSR store tile row by tile row.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Directory of the new store.
+    shape : (int, int)
+    tile_size : int, optional
+        Default ``config.DEFAULT_TILE_SIZE``.
+    dtype : {"float32", "float64"}
+    pixel_order : PixelOrder, optional
+        Recorded so images map back; its ``n`` must equal both sides of ``shape``.
+    metadata : dict, optional
+        Free JSON metadata.
+    resume : bool
+        Continue an interrupted store at ``path``: complete tile rows are kept and
+        ``write_tile_row`` skips them; a half-written row is discarded.
+    overwrite : bool
+        Replace an existing bigT store at ``path`` (never anything else).
+    zstd_level : int, optional
+        Default ``config.ZSTD_LEVEL``.
+
+    Notes
+    -----
+    Each tile row is written whole (all its tile arrays) and only then marked complete
+    by an atomic rewrite of its group's zarr.json; :meth:`finalize` writes the tile
+    index and sets ``complete`` on the root.
+    """
+
+    def __init__(self, path, shape, *, tile_size: int | None = None, dtype="float32",
+                 pixel_order: PixelOrder | None = None, metadata: dict | None = None,
+                 resume: bool = False, overwrite: bool = False, zstd_level: int | None = None):
+        self.path = Path(os.fspath(path))
+        try:
+            shape = tuple(int(s) for s in shape)
+        except (TypeError, ValueError):
+            raise ShapeMismatchError(f"shape must be (n_rows, n_cols), got {shape!r}", self.path) from None
+        if len(shape) != 2 or min(shape) < 0:
+            raise ShapeMismatchError(f"shape must be (n_rows, n_cols) >= 0, got {shape}", self.path)
+        self.shape = shape
+        self.tile_size = int(config.DEFAULT_TILE_SIZE if tile_size is None else tile_size)
+        if self.tile_size < 1:
+            raise ShapeMismatchError(f"tile_size must be >= 1, got {tile_size}", self.path)
+        self.dtype = _check_dtype(dtype, self.path)
+        if pixel_order is not None:
+            if not isinstance(pixel_order, PixelOrder):
+                raise TypeError("pixel_order must be a PixelOrder or None")
+            if shape != (pixel_order.n, pixel_order.n):
+                raise ShapeMismatchError(f"image shape {pixel_order.image_shape} has {pixel_order.n} "
+                                         f"pixels, the matrix is {shape}", self.path)
+        self.pixel_order = pixel_order
+        self.zstd_level = zstd_level
+        self.grid = (-(-shape[0] // self.tile_size), -(-shape[1] // self.tile_size))
+        self._rows: dict[int, tuple[list[int], list[int]]] = {}
+        self._finalized = False
+
+        attrs = {
+            "format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
+            "inner_format": "csr", "shape": list(shape), "tile_size": self.tile_size,
+            "dtype": self.dtype.name, "nnz": None, "complete": False,
+            "metadata": dict(metadata or {}),
+        }
+        if pixel_order is not None:
+            attrs.update(pixel_order.to_attrs())
+        if resume and self.path.exists() and not (self.path.is_dir() and not any(self.path.iterdir())):
+            self._attrs = self._resume(attrs)
+        else:
+            _remove_existing(self.path, overwrite)
+            self._attrs = attrs
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+                (self.path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
+                atomic_write_json(self.path / fmt.ROWS_GROUP / "zarr.json", group_json({}))
+                self._write_root()
+            except OSError as exc:
+                raise (_wrap_oserror(exc, self.path, "the store header") or exc) from exc
+        self._store = LocalStore(self.path)
+
+    def _write_root(self):
+        import json
+        try:
+            json.dumps(self._attrs, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise BigTError(f"metadata is not JSON-serialisable ({exc})", self.path) from None
+        atomic_write_json(self.path / "zarr.json", group_json({fmt.ATTRS_KEY: self._attrs}))
+
+    def _resume(self, attrs: dict) -> dict:
+        old = _read_bigt_attrs(self.path)
+        if "redirect" in old:
+            raise StoreError("cannot resume into a redirect (versioned) store root", self.path)
+        for key in ("shape", "tile_size", "dtype", "inner_format"):
+            if old.get(key) != attrs[key]:
+                raise ShapeMismatchError(f"cannot resume: store has {key}={old.get(key)!r}, "
+                                         f"writer asks {attrs[key]!r}", self.path)
+        old_po = PixelOrder.from_attrs(old)
+        if old_po != self.pixel_order:
+            raise ShapeMismatchError(f"cannot resume: store has pixel order {old_po}, writer asks "
+                                     f"{self.pixel_order}", self.path)
+        for i in range(self.grid[0]):
+            rec = _row_marker(self.path, i)
+            if rec is not None:
+                self._rows[i] = (list(rec["tile_columns"]), list(rec["tile_nnz"]))
+            elif (self.path / fmt.row_path(i)).exists():
+                shutil.rmtree(self.path / fmt.row_path(i))  # half-written: discard
+        if attrs["metadata"]:
+            merged = dict(old.get("metadata") or {})
+            merged.update(attrs["metadata"])
+            old["metadata"] = merged
+        self._finalized = bool(old.get("complete"))
+        return old
+
+    # --- writing -------------------------------------------------------------------
+
+    @property
+    def completed_tile_rows(self) -> list[int]:
+        """Sorted tile rows already complete on disk."""
+        return sorted(self._rows)
+
+    @property
+    def missing_tile_rows(self) -> list[int]:
+        return [i for i in range(self.grid[0]) if i not in self._rows]
+
+    def tile_row_range(self, i: int) -> tuple[int, int]:
+        return i * self.tile_size, min((i + 1) * self.tile_size, self.shape[0])
+
+    def _validate_block(self, i: int, block) -> sp.csr_array:
+        r0, r1 = self.tile_row_range(i)
+        want = (r1 - r0, self.shape[1])
+        where = f"tile row {i}"
+        if sp.issparse(block):
+            if block.shape != want:
+                raise ShapeMismatchError(f"{where}: block of shape {block.shape}, expected {want}", self.path)
+            if not np.issubdtype(block.dtype, np.number) or np.issubdtype(block.dtype, np.complexfloating):
+                raise InvalidMatrixError(f"{where}: values of dtype {block.dtype} are not real numbers", self.path)
+            if block.format != "csr":
+                block = block.tocsr()
+            indptr, indices = np.asarray(block.indptr), np.asarray(block.indices)
+            if (indptr.shape != (want[0] + 1,) or (indptr.size and indptr[0] != 0)
+                    or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size
+                    or np.asarray(block.data).size != indices.size):
+                raise InvalidMatrixError(f"{where}: malformed CSR index pointer", self.path)
+            if indices.size and (indices.min() < 0 or indices.max() >= want[1]):
+                raise InvalidMatrixError(f"{where}: column indices out of range [0, {want[1]})", self.path)
+            data = np.asarray(block.data)
+            if not np.isfinite(data).all():
+                bad = int(np.count_nonzero(~np.isfinite(data)))
+                raise InvalidMatrixError(f"{where}: {bad} NaN/Inf values", self.path)
+            with np.errstate(over="ignore"):
+                cast = data.astype(self.dtype)
+            if not np.isfinite(cast).all():
+                raise InvalidMatrixError(f"{where}: values overflow {self.dtype.name}", self.path)
+            out = sp.csr_array((cast, indices.copy(), indptr.copy()), shape=want)
+        else:
+            arr = np.asarray(block)
+            if arr.shape != want:
+                raise ShapeMismatchError(f"{where}: block of shape {arr.shape}, expected {want}", self.path)
+            if not np.isfinite(arr).all():
+                raise InvalidMatrixError(f"{where}: NaN/Inf values", self.path)
+            out = sp.csr_array(arr.astype(self.dtype))
+        out.sum_duplicates()
+        out.eliminate_zeros()
+        return out
+
+    def write_tile_row(self, i: int, block) -> bool:
+        """Write tile row ``i`` whole, then mark it complete.
+
+        Parameters
+        ----------
+        i : int
+            Tile row, ``0 <= i < grid[0]``.
+        block : sparse matrix/array or ndarray, shape (rows_i, n_cols)
+            Global column indices; converted to CSR of the store's dtype, duplicates
+            summed, explicit zeros dropped, then cut into tiles (empty tiles dropped).
+
+        Returns
+        -------
+        bool
+            False when the row was already complete (a resumed writer skips it).
+        """
+        i = int(i)
+        if self._finalized and i in self._rows:
+            return False
+        if not 0 <= i < self.grid[0]:
+            raise ShapeMismatchError(f"tile row {i} out of range [0, {self.grid[0]})", self.path)
+        if i in self._rows:
+            return False
+        block = self._validate_block(i, block)
+        row_dir = self.path / fmt.row_path(i)
+        cols, counts = [], []
+        try:
+            if row_dir.exists():
+                shutil.rmtree(row_dir)
+            row_dir.mkdir(parents=True)
+            atomic_write_json(row_dir / "zarr.json",
+                              group_json({fmt.ROW_ATTRS_KEY: {"complete": False}}))
+            for j, ptr, ind, dat in _split_tiles(block.indptr, block.indices, block.data,
+                                                 block.shape[0], self.tile_size):
+                base = fmt.tile_path(i, j)
+                _write_tile(self._store, base, ptr, ind, dat, self.zstd_level)
+                cols.append(j)
+                counts.append(int(ind.size))
+            # The marker is written last: a crash before this line leaves the row
+            # incomplete, never a half-written row that looks valid.
+            atomic_write_json(row_dir / "zarr.json", group_json(
+                {fmt.ROW_ATTRS_KEY: {"complete": True, "tile_columns": cols, "tile_nnz": counts}}))
+        except OSError as exc:
+            wrapped = _wrap_oserror(exc, self.path, f"tile row {i}")
+            shutil.rmtree(row_dir, ignore_errors=True)
+            if wrapped is not None:
+                raise wrapped from exc
+            raise
+        self._rows[i] = (cols, counts)
+        return True
+
+    def finalize(self) -> BlockCSR:
+        """Write the tile index, mark the store complete and open it for reading.
+
+        Raises
+        ------
+        IncompleteStoreError
+            Naming the tile rows not yet written.
+        """
+        missing = self.missing_tile_rows
+        if missing:
+            first = ", ".join(str(i) for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
+            raise IncompleteStoreError(f"cannot finalize: {len(missing)} of {self.grid[0]} tile rows "
+                                       f"not written (rows {first})", self.path)
+        if not self._finalized:
+            lengths = [len(self._rows[i][0]) for i in range(self.grid[0])]
+            tile_indptr = np.zeros(self.grid[0] + 1, dtype=np.int64)
+            np.cumsum(lengths, out=tile_indptr[1:])
+            tile_indices = np.array([j for i in range(self.grid[0]) for j in self._rows[i][0]],
+                                    dtype=np.int64)
+            tile_nnz = np.array([c for i in range(self.grid[0]) for c in self._rows[i][1]],
+                                dtype=np.int64)
+            try:
+                for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
+                    fmt.write_array(self._store, name, values, fmt.FILL_INT, self.zstd_level)
+                self._attrs["nnz"] = int(tile_nnz.sum())
+                self._attrs["complete"] = True
+                self._write_root()
+            except OSError as exc:
+                raise (_wrap_oserror(exc, self.path, "the tile index") or exc) from exc
+            self._finalized = True
+        return open_store(self.path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None and not self._finalized:
+            self.finalize()
+        return False
+
+
+def _write_tile(store, base: str, indptr, indices, data, level) -> None:
+    fmt.write_array(store, f"{base}/indptr", indptr, fmt.FILL_INT, level)
+    fmt.write_array(store, f"{base}/indices", indices, fmt.FILL_INT, level)
+    fmt.write_array(store, f"{base}/data", data, fmt.FILL_FLOAT, level)
+
+
+def _as_checked_csr(A, path, require_square: bool) -> sp.csr_array:
+    """Validate ``A`` whole before anything is written."""
+    if sp.issparse(A):
+        if A.ndim != 2:
+            raise ShapeMismatchError(f"matrix must be 2-D, got shape {A.shape}", path)
+        A = sp.csr_array(A)
+    else:
+        arr = np.asarray(A)
+        if arr.ndim != 2:
+            raise ShapeMismatchError(f"matrix must be 2-D, got shape {arr.shape}", path)
+        if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+            raise InvalidMatrixError(f"values of dtype {arr.dtype} are not numbers", path)
+        A = sp.csr_array(arr)
+    if np.issubdtype(A.dtype, np.complexfloating) or not (
+            np.issubdtype(A.dtype, np.number) or A.dtype == bool):
+        raise InvalidMatrixError(f"values of dtype {A.dtype} are not real numbers", path)
+    if require_square and A.shape[0] != A.shape[1]:
+        raise NotSquareError(f"matrix must be square, got shape {A.shape}", path)
+    bad = ~np.isfinite(A.data)
+    if bad.any():
+        r = int(np.searchsorted(A.indptr, np.flatnonzero(bad)[0], side="right") - 1)
+        raise InvalidMatrixError(f"{int(bad.sum())} NaN/Inf values (first in row {r})", path)
+    if A.nnz and (A.indices.min() < 0 or A.indices.max() >= A.shape[1]):
+        raise InvalidMatrixError(f"column indices out of range [0, {A.shape[1]})", path)
+    return A
+
+
+def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape=None,
+               pixel_order: str = "row-major", image_tile=None, input_order: str = "row-major",
+               metadata: dict | None = None, overwrite: bool = False,
+               require_square: bool = False) -> BlockCSR:
+    """Store a scipy sparse matrix (or 2-D ndarray) as a bigT block-CSR store.
+
+    The store is written to a temporary sibling directory and moved into place only
+    when complete, so a failed call leaves ``path`` as it was.
+
+    Parameters
+    ----------
+    A : scipy sparse matrix/array or ndarray, shape (n_rows, n_cols)
+    path : str or os.PathLike
+    tile_size : int, optional
+        Default ``config.DEFAULT_TILE_SIZE``.
+    dtype : {"float32", "float64"}, optional
+        Default float32.
+    image_shape : (H, W), optional
+        The matrix maps H x W images (then it must be square with n = H W).
+    pixel_order : {"row-major", "tile-major"}
+        Pixel order of the store.
+    image_tile : (th, tw), optional
+        Image tile of "tile-major"; default ``config.DEFAULT_IMAGE_TILE``.
+    input_order : {"row-major", "matrix"}
+        "row-major": A is numbered in row-major image order and is permuted into
+        ``pixel_order``; "matrix": A is already in the stored order.
+    metadata : dict, optional
+    overwrite : bool
+        Replace an existing bigT store at ``path``.
+    require_square : bool
+        Raise NotSquareError for a non-square A.
+
+    Returns
+    -------
+    BlockCSR
+    """
+    path = Path(os.fspath(path))
+    dt = _check_dtype("float32" if dtype is None else dtype, path)
+    if input_order not in ("row-major", "matrix"):
+        raise ValueError(f"input_order must be 'row-major' or 'matrix', got {input_order!r}")
+    if pixel_order not in PIXEL_ORDERS:
+        raise ValueError(f"pixel_order must be one of {PIXEL_ORDERS}, got {pixel_order!r}")
+    A = _as_checked_csr(A, path, require_square or image_shape is not None)
+    po = None
+    if image_shape is not None:
+        kw = {} if image_tile is None else {"image_tile": tuple(image_tile)}
+        po = PixelOrder(tuple(image_shape), pixel_order, **kw)
+        if A.shape != (po.n, po.n):
+            raise ShapeMismatchError(f"image shape {po.image_shape} has {po.n} pixels, the matrix "
+                                     f"is {A.shape}", path)
+    elif pixel_order != "row-major":
+        raise ShapeMismatchError(f"pixel_order {pixel_order!r} needs image_shape", path)
+    if path.exists():
+        if not overwrite:
+            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
+        if not _is_bigt_or_empty(path):
+            raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
+
+    with np.errstate(over="ignore"):
+        data = A.data.astype(dt)
+    if not np.isfinite(data).all():
+        raise InvalidMatrixError(f"values overflow {dt.name}", path)
+    A = sp.csr_array((data, A.indices, A.indptr), shape=A.shape)
+    if po is not None and input_order == "row-major" and po.order != "row-major":
+        perm = po.permutation
+        A = sp.csr_array(A[perm][:, perm])
+    A.sum_duplicates()
+    A.eliminate_zeros()
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
+    try:
+        writer = BlockCSRWriter(tmp, A.shape, tile_size=tile_size, dtype=dt, pixel_order=po,
+                                metadata=metadata)
+        for i in range(writer.grid[0]):
+            r0, r1 = writer.tile_row_range(i)
+            writer.write_tile_row(i, A[r0:r1])
+        writer.finalize()
+        if path.exists():
+            trash = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.old")
+            os.replace(path, trash)
+            os.replace(tmp, path)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except DiskFullError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise DiskFullError(f"disk full while writing ({exc.problem}); nothing was changed at the "
+                            f"destination", path) from exc
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        wrapped = _wrap_oserror(exc, path, "the store")
+        if wrapped is not None:
+            raise wrapped from exc
+        raise
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return open_store(path)
