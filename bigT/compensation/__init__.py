@@ -1,1 +1,22 @@
-"""bigT.compensation layer (see DESIGN.md)."""
+"""Compensation, relighting and bounce separation: the stored matrices streamed against
+images (paper §6, eqs. 44-45; Seitz et al. 2005 for the bounces)."""
+
+from .core import (  # noqa: F401
+    CompensationReport,
+    PathChoice,
+    bounce_shares,
+    choose_path,
+    compensate,
+    first_bounce_from_inverse,
+    fluctuation,
+    matrix_free_apply,
+    relative_error,
+    relight,
+    scan_line,
+    separate_bounces,
+)
+from ._stream import stream_matmul  # noqa: F401
+
+__all__ = ["compensate", "relight", "separate_bounces", "matrix_free_apply", "choose_path",
+           "stream_matmul", "bounce_shares", "relative_error", "fluctuation", "scan_line",
+           "first_bounce_from_inverse", "PathChoice", "CompensationReport"]

@@ -1,0 +1,284 @@
+"""``bigT compensate``, ``bigT relight`` and ``bigT bounces``.
+
+Images go in and come out in the same form: one file -> one file, a folder of frames ->
+a folder with the same names. Folders are read, processed and written one batch of
+frames at a time, so neither the frames nor the matrices need to fit in memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..errors import BigTError, ImageError
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "compensate", help="projector inputs that make the camera see the desired images",
+        description="l_in = clip(X l_desired) (paper eqs. 44-45), X streamed from disk one "
+        "tile row at a time against batches of frames; or the same polynomial applied "
+        "matrix-free with T (--path matrix-free / auto).")
+    p.add_argument("X", help="inverse store (X.zarr); '-' for none (matrix-free path only)")
+    p.add_argument("desired", help="desired camera image (png/tif/npy) or a folder of frames")
+    p.add_argument("-o", "--output", required=True,
+                   help="projector input: an image file (or a folder for a folder input)")
+    p.add_argument("--simulate", metavar="T.zarr",
+                   help="also compute and write what the camera sees (T l_in), with error, "
+                   "fluctuation, a side-by-side PNG and a scan-line plot")
+    p.add_argument("--clip", default="0,1",
+                   help="projector range LO,HI ('0,' clips below only, as the paper's f_+; "
+                   "'none' for no clipping); default 0,1")
+    p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH,
+                   help=f"frames per pass over the matrix (default {config.DEFAULT_BATCH})")
+    p.add_argument("--path", choices=("explicit", "matrix-free", "auto"), default="auto",
+                   help="explicit X, matrix-free series with T, or the cheaper (default auto)")
+    p.add_argument("--matrix-free", dest="matrix_free", metavar="T.zarr",
+                   help="transport for the matrix-free path (default: the --simulate store)")
+    p.add_argument("--terms", type=int, default=None,
+                   help="series terms n of the matrix-free path (default: X's, else "
+                   f"{config.DEFAULT_COMPENSATION_TERMS})")
+    p.add_argument("--bits", type=int, choices=(8, 16), default=None,
+                   help="PNG bit depth of the outputs (default: that of each input PNG)")
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.set_defaults(func=run_compensate)
+
+    p = sub.add_parser("relight", help="what the camera sees for projector images: T l",
+                       description="Forward transport T l_in, streamed from disk.")
+    p.add_argument("T", help="transport store (T.zarr)")
+    p.add_argument("input", help="projector image or folder of frames")
+    p.add_argument("-o", "--output", required=True, help="output image file or folder")
+    p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH)
+    p.add_argument("--bits", type=int, choices=(8, 16), default=None)
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.set_defaults(func=run_relight)
+
+    p = sub.add_parser("bounces", help="split the camera image T l into light bounces",
+                       description="Seitz-style bounce separation: F_ii = 1/X_ii (paper eq. "
+                       "33), A = I - F X, b_k = A^k F l, plus the remainder T l - sum b_k.")
+    p.add_argument("T", help="transport store (T.zarr)")
+    p.add_argument("X", help="inverse store (X.zarr), as exact as possible")
+    p.add_argument("input", help="projector image l (png/tif/npy)")
+    p.add_argument("--bounces", type=int, default=4, help="K, the last bounce kept (default 4)")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+    p.add_argument("--format", choices=("tif", "npy", "png"), default="tif",
+                   help="image format of the parts (tif/npy keep floats; default tif)")
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.set_defaults(func=run_bounces)
+
+
+# --- helpers ----------------------------------------------------------------------------
+
+def _parse_clip(text: str):
+    if text.strip().lower() in ("none", "off", ""):
+        return None
+    try:
+        lo, hi = (s.strip() for s in text.split(","))
+        clip = (float(lo) if lo else None, float(hi) if hi else None)
+    except ValueError:
+        raise BigTError(f"--clip must be LO,HI (e.g. 0,1 or 0,) or 'none', got {text!r}") from None
+    if clip[0] is not None and clip[1] is not None and clip[0] >= clip[1]:
+        raise BigTError(f"--clip needs LO < HI, got {text!r}")
+    return clip
+
+
+def _sibling(path: Path, tag: str, suffix: str | None = None) -> Path:
+    """``out.png`` -> ``out_<tag>.png`` (``suffix`` to change it); ``dir`` -> ``dir_<tag>``."""
+    if path.suffix:
+        return path.with_name(f"{path.stem}_{tag}{suffix or path.suffix}")
+    return path.with_name(f"{path.name}_{tag}{suffix or ''}")
+
+
+def _image_shape(store):
+    order = getattr(store, "pixel_order", None)
+    return None if order is None else order.image_shape
+
+
+def _describe(store, name):
+    return (f"{name} {store.path}: {store.shape[0]:,} x {store.shape[1]:,}, nnz {store.nnz:,} "
+            f"({store.nnz / max(store.shape[0], 1):.0f}/row), {store.grid[0]} tile rows")
+
+
+# --- compensate -------------------------------------------------------------------------
+
+def run_compensate(args) -> int:
+    from ..compensation._stream import as_store, compute_dtype, stream_matmul
+    from ..compensation.core import (CompensationReport, choose_path, compensate_frames,
+                                     fluctuation, pixel_order_of, relative_error, scan_line,
+                                     to_frames, to_vectors)
+    from ..images import ImageSink, ImageSource
+
+    clip = _parse_clip(args.clip)
+    if args.batch < 1:
+        raise BigTError(f"--batch must be >= 1, got {args.batch}")
+    X = None if args.X == "-" else as_store(args.X, "X")
+    S = None if args.simulate is None else as_store(args.simulate, "T")
+    Tm = as_store(args.matrix_free, "T") if args.matrix_free else S
+    choice = choose_path(X, Tm if args.path != "explicit" else None, args.terms, args.path)
+    store = X if choice.path == "explicit" else Tm
+    shape = _image_shape(store)
+    for other, name in ((X, "X"), (Tm, "T"), (S, "T (--simulate)")):
+        if other is not None and shape is not None and _image_shape(other) not in (None, shape):
+            raise ImageError(f"{name} maps images of shape {_image_shape(other)} but the "
+                             f"compensation store maps {shape}", other.path)
+
+    source = ImageSource(args.desired, shape)
+    out_path = Path(args.output)
+    sink = ImageSink(out_path, source, bits=args.bits)
+    seen_sink = ImageSink(_sibling(out_path, "seen"), source, bits=args.bits) if S else None
+
+    print(f"bigT compensate: {len(source)} frame(s) from {args.desired}"
+          + (f", image {shape[0]}x{shape[1]}" if shape else ""))
+    shown = []
+    for st, name in ((X, "X"), (Tm if choice.path == "matrix-free" else None, "T"), (S, "T")):
+        if st is not None and all(st is not o for o in shown):
+            print("  " + _describe(st, name))
+            shown.append(st)
+    print(f"  path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
+                                      else "") + f" -- {choice.reason}")
+
+    report = CompensationReport(choice)
+    sums = dict(err=0.0, err0=0.0, ref=0.0)
+    flat = []  # (image fl. without, with, scan line without, with) for constant targets
+    first = None
+    from tqdm.auto import tqdm
+
+    t_comp = 0.0
+    t0 = time.perf_counter()
+    with tqdm(total=len(source), desc="compensate", unit="frame",
+              disable=not args.progress) as bar:
+        for files, frames in source.batches(args.batch):
+            t1 = time.perf_counter()
+            _, l_in = compensate_frames(frames, X=X, T=Tm, choice=choice, clip=clip,
+                                        report=report, progress=args.progress)
+            t_comp += time.perf_counter() - t1
+            report.frames += len(frames)
+            sink.write(files, l_in)
+            if S is not None:
+                order = pixel_order_of(S, frames.shape[1:])
+                both = np.concatenate([l_in, frames])  # one pass over T for both
+                seen_all = to_frames(stream_matmul(S, to_vectors(both, order, compute_dtype(S)),
+                                                   progress=args.progress, desc="T pass"), order)
+                seen, seen0 = seen_all[:len(frames)], seen_all[len(frames):]
+                seen_sink.write(files, seen)
+                sums["err"] += float(np.sum((seen - frames) ** 2))
+                sums["err0"] += float(np.sum((seen0 - frames) ** 2))
+                sums["ref"] += float(np.sum(frames ** 2))
+                for d, a, b in zip(frames, seen0, seen):
+                    if np.ptp(d) == 0 and d.flat[0] > 0:
+                        flat.append((fluctuation(a), fluctuation(b), fluctuation(scan_line(a)),
+                                     fluctuation(scan_line(b))))
+                if first is None:
+                    first = (files[0], frames[0], seen0[0], l_in[0], seen[0])
+            bar.update(len(frames))
+    elapsed = time.perf_counter() - t0
+    report.seconds = t_comp
+
+    print(f"  {report.frames} frame(s) in {t_comp:.2f} s of products "
+          f"({report.frames_per_second:.1f} frames/s, batch {args.batch}); {elapsed:.2f} s in all")
+    if clip is not None:
+        print(f"  clipped projector pixels: {100 * report.clipped_fraction:.2f} % "
+              f"(below {clip[0]}: {100 * report.clipped_low / max(report.pixels, 1):.2f} %, "
+              f"above {clip[1]}: {100 * report.clipped_high / max(report.pixels, 1):.2f} %)")
+    print(f"  wrote projector input -> {sink.path}")
+    if S is not None:
+        ref = np.sqrt(sums["ref"])
+        print(f"  simulated camera (T l_in) -> {seen_sink.path}")
+        print(f"  relative error ||T l_in - l_desired|| / ||l_desired||: "
+              f"{np.sqrt(sums['err']) / ref:.4f} compensated, {np.sqrt(sums['err0']) / ref:.4f} "
+              "uncompensated (T l_desired)")
+        if flat:
+            f = np.mean(np.array(flat), axis=0)
+            print(f"  constant target ({len(flat)} frame(s)), fluctuation (max-min)/mean: "
+                  f"image {f[0]:.3f} -> {f[1]:.3f}, centre scan line {f[2]:.3f} -> {f[3]:.3f} "
+                  "(uncompensated -> compensated)")
+        else:
+            print("  fluctuation: n/a (no constant target frame)")
+        name, desired, seen0, l_in, seen = first
+        from ..compensation.figures import scan_lines, side_by_side
+
+        tag = "" if not source.is_folder else f" (frame {name.name})"
+        pic = side_by_side(
+            _sibling(out_path, "compare", ".png"), [desired, seen0, l_in, seen],
+            ["desired", "seen without compensation", "projector input", "seen with compensation"],
+            suptitle=f"compensation, {choice.path} path{tag}; error "
+            f"{relative_error(seen, desired):.3f} vs {relative_error(seen0, desired):.3f}")
+        lines = {"without compensation": scan_line(seen0), "with compensation": scan_line(seen),
+                 "projector input": scan_line(l_in)}
+        const = float(desired.flat[0]) if np.ptp(desired) == 0 else None
+        if const is None:
+            lines["desired"] = scan_line(desired)
+        plot = scan_lines(_sibling(out_path, "scanline", ".png"), lines,
+                          title=f"centre scan line (row {desired.shape[0] // 2}){tag}",
+                          target=const)
+        print(f"  figures -> {pic}, {plot}")
+    return 0
+
+
+# --- relight ----------------------------------------------------------------------------
+
+def run_relight(args) -> int:
+    from ..compensation._stream import as_store
+    from ..compensation.core import relight
+    from ..images import ImageSink, ImageSource
+
+    T = as_store(args.T, "T")
+    source = ImageSource(args.input, _image_shape(T))
+    sink = ImageSink(args.output, source, bits=args.bits)
+    print(f"bigT relight: {len(source)} frame(s) from {args.input}")
+    print("  " + _describe(T, "T"))
+    above = pixels = 0
+    t0 = time.perf_counter()
+    for files, frames in source.batches(args.batch):
+        seen = relight(T, frames, batch=args.batch, progress=args.progress)
+        above += int(np.count_nonzero(seen > 1))
+        pixels += seen.size
+        sink.write(files, seen)
+    dt = time.perf_counter() - t0
+    print(f"  {len(source)} frame(s) in {dt:.2f} s ({len(source) / dt:.1f} frames/s)")
+    print(f"  wrote -> {sink.path}")
+    if above and any(sink.target(f).suffix.lower() == ".png" for f in source.files[:1]):
+        print(f"  note: {100 * above / pixels:.2f} % of pixels exceed 1 and are clipped in the "
+              "PNG output; use .tif or .npy to keep them")
+    return 0
+
+
+# --- bounces ----------------------------------------------------------------------------
+
+def run_bounces(args) -> int:
+    from ..compensation._stream import as_store
+    from ..compensation.core import bounce_shares, separate_bounces
+    from ..compensation.figures import bounce_strip
+    from ..images import read_image, write_image
+
+    T = as_store(args.T, "T")
+    X = as_store(args.X, "X")
+    if Path(args.input).is_dir():
+        raise ImageError("bounces takes one image, not a folder", args.input)
+    image = read_image(args.input, _image_shape(T))
+    print(f"bigT bounces: {args.input}, K = {args.bounces}")
+    print("  " + _describe(T, "T"))
+    print("  " + _describe(X, "X"))
+    t0 = time.perf_counter()
+    parts = separate_bounces(T, X, image, args.bounces, progress=args.progress)
+    dt = time.perf_counter() - t0
+    shares = bounce_shares(parts)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    names = [f"bounce_{k}" for k in range(args.bounces + 1)] + ["remainder"]
+    print(f"  {args.bounces + 1} bounce(s) + remainder in {dt:.2f} s; share of the total T l "
+          f"(sum {parts.sum():.4g}):")
+    for name, part, share in zip(names, parts, shares):
+        write_image(out / f"{name}.{args.format}", part, bits=16)
+        label = "direct" if name == "bounce_0" else name.replace("_", " ")
+        print(f"    {label:>10}: {100 * share:7.3f} %")
+    write_image(out / f"total.{args.format}", parts.sum(axis=0), bits=16)
+    strip = bounce_strip(out / "bounces.png", parts, shares)
+    if args.format == "png":
+        print("  note: PNG clips to [0, 1] (a negative remainder is lost); use tif/npy for exact parts")
+    print(f"  wrote {len(names) + 1} images and {strip.name} -> {out}")
+    return 0

@@ -1,0 +1,103 @@
+"""Streaming products of a block-CSR store with dense frame batches.
+
+One pass reads every tile row of the matrix once and multiplies it against all K
+columns of the batch, so K frames cost one read of the matrix (DESIGN.md: compensation
+streams row tiles of X against image batches). Tile rows are independent (they write
+disjoint row ranges of the result), so they are spread over a few threads: reading and
+decompressing one tile row overlaps the product of another, and both release the GIL.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor, as_completed
+
+import numpy as np
+
+from .. import config
+from ..errors import ShapeMismatchError, StoreError
+
+
+def as_store(A, name: str = "matrix"):
+    """A BlockCSR for ``A``: a BlockCSR (returned as is) or the path of a store."""
+    if isinstance(A, (str, os.PathLike)):
+        from ..storage import open as open_store
+
+        return open_store(A)
+    if hasattr(A, "get_tile_row") and hasattr(A, "tile_row_range"):
+        return A
+    raise StoreError(f"{name} must be a bigT store (BlockCSR) or the path of one, "
+                     f"got {type(A).__name__}")
+
+
+def compute_dtype(store) -> np.dtype:
+    """Dtype of the dense batches streamed against ``store`` (float32 at least)."""
+    return np.result_type(np.dtype(store.dtype), np.float32)
+
+
+def _spmm():
+    """The kernel ``spmm_dense(A, X, out)`` (out += A @ X), or a scipy stand-in."""
+    try:
+        from ..kernels import spmm_dense
+    except ImportError:
+        spmm_dense = None
+    if spmm_dense is None:
+        def spmm_dense(A, X, out=None):
+            if out is None:
+                return A @ X
+            out += A @ X
+            return out
+    return spmm_dense
+
+
+def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: bool = False,
+                  desc: str = "pass") -> np.ndarray:
+    """A @ V with A streamed from disk one tile row at a time.
+
+    Parameters
+    ----------
+    A : BlockCSR, shape (n_rows, n_cols)
+    V : ndarray, shape (n_cols, K) or (n_cols,)
+    workers : int, optional
+        Threads over tile rows (default ``config.COMPENSATE_WORKERS``).
+    progress : bool
+        Show a tqdm bar over tile rows.
+
+    Returns
+    -------
+    ndarray, shape (n_rows, K) or (n_rows,), dtype ``compute_dtype(A)``
+    """
+    n_rows, n_cols = A.shape
+    dtype = compute_dtype(A)
+    V = np.asarray(V)
+    squeeze = V.ndim == 1
+    if V.ndim not in (1, 2) or V.shape[0] != n_cols:
+        raise ShapeMismatchError(f"cannot multiply a {n_rows}x{n_cols} matrix by an array of "
+                                 f"shape {V.shape}")
+    V = np.ascontiguousarray(V.reshape(n_cols, -1), dtype=dtype)
+    out = np.zeros((n_rows, V.shape[1]), dtype=dtype)
+    spmm = _spmm()
+
+    def one_row(i):
+        start, stop = A.tile_row_range(i)
+        block = A.get_tile_row(i)
+        if block.nnz:
+            spmm(block, V, out=out[start:stop])
+        return i
+
+    n_tile_rows = A.grid[0]
+    workers = max(1, min(int(workers or config.COMPENSATE_WORKERS), n_tile_rows))
+    from tqdm.auto import tqdm
+
+    with tqdm(total=n_tile_rows, desc=desc, unit="tile row", leave=False,
+              disable=not progress) as bar:
+        if workers == 1:
+            for i in range(n_tile_rows):
+                one_row(i)
+                bar.update()
+        else:
+            with ThreadPoolExecutor(workers) as pool:
+                for fut in as_completed([pool.submit(one_row, i) for i in range(n_tile_rows)]):
+                    fut.result()
+                    bar.update()
+    return out[:, 0] if squeeze else out

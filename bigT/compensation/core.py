@@ -1,0 +1,366 @@
+"""Compensation (paper eqs. 44-45), relighting and bounce separation (Seitz et al. 2005).
+
+All three only stream the stored matrices against dense batches of frames; nothing is
+ever inverted or multiplied matrix-by-matrix here.
+
+Images are (H, W) or (K, H, W) float arrays; the store's :class:`PixelOrder` maps them to
+the matrix's pixel numbering and back, so a tile-major store takes and returns ordinary
+row-major images.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import config
+from ..errors import ImageError, InvalidMatrixError, ShapeMismatchError
+from ..storage.pixel_order import PixelOrder
+from ._stream import as_store, compute_dtype, stream_matmul
+
+PATHS = ("explicit", "matrix-free", "auto")
+
+
+# --- images <-> matrix vectors ------------------------------------------------------
+
+def pixel_order_of(store, image_shape=None) -> PixelOrder:
+    """The store's pixel order; a row-major order of ``image_shape`` when it records none."""
+    order = getattr(store, "pixel_order", None)
+    if order is not None:
+        return order
+    n = store.shape[1]
+    if image_shape is None or int(np.prod(image_shape)) != n:
+        raise ImageError(f"the store records no image shape and images of shape "
+                         f"{None if image_shape is None else tuple(image_shape)} do not have "
+                         f"n = {n} pixels", getattr(store, "path", None))
+    return PixelOrder(tuple(image_shape))
+
+
+def _as_frames(images, store, name="<array>"):
+    """(K, H, W) float64 frames and whether the input was one (H, W) image."""
+    images = np.asarray(images, dtype=np.float64)
+    if images.ndim not in (2, 3):
+        raise ImageError(f"images must be (H, W) or (K, H, W), got shape {images.shape}", name)
+    single = images.ndim == 2
+    frames = images[None] if single else images
+    order = pixel_order_of(store, frames.shape[1:])
+    if frames.shape[1:] != order.image_shape:
+        raise ImageError(f"image of shape {frames.shape[1:]} does not match the transport's "
+                         f"image shape {order.image_shape}", name)
+    if not np.isfinite(frames).all():
+        raise ImageError("images contain NaN or Inf", name)
+    return frames, single, order
+
+
+def to_vectors(frames: np.ndarray, order: PixelOrder, dtype) -> np.ndarray:
+    """(K, H, W) frames -> (n, K) matrix-ordered columns of ``dtype``."""
+    return np.ascontiguousarray(order.to_matrix(frames[None] if frames.ndim == 2 else frames),
+                                dtype=dtype)
+
+
+def to_frames(vectors: np.ndarray, order: PixelOrder) -> np.ndarray:
+    """(n, K) matrix-ordered columns -> (K, H, W) float64 frames."""
+    return np.asarray(order.to_images(vectors.reshape(order.n, -1)), dtype=np.float64)
+
+
+# --- matrix-free stratified inverse ---------------------------------------------------
+
+def first_bounce_diag(T) -> np.ndarray:
+    """F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,), checked > 0."""
+    d = np.asarray(T.diagonal(), dtype=np.float64)
+    bad = np.flatnonzero(~(d > 0))
+    if bad.size:
+        raise InvalidMatrixError(f"diag(T) must be positive for F = diag(T); {bad.size} entries are "
+                                 f"not (first at index {bad[0]}: {d[bad[0]]!r})",
+                                 getattr(T, "path", None))
+    return d
+
+
+def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = None,
+                      progress: bool = False) -> np.ndarray:
+    """T_n^-1 B without forming T_n^-1: ``terms`` streaming products with T.
+
+    Paper eq. 13: T_n^-1 = F^-1 S_n with S_n = sum_{k=0..n} M^k, M = I - T F^-1. Horner on
+    the vectors: s_0 = b, s_j = b + M s_{j-1} = b + s_{j-1} - T (F^-1 s_{j-1}); after n steps
+    s_n = S_n b, and T_n^-1 b = F^-1 s_n.
+
+    Parameters
+    ----------
+    T : BlockCSR, shape (n, n)
+    B : ndarray, shape (n, K), in T's pixel order
+    terms : int, n >= 0
+    F : ndarray, shape (n,), optional; diag(T) by default.
+
+    Returns
+    -------
+    ndarray, shape (n, K), ``compute_dtype(T)``
+    """
+    terms = int(terms)
+    if terms < 0:
+        raise ValueError(f"terms must be >= 0, got {terms}")
+    dtype = compute_dtype(T)
+    finv = (1.0 / (first_bounce_diag(T) if F is None else np.asarray(F, np.float64)))
+    finv = finv.astype(dtype)[:, None]
+    B = np.asarray(B, dtype=dtype).reshape(T.shape[0], -1)
+    s = B.copy()
+    for j in range(terms):
+        s = B + s - stream_matmul(T, finv * s, progress=progress,
+                                  desc=f"matrix-free term {j + 1}/{terms}")
+    return finv * s
+
+
+@dataclass
+class PathChoice:
+    """Which way compensation goes, and why.
+
+    ``cost_*`` are multiply-adds per frame: nnz(X) for the explicit inverse (one pass
+    over X), terms * nnz(T) for the matrix-free path (one pass over T per term).
+    """
+
+    path: str
+    reason: str
+    terms: int | None = None
+    cost_explicit: int | None = None
+    cost_matrix_free: int | None = None
+
+
+def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") -> PathChoice:
+    """Pick the explicit or the matrix-free path (cost model in :class:`PathChoice`)."""
+    if path not in PATHS:
+        raise ValueError(f"path must be one of {PATHS}, got {path!r}")
+    if terms is None and X is not None:
+        terms = (getattr(X, "metadata", None) or {}).get("terms")
+    terms = int(config.DEFAULT_COMPENSATION_TERMS if terms is None else terms)
+    c_x = None if X is None else int(X.nnz)
+    c_t = None if T is None else int(terms * T.nnz)
+    if path == "explicit" or (path == "auto" and T is None):
+        if X is None:
+            raise ValueError("the explicit path needs the inverse X")
+        why = "asked for" if path == "explicit" else "no T given for the matrix-free path"
+        return PathChoice("explicit", f"{why}: one pass over X, nnz(X) = {c_x:,} per frame",
+                          None, c_x, c_t)
+    if path == "matrix-free" or X is None:
+        if T is None:
+            raise ValueError("the matrix-free path needs the transport T")
+        why = "asked for" if path == "matrix-free" else "no inverse X given"
+        return PathChoice("matrix-free", f"{why}: {terms} passes over T, {terms} x nnz(T) = "
+                          f"{c_t:,} per frame", terms, c_x, c_t)
+    if c_x <= c_t:
+        return PathChoice("explicit", f"cheaper: nnz(X) = {c_x:,} <= {terms} x nnz(T) = {c_t:,} "
+                          "multiply-adds per frame", None, c_x, c_t)
+    return PathChoice("matrix-free", f"cheaper: {terms} x nnz(T) = {c_t:,} < nnz(X) = {c_x:,} "
+                      "multiply-adds per frame", terms, c_x, c_t)
+
+
+# --- compensation ---------------------------------------------------------------------
+
+@dataclass
+class CompensationReport:
+    """What :func:`compensate` did.
+
+    Attributes
+    ----------
+    choice : PathChoice
+    frames : int
+    clipped_fraction : float, pixels of X l_desired outside the clip range / all pixels
+    seconds : float, wall time of the products (reading included)
+    """
+
+    choice: PathChoice
+    frames: int = 0
+    clipped_low: int = 0
+    clipped_high: int = 0
+    pixels: int = 0
+    seconds: float = 0.0
+
+    @property
+    def clipped_fraction(self) -> float:
+        return (self.clipped_low + self.clipped_high) / max(self.pixels, 1)
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else float("inf")
+
+
+def _clip(values: np.ndarray, clip, report: CompensationReport | None):
+    if clip is None:
+        return values
+    lo, hi = clip
+    if report is not None:
+        if lo is not None:
+            report.clipped_low += int(np.count_nonzero(values < lo))
+        if hi is not None:
+            report.clipped_high += int(np.count_nonzero(values > hi))
+        report.pixels += values.size
+    return np.clip(values, lo, hi)
+
+
+def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice, clip=(0, 1),
+                      report: CompensationReport | None = None, progress: bool = False):
+    """One batch: (K, H, W) desired frames -> (K, H, W) projector inputs (unclipped, clipped)."""
+    store = X if choice.path == "explicit" else T
+    order = pixel_order_of(store, frames.shape[1:])
+    B = to_vectors(frames, order, compute_dtype(store))
+    if choice.path == "explicit":
+        Y = stream_matmul(X, B, progress=progress, desc="X pass")
+    else:
+        Y = matrix_free_apply(T, B, choice.terms, progress=progress)
+    raw = to_frames(Y, order)
+    return raw, _clip(raw, clip, report)
+
+
+def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=None,
+               terms: int | None = None, path: str = "explicit", progress: bool = False,
+               return_report: bool = False):
+    """Projector inputs that make the camera see ``images``: l_in = clip(X l_desired).
+
+    Paper eqs. 44-45. X is streamed from disk one tile row at a time against ``batch``
+    frames, so the batch costs one pass over X whatever K is.
+
+    Parameters
+    ----------
+    X : BlockCSR or path, shape (n, n), the (stratified) inverse of T; may be None for
+        ``path="matrix-free"``.
+    images : ndarray, shape (H, W) or (K, H, W), desired camera images in [0, 1].
+    clip : (lo, hi) or None
+        Projector range; ``(0, None)`` is the paper's f_+ = max(., 0); None: no clipping.
+    batch : int, frames per pass.
+    T : BlockCSR or path, optional, the transport (matrix-free path).
+    terms : int, optional, n of T_n^-1 for the matrix-free path (default: X's metadata,
+        else ``config.DEFAULT_COMPENSATION_TERMS``).
+    path : {"explicit", "matrix-free", "auto"}
+        "auto" takes the cheaper of nnz(X) and terms * nnz(T) (see :func:`choose_path`).
+    return_report : bool
+        Also return a :class:`CompensationReport`.
+
+    Returns
+    -------
+    ndarray, the shape of ``images``, float64 (and the report when asked).
+    """
+    X = None if X is None else as_store(X, "X")
+    T = None if T is None else as_store(T, "T")
+    choice = choose_path(X, T, terms, path)
+    store = X if choice.path == "explicit" else T
+    frames, single, _ = _as_frames(images, store)
+    report = CompensationReport(choice)
+    out = np.empty_like(frames)
+    batch = max(1, int(batch))
+    t0 = time.perf_counter()
+    for s in range(0, len(frames), batch):
+        _, out[s:s + batch] = compensate_frames(frames[s:s + batch], X=X, T=T, choice=choice,
+                                                clip=clip, report=report, progress=progress)
+    report.seconds = time.perf_counter() - t0
+    report.frames = len(frames)
+    result = out[0] if single else out
+    return (result, report) if return_report else result
+
+
+def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = False) -> np.ndarray:
+    """What the camera sees for projector images: T l (forward transport).
+
+    Parameters
+    ----------
+    T : BlockCSR or path, shape (n, n)
+    images : ndarray, shape (H, W) or (K, H, W)
+
+    Returns
+    -------
+    ndarray, the shape of ``images``, float64
+    """
+    T = as_store(T, "T")
+    frames, single, order = _as_frames(images, T)
+    out = np.empty_like(frames)
+    batch = max(1, int(batch))
+    for s in range(0, len(frames), batch):
+        B = to_vectors(frames[s:s + batch], order, compute_dtype(T))
+        out[s:s + batch] = to_frames(stream_matmul(T, B, progress=progress, desc="T pass"), order)
+    return out[0] if single else out
+
+
+# --- bounce separation ------------------------------------------------------------------
+
+def first_bounce_from_inverse(X) -> np.ndarray:
+    """True F of a diffuse scene from its inverse (paper eq. 33): F_ii = 1 / X_ii, (n,)."""
+    d = np.asarray(X.diagonal(), dtype=np.float64)
+    bad = np.flatnonzero(~(d > 0))
+    if bad.size:
+        raise InvalidMatrixError(f"diag(X) must be positive to recover F_ii = 1/X_ii; {bad.size} "
+                                 f"entries are not (first at index {bad[0]}: {d[bad[0]]!r})",
+                                 getattr(X, "path", None))
+    return 1.0 / d
+
+
+def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -> np.ndarray:
+    """Split the camera image T l into light bounces (Seitz et al. 2005, DESIGN.md).
+
+    F is recovered from X (F_ii = 1/X_ii, paper eq. 33), A = I - F X, and bounce k is
+    b_k = A^k F l, computed with mat-vecs only: A v = v - F (X v). Since
+    sum_k A^k F = (I - A)^-1 F = X^-1, the parts sum to T l when X is the exact inverse;
+    the last part is the remainder T l - sum_{k<=K} b_k, so the returned parts always sum
+    to T l exactly.
+
+    Parameters
+    ----------
+    T, X : BlockCSR or path, shape (n, n)
+    image : ndarray, shape (H, W) or (B, H, W)
+    bounces : int, K >= 0
+
+    Returns
+    -------
+    ndarray, shape (K + 2, H, W) or (K + 2, B, H, W), float64: b_0 (direct), b_1, ...,
+    b_K, remainder.
+    """
+    T = as_store(T, "T")
+    X = as_store(X, "X")
+    bounces = int(bounces)
+    if bounces < 0:
+        raise ValueError(f"bounces must be >= 0, got {bounces}")
+    if tuple(T.shape) != tuple(X.shape):
+        raise ShapeMismatchError(f"T is {T.shape} but X is {X.shape}")
+    frames, single, order_t = _as_frames(image, T)
+    order_x = pixel_order_of(X, frames.shape[1:])
+    if order_x.image_shape != order_t.image_shape:
+        raise ShapeMismatchError(f"T maps {order_t.image_shape} images but X maps "
+                                 f"{order_x.image_shape}")
+    F = first_bounce_from_inverse(X)[:, None]  # in X's pixel order
+    # Work in float64 for the dense vectors so the parts sum to T l to rounding.
+    v = F * to_vectors(frames, order_x, np.float64)
+    parts = [v]
+    for k in range(bounces):
+        v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}")
+        parts.append(v)
+    seen = to_frames(stream_matmul(T, to_vectors(frames, order_t, np.float64),
+                                   progress=progress, desc="T pass"), order_t)
+    out = [to_frames(p, order_x) for p in parts]
+    out.append(seen - np.sum(out, axis=0))
+    result = np.stack(out)
+    return result[:, 0] if single else result
+
+
+def bounce_shares(parts: np.ndarray) -> np.ndarray:
+    """Each part's share of the total (sum of the parts = T l), shape (K + 2,)."""
+    totals = parts.reshape(parts.shape[0], -1).sum(axis=1)
+    whole = totals.sum()
+    return totals / whole if whole != 0 else np.full_like(totals, np.nan)
+
+
+# --- metrics ----------------------------------------------------------------------------
+
+def relative_error(seen: np.ndarray, desired: np.ndarray) -> float:
+    """||seen - desired|| / ||desired|| (Frobenius over all frames)."""
+    den = np.linalg.norm(desired)
+    return float(np.linalg.norm(seen - desired) / den) if den > 0 else float("nan")
+
+
+def fluctuation(values: np.ndarray) -> float:
+    """(max - min) / mean, the paper's flatness measure for a constant target (§6.1.3)."""
+    values = np.asarray(values, dtype=np.float64)
+    mean = values.mean()
+    return float((values.max() - values.min()) / mean) if mean != 0 else float("nan")
+
+
+def scan_line(image: np.ndarray) -> np.ndarray:
+    """The centre horizontal scan line of an (H, W) image."""
+    return np.asarray(image)[image.shape[0] // 2]

@@ -1,0 +1,90 @@
+"""Figures of the compensation tools (matplotlib, Agg backend, written as PNG)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def side_by_side(path, panels: Sequence[np.ndarray], titles: Sequence[str], *,
+                 vmax: float | None = None, suptitle: str | None = None) -> Path:
+    """Grayscale (H, W) panels in one row, one shared scale [0, vmax] (default: 1 or the
+    largest value when some panel exceeds 1)."""
+    plt = _pyplot()
+    if vmax is None:
+        vmax = max(1.0, max(float(np.max(p)) for p in panels))
+    H, W = panels[0].shape
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.2 * H / W + 0.8),
+                             squeeze=False)
+    for ax, img, title in zip(axes[0], panels, titles):
+        ax.imshow(img, cmap="gray", vmin=0.0, vmax=vmax, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def scan_lines(path, lines: dict, *, title: str, target: float | None = None) -> Path:
+    """Centre scan lines as in the paper's Fig. 10: one curve per label."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for label, values in lines.items():
+        ax.plot(np.arange(len(values)), values, label=label, lw=1.3)
+    if target is not None:
+        ax.axhline(target, color="k", lw=0.8, ls="--", label="desired")
+    ax.set_xlabel("column")
+    ax.set_ylabel("camera intensity")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
+    """b_0 ... b_K, remainder and their sum, each panel scaled to its own range."""
+    plt = _pyplot()
+    K = parts.shape[0] - 2
+    panels = list(parts) + [parts.sum(axis=0)]
+    titles = [f"b{k} {'direct' if k == 0 else 'bounce'} {100 * shares[k]:.1f}%"
+              for k in range(K + 1)]
+    titles += [f"remainder {100 * shares[-1]:.1f}%", "sum = T l"]
+    H, W = parts.shape[1:]
+    fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.4 * H / W + 0.7),
+                             squeeze=False)
+    for ax, img, title in zip(axes[0], panels, titles):
+        lo, hi = float(img.min()), float(img.max())
+        ax.imshow(img, cmap="gray", vmin=min(lo, 0.0), vmax=hi if hi > lo else lo + 1e-12,
+                  interpolation="nearest")
+        ax.set_title(title, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle("bounce separation (each panel scaled to its own range)", fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
