@@ -1,0 +1,130 @@
+"""``bigT convert``, ``bigT export`` and ``bigT info``."""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+
+from ..errors import ShapeMismatchError
+
+
+def _image_shape(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", text)
+    if not m:
+        raise ShapeMismatchError(f"--image-shape must look like HxW (e.g. 96x128), got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "convert", help="convert a .npz/.mtx/.mat/.npy matrix into a bigT store",
+        description="Convert a matrix file (scipy .npz, Matrix Market .mtx, MATLAB .mat, "
+                    "dense .npy) into a bigT zarr block-CSR store.")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.zarr")
+    p.add_argument("--tile-size", type=int, default=None,
+                   help="rows/cols of one matrix tile (default: config.DEFAULT_TILE_SIZE)")
+    p.add_argument("--var", default=None, help="variable of a .mat file")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--image-shape", default=None, metavar="HxW",
+                   help="the matrix maps HxW images (numbered row-major in IN)")
+    p.add_argument("--pixel-order", choices=("row-major", "tile-major"), default="row-major",
+                   help="pixel order of the store (needs --image-shape for tile-major)")
+    p.add_argument("--image-tile", default=None, metavar="HxW",
+                   help="image tile of the tile-major order (default config.DEFAULT_IMAGE_TILE)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
+    p.set_defaults(func=convert_cmd)
+
+    p = subparsers.add_parser("export", help="write a bigT store to .npz or .mtx",
+                              description="Write a bigT store to scipy .npz or Matrix Market .mtx.")
+    p.add_argument("store", metavar="STORE")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.{npz,mtx}")
+    p.add_argument("--order", choices=("row-major", "matrix"), default="row-major",
+                   help="row-major image order (default; undoes a tile-major pixel order) or "
+                        "the stored matrix order")
+    p.add_argument("--max-gb", type=float, default=None,
+                   help="refuse beyond this many GB of CSR arrays (default config.TO_SCIPY_MAX_BYTES)")
+    p.set_defaults(func=export_cmd)
+
+    p = subparsers.add_parser("info", help="summarise a bigT store",
+                              description="Shape, nnz, tile fill, diagonal, size and metadata "
+                                          "of a bigT store; checks that every chunk file exists.")
+    p.add_argument("store", metavar="STORE")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=info_cmd)
+
+
+def convert_cmd(args) -> int:
+    from ..storage import from_scipy
+    from ..storage.convert import load_matrix
+
+    A = load_matrix(args.input, var=args.var)
+    S = from_scipy(A, args.output, tile_size=args.tile_size, dtype=args.dtype,
+                   image_shape=None if args.image_shape is None else _image_shape(args.image_shape),
+                   pixel_order=args.pixel_order,
+                   image_tile=None if args.image_tile is None else _image_shape(args.image_tile),
+                   input_order="row-major", overwrite=args.overwrite,
+                   metadata={"source": str(args.input)})
+    print(f"wrote {S.path}: {S.shape[0]} x {S.shape[1]} {S.dtype.name}, nnz {S.nnz}, "
+          f"{S.n_tiles_stored} of {S.grid[0] * S.grid[1]} tiles stored")
+    return 0
+
+
+def export_cmd(args) -> int:
+    from ..storage import open as open_store
+    from ..storage.convert import save_matrix
+
+    S = open_store(args.store)
+    max_bytes = None if args.max_gb is None else int(args.max_gb * 1e9)
+    A = S.to_scipy(max_bytes=max_bytes, output_order=args.order)
+    out = save_matrix(A, args.output)
+    print(f"wrote {out}: {A.shape[0]} x {A.shape[1]}, nnz {A.nnz}")
+    return 0
+
+
+def _fmt_bytes(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+def info_cmd(args) -> int:
+    from ..storage import open as open_store
+
+    S = open_store(args.store)
+    S.check_chunks_exist()
+    info = S.info()
+    if args.json:
+        json.dump(info, sys.stdout, indent=2)
+        print()
+        return 0
+    lines = [f"store        {info['path']}"
+             + (f" (via redirect at {info['redirected_from']})" if info["redirected_from"] else "")]
+    lines.append(f"shape        {info['shape'][0]} x {info['shape'][1]}  {info['dtype']}")
+    lines.append(f"nnz          {info['nnz']}  (density {info['density']:.3g}, "
+                 f"{info['nnz_per_row']:.1f} per row)")
+    lines.append(f"tiles        {info['n_tiles_stored']} of {info['n_tiles_total']} stored "
+                 f"({100 * info['tile_fill']:.1f} %), tile size {info['tile_size']}, "
+                 f"grid {info['grid'][0]} x {info['grid'][1]}, inner format {info['inner_format']}")
+    if info["diagonal_min"] is not None:
+        lines.append(f"diagonal     min {info['diagonal_min']:.6g}  max {info['diagonal_max']:.6g}  "
+                     f"zero entries {info['zero_diagonal']}")
+    lines.append(f"on disk      {_fmt_bytes(info['bytes_on_disk'])}  "
+                 f"(CSR in memory {_fmt_bytes(info['csr_bytes'])})")
+    po = info["pixel_order"]
+    if po:
+        lines.append(f"pixel order  {po['pixel_order']}, image {po['image_shape'][0]} x "
+                     f"{po['image_shape'][1]}" + (f", image tile {po['image_tile'][0]} x "
+                                                   f"{po['image_tile'][1]}"
+                                                   if po["pixel_order"] == "tile-major" else ""))
+    else:
+        lines.append("pixel order  none (the matrix maps no image)")
+    if not info["complete"]:
+        lines.append(f"INCOMPLETE   tile rows missing: {info['missing_tile_rows']}")
+    for key in sorted(info["metadata"]):
+        lines.append(f"metadata     {key} = {json.dumps(info['metadata'][key])}")
+    print("\n".join(lines))
+    return 0
