@@ -68,7 +68,7 @@ def _iio_call(name, *args):
     import imageio.v3 as iio
 
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=DeprecationWarning, module="imageio")
+        warnings.filterwarnings("ignore", message=".*vendored tifffile", category=DeprecationWarning)
         return getattr(iio, name)(*args)
 
 

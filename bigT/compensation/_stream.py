@@ -89,7 +89,8 @@ def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: boo
     workers = max(1, min(int(workers or config.COMPENSATE_WORKERS), n_tile_rows))
     from tqdm.auto import tqdm
 
-    with tqdm(total=n_tile_rows, desc=desc, unit="tile row", leave=False,
+    # delay: passes shorter than a second draw no bar at all
+    with tqdm(total=n_tile_rows, desc=desc, unit="tile row", leave=False, delay=1.0,
               disable=not progress) as bar:
         if workers == 1:
             for i in range(n_tile_rows):

@@ -81,7 +81,7 @@ def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
         ax.set_title(title, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle("bounce separation (each panel scaled to its own range)", fontsize=9)
+    fig.suptitle("bounce separation (each panel shown from 0 to its own maximum)", fontsize=9)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

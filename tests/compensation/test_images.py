@@ -33,6 +33,7 @@ def test_png16_round_trip(tmp_path, img):
     np.testing.assert_allclose(read_image(p), np.round(img * 65535) / 65535, atol=1e-12)
 
 
+@pytest.mark.filterwarnings("ignore:.*vendored tifffile:DeprecationWarning")
 def test_integer_inputs_map_to_unit(tmp_path):
     import imageio.v3 as iio
 
