@@ -36,18 +36,18 @@ def compute_dtype(store) -> np.dtype:
 
 
 def _spmm():
-    """The kernel ``spmm_dense(A, X, out)`` (out += A @ X), or a scipy stand-in."""
+    """``spmm(A, X, out)``: out += A @ X, single-threaded (the threads are ours)."""
     try:
         from ..kernels import spmm_dense
     except ImportError:
         spmm_dense = None
     if spmm_dense is None:
-        def spmm_dense(A, X, out=None):
-            if out is None:
-                return A @ X
+        def spmm(A, X, out):
             out += A @ X
-            return out
-    return spmm_dense
+    else:
+        def spmm(A, X, out):
+            spmm_dense(A, X, out=out, n_threads=1)
+    return spmm
 
 
 def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: bool = False,
@@ -78,11 +78,17 @@ def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: boo
     out = np.zeros((n_rows, V.shape[1]), dtype=dtype)
     spmm = _spmm()
 
+    ts = A.tile_size
+
     def one_row(i):
+        # Tile by tile: no copy assembling the tile row, and each product touches only
+        # the rows of V under its tile.
         start, stop = A.tile_row_range(i)
-        block = A.get_tile_row(i)
-        if block.nnz:
-            spmm(block, V, out=out[start:stop])
+        for j in A.tile_columns(i):
+            j = int(j)
+            tile = A.get_tile(i, j)
+            if tile.nnz:
+                spmm(tile, V[j * ts:j * ts + tile.shape[1]], out[start:stop])
         return i
 
     n_tile_rows = A.grid[0]
