@@ -1,0 +1,14 @@
+"""The one place where the engine reaches the storage and kernel layers: every other
+module of ``bigT.schedule`` and ``bigT.algorithms`` imports stores and kernels from
+here, so the layers' contracts (docs/CONTRACTS.md) are used in one spot."""
+
+from __future__ import annotations
+
+from bigT.kernels import add_diag_scaled, prune, scale_cols, scale_rows, spgemm, spmm_dense
+from bigT.storage import BlockCSR, BlockCSRWriter, from_scipy, set_redirect
+from bigT.storage import open as open_store
+
+__all__ = [
+    "BlockCSR", "BlockCSRWriter", "add_diag_scaled", "from_scipy", "open_store", "prune",
+    "scale_cols", "scale_rows", "set_redirect", "spgemm", "spmm_dense",
+]
