@@ -126,12 +126,19 @@ class PathChoice:
     cost_matrix_free: int | None = None
 
 
+def inverse_terms(X) -> int | None:
+    """The n of T_n^-1 that X holds, from the engine's ``metadata["inverse"]["term"]``."""
+    meta = getattr(X, "metadata", None) or {}
+    term = (meta.get("inverse") or {}).get("term", meta.get("terms"))
+    return None if term is None else int(term)
+
+
 def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") -> PathChoice:
     """Pick the explicit or the matrix-free path (cost model in :class:`PathChoice`)."""
     if path not in PATHS:
         raise ValueError(f"path must be one of {PATHS}, got {path!r}")
     if terms is None and X is not None:
-        terms = (getattr(X, "metadata", None) or {}).get("terms")
+        terms = inverse_terms(X)
     terms = int(config.DEFAULT_COMPENSATION_TERMS if terms is None else terms)
     c_x = None if X is None else int(X.nnz)
     c_t = None if T is None else int(terms * T.nnz)

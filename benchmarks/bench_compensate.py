@@ -1,0 +1,282 @@
+"""Compensation throughput and quality (reported, never asserted).
+
+Part 1, throughput at 384x512 (n = 196608) with X read from disk in batches:
+  * explicit X, batch 1 and batch 64 (frames/s; X streamed once per batch),
+  * matrix-free T_n^-1 (n passes over T per batch),
+  * scipy ``splu`` of T: factor time, then one solve per frame.
+  T and X come from ``bigT.scenes.corner`` and ``bigT.stratified_inverse`` when those
+  exist (X = F^-1 (I - A) from the scene's ground truth while the engine is missing);
+  ``--synthetic`` (or a missing scene generator) uses a synthetic local transport with
+  the same nnz/row as DESIGN.md's measured 4-term inverse instead, labelled as such.
+
+Part 2, quality on a small corner scene: fluctuation (max - min)/mean of the camera
+image for a constant target, uncompensated and compensated with the stratified inverse
+at 1..4 terms (matrix-free, i.e. eq. 13 unpruned; and ``stratified_inverse`` when
+available) and with the exact inverse. Writes a scan-line plot like the paper's Fig. 10.
+
+Run:  nice -n 10 .venv/bin/python benchmarks/bench_compensate.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import bigT  # noqa: E402
+from bigT.compensation import compensate, fluctuation, relative_error, relight, scan_line  # noqa: E402
+from bigT.storage.pixel_order import PixelOrder  # noqa: E402
+
+
+def _size(text):
+    h, w = text.lower().split("x")
+    return int(h), int(w)
+
+
+def _have(module, name):
+    try:
+        mod = __import__(module, fromlist=[name])
+        return getattr(mod, name, None)
+    except ImportError:
+        return None
+
+
+# --- matrices ---------------------------------------------------------------------------
+
+def synthetic_local(path, size, nnz_per_row, *, diag=0.8, spread=0.3, radius=None, seed=0,
+                    tile_size=8192):
+    """A transport-like matrix written tile row by tile row (bounded memory).
+
+    Row i holds its diagonal ``diag`` and ``nnz_per_row - 1`` entries at random pixels
+    within ``radius`` (image distance) of pixel i, summing to ``spread * diag``: the
+    sparsity of a local interreflection kernel, tile-major pixel order.
+    """
+    from bigT.storage import BlockCSRWriter
+
+    H, W = size
+    order = PixelOrder(size, "tile-major")
+    n = order.n
+    # a window ~9x the row's entries keeps duplicate draws (merged) rare
+    radius = radius or int(np.ceil(1.5 * np.sqrt(nnz_per_row)))
+    rng = np.random.default_rng(seed)
+    perm, inv = order.permutation, order.inverse_permutation
+    w = BlockCSRWriter(path, (n, n), tile_size=tile_size, dtype="float32", pixel_order=order,
+                       metadata={"synthetic": True, "nnz_per_row": nnz_per_row})
+    k = nnz_per_row - 1
+    for i in range(-(-n // tile_size)):
+        r0, r1 = i * tile_size, min((i + 1) * tile_size, n)
+        pix = perm[r0:r1]  # row-major pixel of each matrix row
+        y, x = np.divmod(pix, W)
+        dy = rng.integers(-radius, radius + 1, (r1 - r0, k))
+        dx = rng.integers(-radius, radius + 1, (r1 - r0, k))
+        cols_rm = np.clip(y[:, None] + dy, 0, H - 1) * W + np.clip(x[:, None] + dx, 0, W - 1)
+        cols = inv[cols_rm]
+        vals = rng.uniform(0.5, 1.0, (r1 - r0, k))
+        vals *= spread * diag / vals.sum(axis=1, keepdims=True)
+        rows = np.repeat(np.arange(r1 - r0), k)
+        off = sp.csr_array((vals.ravel(), (rows, cols.ravel())), shape=(r1 - r0, n))
+        off.sum_duplicates()
+        block = off + sp.csr_array((np.full(r1 - r0, diag), (np.arange(r1 - r0),
+                                    np.arange(r0, r1))), shape=(r1 - r0, n))
+        block = sp.csr_array(block)
+        block.sort_indices()
+        w.write_tile_row(i, block.astype(np.float32))
+    return w.finalize()
+
+
+def exact_inverse_from_scene(scene, path):
+    """X = F^-1 (I - A) from the scene's ground truth, tile row by tile row."""
+    from bigT.storage import BlockCSRWriter
+
+    A, F = scene.A, np.asarray(scene.F, dtype=np.float64)
+    w = BlockCSRWriter(path, A.shape, tile_size=A.tile_size, dtype="float32",
+                       pixel_order=A.pixel_order, metadata={"exact_inverse": True})
+    for i in range(A.grid[0]):
+        r0, r1 = A.tile_row_range(i)
+        eye = sp.csr_array((np.ones(r1 - r0), (np.arange(r1 - r0), np.arange(r0, r1))),
+                           shape=(r1 - r0, A.shape[1]))
+        block = sp.csr_array(sp.diags_array(1.0 / F[r0:r1]) @ (eye - A.get_tile_row(i)))
+        block.sum_duplicates()
+        block.sort_indices()
+        w.write_tile_row(i, block.astype(np.float32))
+    return w.finalize()
+
+
+def stratified(T, path, terms, prune=None):
+    fn = _have("bigT.algorithms", "stratified_inverse")
+    if fn is None:
+        return None, None
+    kw = {} if prune is None else {"prune": prune}
+    t0 = time.perf_counter()
+    try:
+        fn(T, path, terms=terms, progress=False, **kw)
+    except TypeError:
+        fn(T, path, terms=terms, **kw)
+    return bigT.open(path), time.perf_counter() - t0
+
+
+# --- part 1 -----------------------------------------------------------------------------
+
+def throughput(args, out):
+    size = _size(args.size)
+    res = {"size": list(size)}
+    corner = None if args.synthetic else getattr(_have("bigT", "scenes"), "corner", None)
+    if corner is not None:
+        t0 = time.perf_counter()
+        scene = corner(size=size, path=str(out / f"corner_{size[0]}x{size[1]}.zarr"))
+        res["scene_seconds"] = time.perf_counter() - t0
+        T = scene.T
+        X, secs = stratified(T, str(out / "X_stratified4.zarr"), 4)
+        if X is None:
+            X = exact_inverse_from_scene(scene, out / "X_exact.zarr")
+            res["X"] = "exact inverse F^-1 (I - A) from the scene's ground truth"
+        else:
+            res["X"] = "bigT.stratified_inverse, 4 terms"
+            res["invert_seconds"] = secs
+        res["T"] = "bigT.scenes.corner"
+    else:
+        T = synthetic_local(out / "T_synth.zarr", size, args.t_nnz, seed=1)
+        X = synthetic_local(out / "X_synth.zarr", size, args.x_nnz, seed=2)
+        res["T"] = f"synthetic local transport, {args.t_nnz} nnz/row"
+        res["X"] = f"synthetic local matrix, {args.x_nnz} nnz/row (DESIGN.md's 4-term inverse)"
+    n = T.shape[0]
+    res.update(nnz_T=int(T.nnz), nnz_X=int(X.nnz), nnz_X_per_row=X.nnz / n,
+               nnz_T_per_row=T.nnz / n)
+    print(f"[throughput] {size[0]}x{size[1]}, n = {n:,}; T: {res['T']} ({T.nnz / n:.0f}/row); "
+          f"X: {res['X']} ({X.nnz / n:.0f}/row)")
+    X = bigT.open(X.path)  # from disk, nothing cached in the object
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0.2, 0.8, (args.frames, *size)).astype(np.float64)
+
+    def fps(fn, k):
+        t0 = time.perf_counter()
+        fn(frames[:k])
+        return k / (time.perf_counter() - t0)
+
+    compensate(X, frames[:1], batch=1)  # compile the kernel, warm the page cache
+    res["explicit_batch1_fps"] = fps(lambda f: compensate(X, f, batch=1), args.frames_b1)
+    print(f"  explicit X, batch 1:  {res['explicit_batch1_fps']:.2f} frames/s")
+    res["explicit_batch64_fps"] = fps(lambda f: compensate(X, f, batch=64), args.frames)
+    print(f"  explicit X, batch 64: {res['explicit_batch64_fps']:.2f} frames/s "
+          f"({args.frames} frames)")
+    res["matrix_free4_batch64_fps"] = fps(
+        lambda f: compensate(None, f, T=T, terms=4, path="matrix-free", batch=64),
+        min(args.frames, 64))
+    print(f"  matrix-free, 4 terms, batch 64: {res['matrix_free4_batch64_fps']:.2f} frames/s")
+    choice = bigT.compensation.choose_path(X, T, 4, "auto")
+    res["auto_choice"] = f"{choice.path}: {choice.reason}"
+    print(f"  auto would take: {res['auto_choice']}")
+
+    if not args.no_splu:
+        from scipy.sparse.linalg import splu
+
+        order = T.pixel_order
+        t0 = time.perf_counter()
+        Ts = sp.csc_matrix(T.to_scipy(), dtype=np.float64)
+        t_load = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        lu = splu(Ts)
+        res["splu_factor_seconds"] = time.perf_counter() - t0
+        k = args.frames_b1
+        B = order.to_matrix(frames[:k])
+        t0 = time.perf_counter()
+        for c in range(k):
+            lu.solve(np.ascontiguousarray(B[:, c], dtype=np.float64))
+        res["splu_solve_fps"] = k / (time.perf_counter() - t0)
+        res["splu_load_seconds"] = t_load
+        print(f"  scipy splu: factor {res['splu_factor_seconds']:.1f} s (after {t_load:.1f} s "
+              f"loading T), then {res['splu_solve_fps']:.2f} frames/s (one solve per frame)")
+        del lu, Ts
+    return res
+
+
+# --- part 2 -----------------------------------------------------------------------------
+
+def quality(args, out):
+    corner = getattr(_have("bigT", "scenes"), "corner", None)
+    if corner is None:
+        print("[quality] bigT.scenes.corner not available: skipped")
+        return {"skipped": "no scene generator"}
+    size = _size(args.scene_size)
+    scene = corner(size=size, path=str(out / f"corner_q_{size[0]}x{size[1]}.zarr"))
+    T = scene.T
+    X = exact_inverse_from_scene(scene, out / "X_q_exact.zarr")
+    n = T.shape[0]
+    # A constant target the exact inverse reproduces without clipping above 1.
+    ones = np.ones(size)
+    c = float(min(0.5, 0.9 / compensate(X, ones, clip=None).max()))
+    desired = np.full(size, c)
+    seen0 = relight(T, desired)
+    res = {"size": list(size), "n": n, "nnz_T_per_row": T.nnz / n, "target": c, "rows": []}
+
+    def row(label, l_in_raw):
+        l_in = np.clip(l_in_raw, 0, 1)
+        seen = relight(T, l_in)
+        r = dict(label=label, rel_error=relative_error(seen, desired),
+                 fluct_image=fluctuation(seen), fluct_scanline=fluctuation(scan_line(seen)),
+                 clipped=float(np.mean((l_in_raw < 0) | (l_in_raw > 1))))
+        res["rows"].append(r)
+        print(f"  {label:<34} error {r['rel_error']:.4f}  fluctuation image "
+              f"{r['fluct_image']:.3f}  scan line {r['fluct_scanline']:.3f}  clipped "
+              f"{100 * r['clipped']:.2f} %")
+        return seen
+
+    print(f"[quality] corner {size[0]}x{size[1]}, n = {n:,}, T {T.nnz / n:.0f} nnz/row, "
+          f"constant target {c:.3f}")
+    r0 = dict(label="uncompensated", rel_error=relative_error(seen0, desired),
+              fluct_image=fluctuation(seen0), fluct_scanline=fluctuation(scan_line(seen0)),
+              clipped=0.0)
+    res["rows"].append(r0)
+    print(f"  {'uncompensated':<34} error {r0['rel_error']:.4f}  fluctuation image "
+          f"{r0['fluct_image']:.3f}  scan line {r0['fluct_scanline']:.3f}")
+    lines = {"uncompensated": scan_line(seen0)}
+    for terms in range(1, 5):
+        raw = compensate(None, desired, T=T, terms=terms, path="matrix-free", clip=None)
+        lines[f"{terms} term(s)"] = scan_line(row(f"stratified n={terms} (eq. 13, unpruned)", raw))
+        Xs, secs = stratified(T, str(out / f"X_q_{terms}.zarr"), terms)
+        if Xs is not None:
+            row(f"stratified_inverse n={terms} ({secs:.1f} s)", compensate(Xs, desired, clip=None))
+    lines["exact inverse"] = scan_line(row("exact inverse F^-1 (I - A)",
+                                           compensate(X, desired, clip=None)))
+    from bigT.compensation.figures import scan_lines
+
+    res["plot"] = str(scan_lines(out / "scanlines_terms.png", lines, target=c,
+                                 title=f"corner {size[0]}x{size[1]}: centre scan line seen by "
+                                 "the camera, constant target"))
+    return res
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--size", default="384x512")
+    p.add_argument("--scene-size", default="48x64")
+    p.add_argument("--frames", type=int, default=128)
+    p.add_argument("--frames-b1", type=int, default=8)
+    p.add_argument("--x-nnz", type=int, default=445)
+    p.add_argument("--t-nnz", type=int, default=385)
+    p.add_argument("--synthetic", action="store_true", help="synthetic T and X for part 1")
+    p.add_argument("--no-splu", action="store_true")
+    p.add_argument("--skip", choices=("throughput", "quality"), action="append", default=[])
+    p.add_argument("--out", default="bench-out/compensate")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {"cpus": os.cpu_count()}
+    if "quality" not in args.skip:
+        results["quality"] = quality(args, out)
+    if "throughput" not in args.skip:
+        results["throughput"] = throughput(args, out)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
+    print(f"results -> {out / 'results.json'}")
+
+
+if __name__ == "__main__":
+    main()
