@@ -45,10 +45,23 @@ def make_matrix(n: int, per_row: int, seed: int = 0) -> sp.csr_array:
     data = rng.random(rows.size, dtype=np.float32)
     A = sp.csr_array((data, (rows, cols)), shape=(n, n))
     A.sum_duplicates()
-    return A
+    idx = np.int32 if max(n, A.nnz) < 2**31 else np.int64
+    return sp.csr_array((A.data, A.indices.astype(idx), A.indptr.astype(idx)), shape=(n, n))
 
 
 def _rss_mb() -> float:
+    """Peak RSS of this process in MiB.
+
+    VmHWM is per address space and starts afresh at exec; ru_maxrss on Linux keeps the
+    parent's peak across fork+exec, so it is only the fallback.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
@@ -128,7 +141,7 @@ def main(argv=None) -> int:
         print(f"matrix {args.n} x {args.n}, nnz {nnz} ({nnz / args.n:.1f}/row), float32, "
               f"CSR payload {payload / 1e6:.1f} MB, bigT tile size {tile_size}, "
               f"{os.cpu_count()} CPUs")
-        print(f"{'case':<44} {'time s':>8} {'MB/s':>8} {'peak RSS MB':>12} {'(input) MB':>11} {'disk MB':>8}")
+        print(f"{'case':<44} {'time s':>8} {'MB/s':>8} {'peak RSS MiB':>12} {'(input) MiB':>11} {'disk MB':>8}")
         sizes = {"bigt": "bigt.zarr", "npz": "scipy.npz", "npz_raw": "scipy_raw.npz"}
         for case in [c for c in args.cases.split(",") if c]:
             if case not in CASES:
