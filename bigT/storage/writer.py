@@ -82,7 +82,10 @@ def _split_tiles(indptr, indices, data, n_rows: int, ts: int):
         order = None
         js, bounds = tcol[:1], np.array([0, nnz])
     else:
-        order = np.argsort(tcol, kind="stable")
+        # Small-integer keys let numpy's stable sort use radix sort, O(nnz).
+        top = int(tcol.max())
+        key = tcol.astype(np.uint8 if top < 2**8 else np.uint16 if top < 2**16 else np.int64)
+        order = np.argsort(key, kind="stable")
         tcol_sorted = tcol[order]
         js, starts = np.unique(tcol_sorted, return_index=True)
         bounds = np.append(starts, nnz)
