@@ -158,3 +158,20 @@ def test_tampered_nnz_and_unsupported_version(store):
     meta.write_text(json.dumps(m))
     with pytest.raises(StoreError, match="inner_format 'bsr'"):
         open_store(S.path)
+
+
+def test_deleted_middle_chunk_of_multichunk_tile(tmp_path, monkeypatch):
+    from bigT import config
+    monkeypatch.setattr(config, "CHUNK_ELEMENTS", 4)
+    A = sp.csr_array(sp.random(12, 12, density=0.5, format="csr", random_state=3))
+    S = from_scipy(A, tmp_path / "c.zarr", tile_size=6)
+    chunks = sorted(os.listdir(S.path / "rows" / "1" / "0" / "data" / "c"), key=int)
+    assert len(chunks) >= 3
+    os.remove(S.path / "rows" / "1" / "0" / "data" / "c" / chunks[1])
+    with pytest.raises(CorruptStoreError, match=r"tile \(1, 0\): non-finite"):
+        open_store(S.path).get_tile(1, 0)
+    with pytest.raises(CorruptStoreError, match=f"missing chunk file rows/1/0/data/c/{chunks[1]}"):
+        open_store(S.path).verify()
+    os.remove(S.path / "rows" / "0" / "1" / "indptr" / "c" / "1")
+    with pytest.raises(CorruptStoreError, match=r"tile \(0, 1\): indptr"):
+        open_store(S.path).get_tile(0, 1)

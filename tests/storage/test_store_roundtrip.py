@@ -8,6 +8,7 @@ import pytest
 import scipy.sparse as sp
 from hypothesis import given, settings, strategies as st
 
+from bigT import config
 from bigT.errors import MemoryLimitError, ShapeMismatchError, StoreError, IncompleteStoreError
 from bigT.storage import BlockCSR, BlockCSRWriter, PixelOrder, from_scipy, open as open_store, set_redirect
 
@@ -57,15 +58,20 @@ def _check_against(S, R):
 @settings(max_examples=25, deadline=None)
 @given(n=st.integers(1, 40), m=st.integers(1, 40), density=st.floats(0.0, 0.6),
        tiles_per_side=st.integers(1, 5), dtype=st.sampled_from(["float32", "float64"]),
-       seed=st.integers(0, 2**16))
-def test_roundtrip_matches_scipy(n, m, density, tiles_per_side, dtype, seed):
+       seed=st.integers(0, 2**16), chunk=st.sampled_from([5, 16, 1 << 20]))
+def test_roundtrip_matches_scipy(n, m, density, tiles_per_side, dtype, seed, chunk):
     ts = max(1, -(-max(n, m) // tiles_per_side))
     A = sp.random(n, m, density=density, format="csr", random_state=seed)
-    with tempfile.TemporaryDirectory() as d:
-        S = from_scipy(A, os.path.join(d, "a.zarr"), tile_size=ts, dtype=dtype)
-        assert S.dtype == np.dtype(dtype) and S.tile_size == ts
-        _check_against(S, _ref(A, dtype))
-        _check_against(open_store(os.path.join(d, "a.zarr")), _ref(A, dtype))
+    saved = config.CHUNK_ELEMENTS
+    config.CHUNK_ELEMENTS = chunk   # small chunks: tile arrays span many chunk files
+    try:
+        with tempfile.TemporaryDirectory() as d:
+            S = from_scipy(A, os.path.join(d, "a.zarr"), tile_size=ts, dtype=dtype)
+            assert S.dtype == np.dtype(dtype) and S.tile_size == ts
+            _check_against(S, _ref(A, dtype))
+            _check_against(open_store(os.path.join(d, "a.zarr")), _ref(A, dtype))
+    finally:
+        config.CHUNK_ELEMENTS = saved
 
 
 def test_empty_rows_tiles_ragged_nonsquare(tmp_path):
