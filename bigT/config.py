@@ -50,3 +50,31 @@ SPGEMM_DENSE_SCAN_RATIO = 4.0
 COMPENSATE_WORKERS = 2
 #: Series terms n of the matrix-free path when neither the user nor X's metadata says.
 DEFAULT_COMPENSATION_TERMS = 4
+
+# --- scenes ---------------------------------------------------------------------------
+#: Rows of the form-factor matrix whose candidate pairs are enumerated at once.
+SCENE_PAIR_CHUNK = 2048
+#: A scene's form-factor matrix may hold at most this many entries (float64 + int32:
+#: ~12 bytes each, times ~3 while it is assembled).
+SCENE_MAX_A_NNZ = 150_000_000
+#: With no form-factor cut every pair is tested: refuse beyond this many pairs.
+SCENE_MAX_ALL_PAIRS = 64_000_000
+#: Relative margin of the ray-sphere occlusion test (an endpoint on a sphere is not a hit).
+SCENE_VISIBILITY_MARGIN = 1e-7
+#: Gaussian projector blur is truncated at this many standard deviations.
+SCENE_BLUR_TRUNCATE = 3.0
+#: Bounce terms R_k are pruned at this fraction of the T threshold (divided by max F).
+SCENE_PRUNE_FRACTION = 0.1
+#: With no threshold the bounce series stops when a bounce's largest T entry is below this.
+SCENE_NEUMANN_TOL = 1e-12
+#: A bounce series not converged after this many bounces is reported as divergent.
+SCENE_MAX_BOUNCES = 200
+#: Bounce shares ||A^k F 1|| / ||T 1|| are listed until below this share (or 30 bounces).
+SCENE_SHARE_TOL = 1e-4
+#: Bytes of decoded tiles of X (or T) that compensation keeps between frame batches;
+#: beyond it tiles are re-read from disk on every pass (0: always re-read).
+COMPENSATE_CACHE_BYTES = 1 << 30
+#: spgemm multiplies rows of A in groups of 8 sharing one pass over B when, in a group,
+#: useful multiply-adds / (8 x multiply-adds over the union of their columns) is at
+#: least this (the other lanes multiply zeros); otherwise row by row.
+SPGEMM_GROUP_MIN_EFFICIENCY = 0.25

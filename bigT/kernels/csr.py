@@ -242,7 +242,9 @@ def _csr_result(shape, indptr, indices, data, index_dtype=None):
 # --- products ------------------------------------------------------------------------
 
 
-def spgemm(A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None):
+def spgemm(
+    A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None, method=None
+):
     """C = A @ B with pruning fused into the row loop.
 
     Entries with ``|v| < threshold`` (absolute, tested on the value rounded to the
@@ -266,6 +268,12 @@ def spgemm(A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None)
     index_dtype : {None, int32, int64}
         Force the index dtype of the result; by default int32 when nnz and the shape
         fit, int64 otherwise (never a silent overflow).
+    method : {None, "rows", "grouped"}
+        Kernel. ``"grouped"`` (default when ``threshold > 0``) multiplies 8
+        neighbouring rows of A per pass over B with vector FMAs
+        (``_csr_kernels.spgemm_grouped_internal``); it cannot tell an exact zero from
+        an untouched entry, so ``threshold = 0`` always uses ``"rows"`` (one row at a
+        time, every structural entry kept, like scipy).
 
     Returns
     -------
@@ -279,6 +287,12 @@ def spgemm(A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None)
         Malformed CSR, indices out of range, NaN/Inf values.
     """
     threshold, top_k = _check_threshold(threshold, top_k)
+    if method is None:
+        method = "grouped" if threshold > 0 else "rows"
+    if method not in ("rows", "grouped"):
+        raise ValueError(f"method must be 'rows' or 'grouped', got {method!r}")
+    if method == "grouped" and threshold == 0:
+        raise ValueError("method='grouped' needs threshold > 0 (it drops exact zeros)")
     for X, nm in ((A, "A"), (B, "B")):
         if sp.issparse(X) and X.ndim != 2:
             raise ShapeMismatchError(f"{nm} must be 2-D, got shape {X.shape}")
@@ -313,7 +327,14 @@ def spgemm(A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None)
         n_threads = 1
     n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD
     bounds = _split_rows(work, n_chunks)
-    ratio = float(config.SPGEMM_DENSE_SCAN_RATIO)
+    if method == "grouped":
+        # Ranges start on multiples of GROUP so groups are the same whatever n_threads.
+        bounds = np.unique(np.minimum((bounds + K.GROUP - 1) // K.GROUP * K.GROUP, m))
+        kernel = K.spgemm_grouped_internal
+        tuning = float(config.SPGEMM_GROUP_MIN_EFFICIENCY)
+    else:
+        kernel = K.spgemm_rows_internal
+        tuning = float(config.SPGEMM_DENSE_SCAN_RATIO)
     # Initial buffers: the rows' nnz(A) (a pruned term is about as dense as its
     # factor), capped by the exact upper bound; they double when short.
     cum_work = np.concatenate(([0], np.cumsum(work)))
@@ -324,9 +345,9 @@ def spgemm(A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None)
             int(a.indptr[r1] - a.indptr[r0]) + 16 * (r1 - r0),
             (r1 - r0) * p,
         )
-        return K.spgemm_rows_internal(
+        return kernel(
             r0, r1, a.indptr, a.indices, a.data, b.indptr, b.indices, b.data, p,
-            threshold, top_k, ratio, cap,
+            threshold, top_k, tuning, cap,
         )
 
     pieces = _run_ranges(run, bounds, n_threads)
@@ -367,6 +388,8 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
     """
     if not sp.issparse(A):
         raise InvalidMatrixError(f"A must be a scipy.sparse matrix, got {type(A).__name__}")
+    if A.ndim != 2:
+        raise ShapeMismatchError(f"A must be 2-D, got shape {A.shape}")
     X = np.asarray(X)
     if X.ndim not in (1, 2):
         raise ShapeMismatchError(f"X must have shape (n,) or (n, k), got {X.shape}")
@@ -375,12 +398,22 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
             f"X has {X.shape[0]} rows but A has {A.shape[1]} columns (A {A.shape} @ X {X.shape})"
         )
     fdt = _float_dtype(A.dtype, X.dtype, name="A, X")
-    a = _as_csr(A, "A", dtype=fdt, canonical=False)
+    if A.format != "csr":
+        A = A.tocsr()
+    m, n = A.shape
+    # The structure and value checks run inside the kernel (see
+    # spmm_dense_rows_internal); only the array shapes are checked here.
+    idt = choose_index_dtype(max(m, n), A.nnz)
+    indptr = np.ascontiguousarray(A.indptr, dtype=idt)
+    indices = np.ascontiguousarray(A.indices, dtype=idt)
+    data = np.ascontiguousarray(A.data, dtype=fdt)
+    if indptr.shape != (m + 1,) or indices.shape != data.shape or indices.ndim != 1:
+        raise InvalidMatrixError("A: malformed CSR arrays (indptr/indices/data shapes)")
+    if data.dtype.kind == "c":
+        raise InvalidMatrixError(f"A: complex values are not supported ({data.dtype})")
     vector = X.ndim == 1
     X2 = np.ascontiguousarray(X.reshape(X.shape[0], -1), dtype=fdt)
-    if not np.isfinite(X2).all():
-        raise InvalidMatrixError("X holds NaN or Inf")
-    m, k = a.shape[0], X2.shape[1]
+    k = X2.shape[1]
     if out is None:
         result = np.zeros((m, k), fdt)
         target = result
@@ -396,21 +429,33 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
             raise InvalidMatrixError("out is not writeable")
         result = out
         target = out.reshape(m, k)
-        if not target.flags.c_contiguous or not np.shares_memory(target, out):
-            target = np.ascontiguousarray(target)
-    if a.nnz and m and k:
+        if not (target.flags.c_contiguous and np.shares_memory(target, out)):
+            target = np.ascontiguousarray(target).copy()
+    if m and k and indices.shape[0]:
         n_threads = _n_threads(n_threads)
-        if a.nnz * k < config.KERNEL_MIN_PARALLEL_WORK:
+        if indices.shape[0] * k < config.KERNEL_MIN_PARALLEL_WORK:
             n_threads = 1
         n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD
-        bounds = _split_rows(np.diff(a.indptr).astype(np.int64) + 1, n_chunks)
-        _run_ranges(
-            lambda r0, r1: K.spmm_dense_rows_internal(
-                r0, r1, a.indptr, a.indices, a.data, X2, target
-            ),
+        if n_chunks == 1:
+            bounds = np.array([0, m], np.int64)
+        else:
+            bounds = _split_rows(np.diff(indptr).astype(np.int64) + 1, n_chunks)
+        statuses = _run_ranges(
+            lambda r0, r1: K.spmm_dense_rows_internal(r0, r1, indptr, indices, data, X2, target),
             bounds,
             n_threads,
         )
+        for status, where in statuses:
+            if status != K.CSR_OK:
+                what = {
+                    K.CSR_BAD_INDPTR: "malformed CSR indptr",
+                    K.CSR_INDEX_OUT_OF_RANGE: "column index out of range",
+                    K.CSR_NOT_FINITE: "NaN or Inf in A or in the rows of X it uses",
+                }[status]
+                msg = f"A @ X: {what} at row {where}"
+                if out is not None:
+                    msg += " (out is partly updated)"
+                raise InvalidMatrixError(msg)
         if out is not None and target is not result and not np.shares_memory(target, out):
             out[...] = target.reshape(out.shape)
     if out is None and vector:

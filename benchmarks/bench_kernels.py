@@ -1,0 +1,186 @@
+"""Benchmark of bigT's kernels against scipy, sparse_dot_topn and python-graphblas.
+
+Not a test: prints one table per size, every method timed side by side in the same
+run (timings on a shared machine drift; compare only within one table).
+
+Input: M = I - T F^-1 of the synthetic corner scene (``bigT.scenes.corner``) when that
+is importable, else a stand-in with the same structure class: a concave corner of two
+walls, each pixel seeing a disc of ~385 pixels around its mirror image on the other
+wall, magnitudes decaying with distance, rows summing to -0.44 (rho(M) ~ 0.44 as in
+DESIGN.md), so pruning at 1e-5 actually drops entries of M @ M.
+
+    python benchmarks/bench_kernels.py --sizes 96x128,192x256 --threshold 1e-5 --repeat 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def stand_in_M(H, W, *, nnz_per_row=385, rho=0.44, dtype=np.float32, seed=0):
+    """A corner-like M = I - T F^-1 with ~nnz_per_row entries per row (zero diagonal).
+
+    Pixel (y, x) on the left half (x < W/2) sees the right half around its mirror
+    (y, W - 1 - x) and vice versa, through a disc of radius r (pi r^2 ~ nnz_per_row),
+    weights exp(-d^2 / (2 s^2)) with s = r / 2, jittered, scaled to row sum -rho.
+    """
+    rng = np.random.default_rng(seed)
+    r = np.sqrt(nnz_per_row / np.pi)
+    R = int(np.ceil(r))
+    dy, dx = np.mgrid[-R : R + 1, -R : R + 1]
+    disc = dy**2 + dx**2 <= r * r
+    dy, dx = dy[disc], dx[disc]
+    w0 = np.exp(-(dy**2 + dx**2) / (2 * (r / 2) ** 2))
+    ys, xs = np.divmod(np.arange(H * W), W)
+    mx = W - 1 - xs
+    ty = ys[:, None] + dy[None, :]
+    tx = mx[:, None] + dx[None, :]
+    left = xs < W // 2
+    # Stay on the other wall: a left pixel sees x >= W/2, a right pixel x < W/2.
+    ok = (ty >= 0) & (ty < H) & (tx >= 0) & (tx < W)
+    ok &= np.where(left[:, None], tx >= W // 2, tx < W // 2)
+    w = w0[None, :] * rng.uniform(0.5, 1.5, size=ty.shape)
+    w = np.where(ok, w, 0.0)
+    w *= rho / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    rows = np.repeat(np.arange(H * W), ok.sum(axis=1))
+    cols = (ty * W + tx)[ok]
+    M = sp.csr_array((-w[ok], (rows, cols)), shape=(H * W, H * W), dtype=dtype)
+    M.sum_duplicates()
+    return M
+
+
+def corner_M(H, W):
+    """(M, description) from the scene generator, or the stand-in."""
+    try:
+        from bigT.scenes import corner  # noqa: PLC0415
+
+        import tempfile  # noqa: PLC0415
+
+        tmp = tempfile.mkdtemp(prefix="bigT-bench-")
+        scene = corner(size=(H, W), path=f"{tmp}/corner.zarr")
+        T = scene.T.to_scipy()
+        F = np.asarray(scene.F, dtype=np.float64)
+        M = sp.eye_array(T.shape[0], dtype=T.dtype, format="csr") - T @ sp.diags_array(
+            (1.0 / F).astype(T.dtype)
+        )
+        M = sp.csr_array(M)
+        M.sum_duplicates()
+        return M, "bigT.scenes.corner"
+    except (ImportError, AttributeError) as exc:
+        return stand_in_M(H, W), f"stand-in corner (scene unavailable: {exc.__class__.__name__})"
+
+
+def timed(func, repeat):
+    best, out = np.inf, None
+    for _ in range(repeat):
+        out = None
+        gc.collect()
+        t = time.perf_counter()
+        out = func()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def scipy_then_prune(M, threshold):
+    C = sp.csr_array(M @ M)
+    if threshold > 0:
+        C.data[np.abs(C.data) < threshold] = 0
+        C.eliminate_zeros()
+    C.sort_indices()
+    return C
+
+
+def maxdiff(C, ref):
+    D = sp.csr_array(C, dtype=np.float64) - sp.csr_array(ref, dtype=np.float64)
+    return float(np.abs(D.data).max()) if D.nnz else 0.0
+
+
+def bench_size(H, W, threshold, repeat, n_threads, methods):
+    from bigT import kernels  # noqa: PLC0415
+
+    M, source = corner_M(H, W)
+    n = M.shape[0]
+    print(f"\n== {H}x{W}  n={n}  nnz/row={M.nnz / n:.0f}  dtype={M.dtype}  input: {source}")
+    print(f"   M @ M, threshold {threshold:g}, best of {repeat}, {n_threads} threads")
+
+    kernels.spgemm(M[:64], M, threshold=threshold)  # compile / load the numba cache
+    t_ref, ref = timed(lambda: scipy_then_prune(M, threshold), repeat)
+    rows = [("scipy M@M + prune", t_ref, ref)]
+    t_raw, raw = timed(lambda: M @ M, repeat)
+    print(f"   (scipy M@M alone {t_raw:.2f} s, {raw.nnz / n:.0f} nnz/row unpruned; "
+          f"pruned {ref.nnz / n:.0f} nnz/row)")
+    del raw
+    t, C = timed(lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=n_threads), repeat)
+    rows.append((f"bigT spgemm ({n_threads} thr)", t, C))
+    if n_threads != 1:
+        t, C = timed(lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=1), repeat)
+        rows.append(("bigT spgemm (1 thr)", t, C))
+    if "topn" in methods:
+        try:
+            from sparse_dot_topn import sp_matmul_topn  # noqa: PLC0415
+
+            Ms = sp.csr_matrix(M)
+            t, C = timed(
+                lambda: sp_matmul_topn(
+                    Ms, Ms, top_n=n, threshold=threshold, sort=False, n_threads=n_threads
+                ),
+                repeat,
+            )
+            rows.append((f"sparse_dot_topn ({n_threads} thr)", t, C))
+        except ImportError as exc:
+            print(f"   sparse_dot_topn unavailable: {exc}")
+    if "graphblas" in methods:
+        try:
+            import graphblas as gb  # noqa: PLC0415
+
+            G = gb.io.from_scipy_sparse(sp.csr_matrix(M))
+
+            def gb_prod():
+                P = (G @ G).new()
+                if threshold > 0:
+                    keep = P.apply(gb.unary.abs).new().select(gb.select.valuege, threshold).new()
+                    P = P.dup(mask=keep.S)
+                return P
+
+            t, P = timed(gb_prod, repeat)
+            rows.append(("python-graphblas + select", t, gb.io.to_scipy_sparse(P, format="csr")))
+        except ImportError as exc:
+            print(f"   python-graphblas unavailable: {exc}")
+
+    print(f"   {'method':<30} {'time [s]':>9} {'scipy/x':>8} {'nnz/row':>8} {'max|diff|':>10}")
+    for name, t, C in rows:
+        print(f"   {name:<30} {t:9.3f} {t_ref / t:8.2f} {C.nnz / n:8.0f} {maxdiff(C, ref):10.2e}")
+
+    print(f"   spmm_dense: A @ X, X of shape (n, k), {M.dtype}")
+    print(f"   {'k':>4} {'scipy [s]':>10} {'bigT [s]':>9} {'scipy/bigT':>10} {'max|diff|':>10}")
+    rng = np.random.default_rng(1)
+    for k in (1, 64):
+        X = rng.random((n, k)).astype(M.dtype)
+        reps = max(repeat, 20 if k == 1 else 5)
+        kernels.spmm_dense(M[:64], X)
+        ts, Ys = timed(lambda: M @ X, reps)
+        tb, Yb = timed(lambda: kernels.spmm_dense(M, X, n_threads=n_threads), reps)
+        print(f"   {k:>4} {ts:10.4f} {tb:9.4f} {ts / tb:10.2f} {np.abs(Ys - Yb).max():10.2e}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="96x128,192x256", help="HxW[,HxW...]")
+    ap.add_argument("--threshold", type=float, default=1e-5)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--methods", default="topn,graphblas", help="rivals to run besides scipy")
+    args = ap.parse_args(argv)
+    methods = set(filter(None, args.methods.split(",")))
+    for size in args.sizes.split(","):
+        H, W = (int(v) for v in size.lower().split("x"))
+        bench_size(H, W, args.threshold, args.repeat, args.threads, methods)
+
+
+if __name__ == "__main__":
+    main()
