@@ -51,6 +51,16 @@ def _have(module, name):
 
 # --- matrices ---------------------------------------------------------------------------
 
+def _reuse(path, meta, shape):
+    """The store at ``path`` when an earlier run left a complete one with ``meta``."""
+    try:
+        st = bigT.open(path)
+    except Exception:
+        return None
+    same = tuple(st.shape) == tuple(shape) and all(st.metadata.get(k) == v for k, v in meta.items())
+    return st if same else None
+
+
 def synthetic_local(path, size, nnz_per_row, *, diag=0.8, spread=0.3, radius=None, seed=0,
                     tile_size=8192):
     """A transport-like matrix written tile row by tile row (bounded memory).
@@ -68,8 +78,12 @@ def synthetic_local(path, size, nnz_per_row, *, diag=0.8, spread=0.3, radius=Non
     radius = radius or int(np.ceil(1.5 * np.sqrt(nnz_per_row)))
     rng = np.random.default_rng(seed)
     perm, inv = order.permutation, order.inverse_permutation
+    meta = {"synthetic": True, "nnz_per_row": nnz_per_row, "seed": seed}
+    reuse = _reuse(path, meta, (n, n))
+    if reuse is not None:
+        return reuse
     w = BlockCSRWriter(path, (n, n), tile_size=tile_size, dtype="float32", pixel_order=order,
-                       metadata={"synthetic": True, "nnz_per_row": nnz_per_row})
+                       metadata=meta, overwrite=True)
     k = nnz_per_row - 1
     for i in range(-(-n // tile_size)):
         r0, r1 = i * tile_size, min((i + 1) * tile_size, n)
@@ -98,7 +112,8 @@ def exact_inverse_from_scene(scene, path):
 
     A, F = scene.A, np.asarray(scene.F, dtype=np.float64)
     w = BlockCSRWriter(path, A.shape, tile_size=A.tile_size, dtype="float32",
-                       pixel_order=A.pixel_order, metadata={"exact_inverse": True})
+                       pixel_order=A.pixel_order, metadata={"exact_inverse": True},
+                       overwrite=True)
     for i in range(A.grid[0]):
         r0, r1 = A.tile_row_range(i)
         eye = sp.csr_array((np.ones(r1 - r0), (np.arange(r1 - r0), np.arange(r0, r1))),
@@ -153,49 +168,114 @@ def throughput(args, out):
     print(f"[throughput] {size[0]}x{size[1]}, n = {n:,}; T: {res['T']} ({T.nnz / n:.0f}/row); "
           f"X: {res['X']} ({X.nnz / n:.0f}/row)")
     X = bigT.open(X.path)  # from disk, nothing cached in the object
+    from bigT.compensation import stream_matmul
+    from bigT.compensation._stream import TileCache
+
     rng = np.random.default_rng(0)
     frames = rng.uniform(0.2, 0.8, (args.frames, *size)).astype(np.float64)
+    V64 = X.pixel_order.to_matrix(frames[:64]).astype(np.float32)
 
-    def fps(fn, k):
+    def timed(fn):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        return time.perf_counter() - t0, time.process_time() - c0
+
+    stream_matmul(X, V64[:, :1])  # compile the kernel, warm the page cache
+    for K in (1, 64):
+        V = np.ascontiguousarray(V64[:, :K])
+        wall, cpu = timed(lambda: stream_matmul(X, V))
+        res[f"pass_cold_K{K}_seconds"], res[f"pass_cold_K{K}_cpu_seconds"] = wall, cpu
+        cache = TileCache(args.cache_mb << 20)
+        stream_matmul(X, V, cache=cache)
+        h0, m0 = cache.hits, cache.misses
+        wall_w, cpu_w = timed(lambda: stream_matmul(X, V, cache=cache))
+        res[f"pass_warm_K{K}_seconds"], res[f"pass_warm_K{K}_cpu_seconds"] = wall_w, cpu_w
+        res[f"cache_fraction_K{K}"] = (cache.hits - h0) / max(cache.hits - h0 + cache.misses - m0, 1)
+        print(f"  one pass over X, batch {K:>2}: read from disk {wall:.2f} s "
+              f"({K / wall:.2f} frames/s, {cpu:.2f} CPU-s); tiles cached "
+              f"({100 * res[f'cache_fraction_K{K}']:.0f} % hits) {wall_w:.2f} s "
+              f"({K / wall_w:.2f} frames/s, {cpu_w:.2f} CPU-s)")
+        del cache
+    t0 = time.perf_counter()
+    compensate(X, frames, batch=64, cache_bytes=args.cache_mb << 20)
+    res["compensate_batch64_fps"] = len(frames) / (time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    compensate(X, frames[:64], batch=64, cache_bytes=0)
+    res["compensate_batch64_nocache_fps"] = 64 / (time.perf_counter() - t0)
+    print(f"  compensate(), {len(frames)} frames, batch 64, end to end (images in/out, clip): "
+          f"{res['compensate_batch64_fps']:.2f} frames/s with the tile cache, "
+          f"{res['compensate_batch64_nocache_fps']:.2f} frames/s re-reading X every batch")
+    for cache_mb in (args.cache_mb, 0):
         t0 = time.perf_counter()
-        fn(frames[:k])
-        return k / (time.perf_counter() - t0)
-
-    compensate(X, frames[:1], batch=1)  # compile the kernel, warm the page cache
-    res["explicit_batch1_fps"] = fps(lambda f: compensate(X, f, batch=1), args.frames_b1)
-    print(f"  explicit X, batch 1:  {res['explicit_batch1_fps']:.2f} frames/s")
-    res["explicit_batch64_fps"] = fps(lambda f: compensate(X, f, batch=64), args.frames)
-    print(f"  explicit X, batch 64: {res['explicit_batch64_fps']:.2f} frames/s "
-          f"({args.frames} frames)")
-    res["matrix_free4_batch64_fps"] = fps(
-        lambda f: compensate(None, f, T=T, terms=4, path="matrix-free", batch=64),
-        min(args.frames, 64))
-    print(f"  matrix-free, 4 terms, batch 64: {res['matrix_free4_batch64_fps']:.2f} frames/s")
+        compensate(None, frames[:64], T=T, terms=4, path="matrix-free", batch=64,
+                   cache_bytes=cache_mb << 20)
+        res[f"matrix_free4_batch64_cache{cache_mb}_fps"] = 64 / (time.perf_counter() - t0)
+        print(f"  matrix-free, 4 terms, batch 64, cache {cache_mb} MiB: "
+              f"{res[f'matrix_free4_batch64_cache{cache_mb}_fps']:.2f} frames/s")
     choice = bigT.compensation.choose_path(X, T, 4, "auto")
     res["auto_choice"] = f"{choice.path}: {choice.reason}"
     print(f"  auto would take: {res['auto_choice']}")
-
     if not args.no_splu:
-        from scipy.sparse.linalg import splu
+        res.update(splu_in_child(T.path, frames[:args.frames_b1], args))
+    return res
 
-        order = T.pixel_order
+
+def _splu_child(path, frames, q):
+    import resource
+
+    from scipy.sparse.linalg import splu
+
+    try:
+        T = bigT.open(path)
         t0 = time.perf_counter()
         Ts = sp.csc_matrix(T.to_scipy(), dtype=np.float64)
-        t_load = time.perf_counter() - t0
+        load = time.perf_counter() - t0
         t0 = time.perf_counter()
         lu = splu(Ts)
-        res["splu_factor_seconds"] = time.perf_counter() - t0
-        k = args.frames_b1
-        B = order.to_matrix(frames[:k])
+        factor = time.perf_counter() - t0
+        B = T.pixel_order.to_matrix(frames)
         t0 = time.perf_counter()
-        for c in range(k):
+        for c in range(B.shape[1]):
             lu.solve(np.ascontiguousarray(B[:, c], dtype=np.float64))
-        res["splu_solve_fps"] = k / (time.perf_counter() - t0)
-        res["splu_load_seconds"] = t_load
-        print(f"  scipy splu: factor {res['splu_factor_seconds']:.1f} s (after {t_load:.1f} s "
-              f"loading T), then {res['splu_solve_fps']:.2f} frames/s (one solve per frame)")
-        del lu, Ts
-    return res
+        fps = B.shape[1] / (time.perf_counter() - t0)
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        q.put(dict(splu_load_seconds=load, splu_factor_seconds=factor, splu_solve_fps=fps,
+                   splu_nnz_LU=int(lu.L.nnz + lu.U.nnz), splu_peak_rss_mb=rss))
+    except MemoryError:
+        q.put(dict(splu="MemoryError"))
+
+
+def splu_in_child(path, frames, args):
+    """scipy splu of T in a child process with a time and memory limit."""
+    import multiprocessing as mp
+    import resource
+
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    limit = args.splu_gb << 30
+    old = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, old[1]))  # inherited by the child only
+    try:
+        proc = ctx.Process(target=_splu_child, args=(str(path), frames, q))
+        proc.start()
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, old)
+    proc.join(args.splu_seconds)
+    if proc.is_alive():
+        proc.kill()
+        proc.join()
+        out = {"splu": f"did not finish in {args.splu_seconds} s"}
+    else:
+        out = q.get() if not q.empty() else {"splu": f"failed (exit {proc.exitcode}, "
+                                                      f"{args.splu_gb} GB address-space limit)"}
+    if "splu_factor_seconds" in out:
+        print(f"  scipy splu: factor {out['splu_factor_seconds']:.1f} s (after "
+              f"{out['splu_load_seconds']:.1f} s loading T; nnz(L+U) = {out['splu_nnz_LU']:,}, "
+              f"peak RSS {out['splu_peak_rss_mb']:.0f} MB), then {out['splu_solve_fps']:.2f} "
+              "frames/s (one solve per frame)")
+    else:
+        print(f"  scipy splu: {out['splu']}")
+    return out
 
 
 # --- part 2 -----------------------------------------------------------------------------
@@ -258,12 +338,15 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--size", default="384x512")
     p.add_argument("--scene-size", default="48x64")
-    p.add_argument("--frames", type=int, default=128)
+    p.add_argument("--frames", type=int, default=256)
     p.add_argument("--frames-b1", type=int, default=8)
     p.add_argument("--x-nnz", type=int, default=445)
     p.add_argument("--t-nnz", type=int, default=385)
     p.add_argument("--synthetic", action="store_true", help="synthetic T and X for part 1")
     p.add_argument("--no-splu", action="store_true")
+    p.add_argument("--splu-gb", type=int, default=6, help="address-space limit of the splu child")
+    p.add_argument("--splu-seconds", type=int, default=300)
+    p.add_argument("--cache-mb", type=int, default=1024)
     p.add_argument("--skip", choices=("throughput", "quality"), action="append", default=[])
     p.add_argument("--out", default="bench-out/compensate")
     args = p.parse_args(argv)

@@ -44,6 +44,9 @@ def register(sub) -> None:
                    f"{config.DEFAULT_COMPENSATION_TERMS})")
     p.add_argument("--bits", type=int, choices=(8, 16), default=None,
                    help="PNG bit depth of the outputs (default: that of each input PNG)")
+    p.add_argument("--cache-mb", dest="cache_mb", type=int, default=None,
+                   help="MiB of decoded matrix tiles kept between batches (default "
+                   f"{config.COMPENSATE_CACHE_BYTES >> 20}; 0: re-read every pass)")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     p.set_defaults(func=run_compensate)
 
@@ -106,7 +109,7 @@ def _describe(store, name):
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
-    from ..compensation._stream import as_store, compute_dtype, stream_matmul
+    from ..compensation._stream import TileCache, as_store, compute_dtype, stream_matmul
     from ..compensation.core import (CompensationReport, choose_path, compensate_frames,
                                      fluctuation, pixel_order_of, relative_error, scan_line,
                                      to_frames, to_vectors)
@@ -142,6 +145,7 @@ def run_compensate(args) -> int:
                                       else "") + f" -- {choice.reason}")
 
     report = CompensationReport(choice)
+    cache = TileCache(args.cache_mb * (1 << 20) if args.cache_mb is not None else None)
     sums = dict(err=0.0, err0=0.0, ref=0.0)
     flat = []  # (image fl. without, with, scan line without, with) for constant targets
     first = None
@@ -154,7 +158,7 @@ def run_compensate(args) -> int:
         for files, frames in source.batches(args.batch):
             t1 = time.perf_counter()
             _, l_in = compensate_frames(frames, X=X, T=Tm, choice=choice, clip=clip,
-                                        report=report, progress=args.progress)
+                                        report=report, progress=args.progress, cache=cache)
             t_comp += time.perf_counter() - t1
             report.frames += len(frames)
             sink.write(files, l_in)
@@ -162,7 +166,8 @@ def run_compensate(args) -> int:
                 order = pixel_order_of(S, frames.shape[1:])
                 both = np.concatenate([l_in, frames])  # one pass over T for both
                 seen_all = to_frames(stream_matmul(S, to_vectors(both, order, compute_dtype(S)),
-                                                   progress=args.progress, desc="T pass"), order)
+                                                   progress=args.progress, desc="T pass",
+                                                   cache=cache), order)
                 seen, seen0 = seen_all[:len(frames)], seen_all[len(frames):]
                 seen_sink.write(files, seen)
                 sums["err"] += float(np.sum((seen - frames) ** 2))

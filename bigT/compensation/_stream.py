@@ -10,6 +10,7 @@ decompressing one tile row overlaps the product of another, and both release the
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor, as_completed
 
 import numpy as np
@@ -50,8 +51,46 @@ def _spmm():
     return spmm
 
 
+class TileCache:
+    """Decoded tiles kept between passes, up to a byte budget; the rest is re-read.
+
+    A stream of frame batches makes one pass over X per batch; when X (or the part of it
+    that fits) stays decoded, later passes skip the read and the decompression. Memory
+    stays bounded by ``max_bytes`` whatever the matrix size.
+
+    Parameters
+    ----------
+    max_bytes : int, optional
+        Budget for the CSR arrays of cached tiles (default
+        ``config.COMPENSATE_CACHE_BYTES``; 0 disables the cache).
+    """
+
+    def __init__(self, max_bytes: int | None = None):
+        self.max_bytes = int(config.COMPENSATE_CACHE_BYTES if max_bytes is None else max_bytes)
+        self.bytes = 0
+        self.hits = self.misses = 0
+        self._tiles = {}
+        self._lock = threading.Lock()
+
+    def get(self, A, i: int, j: int):
+        key = (id(A), i, j)
+        tile = self._tiles.get(key)
+        if tile is not None:
+            self.hits += 1
+            return tile
+        self.misses += 1
+        tile = A.get_tile(i, j)
+        if self.max_bytes > 0:
+            size = tile.data.nbytes + tile.indices.nbytes + tile.indptr.nbytes
+            with self._lock:
+                if self.bytes + size <= self.max_bytes and key not in self._tiles:
+                    self._tiles[key] = tile
+                    self.bytes += size
+        return tile
+
+
 def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: bool = False,
-                  desc: str = "pass") -> np.ndarray:
+                  desc: str = "pass", cache: TileCache | None = None) -> np.ndarray:
     """A @ V with A streamed from disk one tile row at a time.
 
     Parameters
@@ -62,6 +101,8 @@ def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: boo
         Threads over tile rows (default ``config.COMPENSATE_WORKERS``).
     progress : bool
         Show a tqdm bar over tile rows.
+    cache : TileCache, optional
+        Keep decoded tiles for the next pass (none: every tile is read from disk).
 
     Returns
     -------
@@ -86,7 +127,7 @@ def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: boo
         start, stop = A.tile_row_range(i)
         for j in A.tile_columns(i):
             j = int(j)
-            tile = A.get_tile(i, j)
+            tile = A.get_tile(i, j) if cache is None else cache.get(A, i, j)
             if tile.nnz:
                 spmm(tile, V[j * ts:j * ts + tile.shape[1]], out[start:stop])
         return i

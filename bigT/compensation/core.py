@@ -18,7 +18,7 @@ import numpy as np
 from .. import config
 from ..errors import ImageError, InvalidMatrixError, ShapeMismatchError
 from ..storage.pixel_order import PixelOrder
-from ._stream import as_store, compute_dtype, stream_matmul
+from ._stream import TileCache, as_store, compute_dtype, stream_matmul
 
 PATHS = ("explicit", "matrix-free", "auto")
 
@@ -79,7 +79,7 @@ def first_bounce_diag(T) -> np.ndarray:
 
 
 def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = None,
-                      progress: bool = False) -> np.ndarray:
+                      progress: bool = False, cache: TileCache | None = None) -> np.ndarray:
     """T_n^-1 B without forming T_n^-1: ``terms`` streaming products with T.
 
     Paper eq. 13: T_n^-1 = F^-1 S_n with S_n = sum_{k=0..n} M^k, M = I - T F^-1. Horner on
@@ -92,6 +92,7 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     B : ndarray, shape (n, K), in T's pixel order
     terms : int, n >= 0
     F : ndarray, shape (n,), optional; diag(T) by default.
+    cache : TileCache, optional; T's tiles kept between the passes.
 
     Returns
     -------
@@ -106,7 +107,7 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     B = np.asarray(B, dtype=dtype).reshape(T.shape[0], -1)
     s = B.copy()
     for j in range(terms):
-        s = B + s - stream_matmul(T, finv * s, progress=progress,
+        s = B + s - stream_matmul(T, finv * s, progress=progress, cache=cache,
                                   desc=f"matrix-free term {j + 1}/{terms}")
     return finv * s
 
@@ -205,22 +206,23 @@ def _clip(values: np.ndarray, clip, report: CompensationReport | None):
 
 
 def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice, clip=(0, 1),
-                      report: CompensationReport | None = None, progress: bool = False):
+                      report: CompensationReport | None = None, progress: bool = False,
+                      cache: TileCache | None = None):
     """One batch: (K, H, W) desired frames -> (K, H, W) projector inputs (unclipped, clipped)."""
     store = X if choice.path == "explicit" else T
     order = pixel_order_of(store, frames.shape[1:])
     B = to_vectors(frames, order, compute_dtype(store))
     if choice.path == "explicit":
-        Y = stream_matmul(X, B, progress=progress, desc="X pass")
+        Y = stream_matmul(X, B, progress=progress, desc="X pass", cache=cache)
     else:
-        Y = matrix_free_apply(T, B, choice.terms, progress=progress)
+        Y = matrix_free_apply(T, B, choice.terms, progress=progress, cache=cache)
     raw = to_frames(Y, order)
     return raw, _clip(raw, clip, report)
 
 
 def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=None,
                terms: int | None = None, path: str = "explicit", progress: bool = False,
-               return_report: bool = False):
+               cache_bytes: int | None = None, return_report: bool = False):
     """Projector inputs that make the camera see ``images``: l_in = clip(X l_desired).
 
     Paper eqs. 44-45. X is streamed from disk one tile row at a time against ``batch``
@@ -239,6 +241,9 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
         else ``config.DEFAULT_COMPENSATION_TERMS``).
     path : {"explicit", "matrix-free", "auto"}
         "auto" takes the cheaper of nnz(X) and terms * nnz(T) (see :func:`choose_path`).
+    cache_bytes : int, optional
+        Decoded tiles kept between batches (default ``config.COMPENSATE_CACHE_BYTES``;
+        0: every batch re-reads the matrix from disk).
     return_report : bool
         Also return a :class:`CompensationReport`.
 
@@ -254,17 +259,20 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
     report = CompensationReport(choice)
     out = np.empty_like(frames)
     batch = max(1, int(batch))
+    cache = TileCache(cache_bytes)
     t0 = time.perf_counter()
     for s in range(0, len(frames), batch):
         _, out[s:s + batch] = compensate_frames(frames[s:s + batch], X=X, T=T, choice=choice,
-                                                clip=clip, report=report, progress=progress)
+                                                clip=clip, report=report, progress=progress,
+                                                cache=cache)
     report.seconds = time.perf_counter() - t0
     report.frames = len(frames)
     result = out[0] if single else out
     return (result, report) if return_report else result
 
 
-def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = False) -> np.ndarray:
+def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = False,
+            cache_bytes: int | None = None) -> np.ndarray:
     """What the camera sees for projector images: T l (forward transport).
 
     Parameters
@@ -280,9 +288,11 @@ def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = Fa
     frames, single, order = _as_frames(images, T)
     out = np.empty_like(frames)
     batch = max(1, int(batch))
+    cache = TileCache(cache_bytes)
     for s in range(0, len(frames), batch):
         B = to_vectors(frames[s:s + batch], order, compute_dtype(T))
-        out[s:s + batch] = to_frames(stream_matmul(T, B, progress=progress, desc="T pass"), order)
+        out[s:s + batch] = to_frames(stream_matmul(T, B, progress=progress, desc="T pass",
+                                                   cache=cache), order)
     return out[0] if single else out
 
 
@@ -335,8 +345,10 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     # Work in float64 for the dense vectors so the parts sum to T l to rounding.
     v = F * to_vectors(frames, order_x, np.float64)
     parts = [v]
+    cache = TileCache()
     for k in range(bounces):
-        v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}")
+        v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}",
+                                  cache=cache)
         parts.append(v)
     seen = to_frames(stream_matmul(T, to_vectors(frames, order_t, np.float64),
                                    progress=progress, desc="T pass"), order_t)

@@ -77,6 +77,25 @@ def test_streamed_equals_scipy(batch, tile_size, order, tmp_path):
                                rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize("budget", [0, 3000, 1 << 30])
+def test_tile_cache_same_result_bounded(tmp_path, budget):
+    from bigT.compensation._stream import TileCache
+
+    T, X, F, A = random_transport(10, 12, seed=9)
+    Xs = make_store(X, tmp_path / "X.zarr", image_shape=(10, 12), tile_size=32)
+    V = np.random.default_rng(0).uniform(size=(120, 4))
+    cache = TileCache(budget)
+    first = stream_matmul(Xs, V, cache=cache)
+    second = stream_matmul(Xs, V, cache=cache)
+    np.testing.assert_array_equal(first, second)
+    np.testing.assert_allclose(first, X.astype(np.float32) @ V, rtol=1e-5, atol=1e-6)
+    assert cache.bytes <= budget
+    n_tiles = int(Xs.tile_nnz.size)
+    assert cache.hits + cache.misses == 2 * n_tiles
+    assert (cache.hits == n_tiles) == (budget == 1 << 30)
+    assert (cache.hits == 0) == (budget == 0)
+
+
 def test_pixel_order_round_trip(tmp_path):
     """A tile-major store takes and returns row-major images (non-symmetric matrix)."""
     H, W = 9, 13  # ragged image tiles
