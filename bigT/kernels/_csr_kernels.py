@@ -126,24 +126,26 @@ def spgemm_rows_internal(
 ):
     """Rows ``[r0, r1)`` of A @ B, pruned inside the row loop, in one pass.
 
-    Gustavson's row-by-row product with a dense float64 accumulator ``acc`` (the SPA)
-    and a marker array: ``mark[j] == i - r0`` says column j was touched in row i. Both
-    are only as long as B has columns and are reused for every row, so the per-row
-    cost is the multiply-adds plus the emission of the row:
+    Gustavson's row-by-row product with a dense float64 accumulator ``acc`` (the SPA),
+    kept all-zero between rows, and a marker array (``mark[j] == i - r0``: column j
+    listed in row i). Both are as long as B has columns and are reused for every
+    row, so the per-row cost is the multiply-adds plus the emission of the row:
 
     * dense-scan emission, when the row's column span (known without touching the
       products, since B's rows are sorted: ``lo = min first column``, ``hi = max last
       column`` of the B rows hit) is at most ``dense_scan_ratio`` times the row's
-      multiply-adds: the scatter loop stores unconditionally (no branch), and the
-      span is walked in column order, so the row comes out sorted with no sort;
+      multiply-adds: the scatter loop is a bare ``acc[j] += a * b`` (no marker, no
+      branch), and the span is walked in column order, so the row comes out sorted
+      with no sort, a nonzero accumulator being a computed entry;
     * list emission otherwise (sparse rows over a wide span): touched columns are
       listed on first touch, the entries that survive pruning are written, and only
       those kept column indices are sorted.
 
-    An entry is kept when ``|v| >= threshold`` with v already rounded to the output
-    dtype (so the test sees the value that is stored); ``threshold = 0`` keeps every
-    structurally computed entry, as scipy does. Then, when ``top_k >= 0``, each row
-    keeps its top_k largest |v| (ties to the smaller column).
+    An entry is kept when ``v != 0 and |v| >= threshold`` with v already rounded to
+    the output dtype (so the test sees the value that is stored); exact zeros
+    (cancellations) are dropped even at ``threshold = 0``, as scipy's product drops
+    them. Then, when ``top_k >= 0``, each row keeps its top_k largest |v| (ties to
+    the smaller column).
 
     The result goes into buffers grown by doubling (no symbolic pass: a second pass
     would repeat all multiply-adds, and the pruned nnz is not known from structure).
@@ -210,16 +212,13 @@ def spgemm_rows_internal(
                 k = a_indices[p]
                 a = np.float64(a_data[p])
                 for q in range(b_indptr[k], b_indptr[k + 1]):
-                    j = b_indices[q]
-                    acc[j] += a * b_data[q]
-                    mark[j] = marker
+                    acc[b_indices[q]] += a * b_data[q]
             for j in range(lo, hi + 1):
-                if mark[j] == marker:
-                    out_v[pos] = acc[j]
-                    acc[j] = 0.0
-                    if abs(out_v[pos]) >= threshold:
-                        out_j[pos] = j
-                        pos += 1
+                out_v[pos] = acc[j]
+                acc[j] = 0.0
+                out_j[pos] = j
+                if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
+                    pos += 1
         else:
             cnt = 0
             for p in range(a_start, a_stop):
@@ -235,7 +234,7 @@ def spgemm_rows_internal(
             for t in range(cnt):
                 j = touched[t]
                 out_v[pos] = acc[j]
-                if abs(out_v[pos]) >= threshold:
+                if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
                     out_j[pos] = j
                     pos += 1
                 else:
@@ -266,7 +265,7 @@ def prune_internal(indptr, indices, data, threshold, top_k):
         start = pos
         for p in range(indptr[i], indptr[i + 1]):
             v = data[p]
-            if abs(v) >= threshold:
+            if v != 0 and abs(v) >= threshold:
                 out_j[pos] = indices[p]
                 out_v[pos] = v
                 pos += 1
@@ -282,8 +281,8 @@ def add_diag_scaled_internal(
 ):
     """C = A + diag(d) B by merging each pair of sorted rows in one pass.
 
-    The union of both patterns is kept (an entry that cancels to 0 stays, like the
-    structural entries of spgemm). nnz(C) <= nnz(A) + nnz(B) bounds the buffers.
+    Entries that are exactly 0 (cancelled, or zero factors) are not stored, as in
+    scipy's ``A + B``. nnz(C) <= nnz(A) + nnz(B) bounds the buffers.
 
     Parameters
     ----------
@@ -323,17 +322,20 @@ def add_diag_scaled_internal(
                 out_v[pos] = np.float64(a_data[p]) + di * b_data[q]
                 p += 1
                 q += 1
-            pos += 1
+            if out_v[pos] != 0:
+                pos += 1
         while p < pe:
             out_j[pos] = a_indices[p]
             out_v[pos] = a_data[p]
             p += 1
-            pos += 1
+            if out_v[pos] != 0:
+                pos += 1
         while q < qe:
             out_j[pos] = b_indices[q]
             out_v[pos] = di * b_data[q]
             q += 1
-            pos += 1
+            if out_v[pos] != 0:
+                pos += 1
         out_p[i + 1] = pos
     return out_p, out_j[:pos].copy(), out_v[:pos].copy()
 
@@ -531,7 +533,7 @@ def spgemm_grouped_internal(
     r0, r1, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, n_cols,
     threshold, top_k, min_efficiency, capacity,
 ):
-    """Rows ``[r0, r1)`` of A @ B, pruned (``threshold > 0``), GROUP rows at a time.
+    """Rows ``[r0, r1)`` of A @ B, pruned, GROUP rows at a time.
 
     Why: Gustavson's scatter ``acc[j] += a * b`` costs a few cycles per multiply-add
     whatever the language (index load, value load, a read-modify-write at a random
@@ -548,9 +550,8 @@ def spgemm_grouped_internal(
     scatter of ``spgemm_rows_internal`` (dense-scan emission).
 
     Rows are emitted by scanning the group's column span in order (sorted output, no
-    sort), keeping ``|v| >= threshold`` (v rounded to the output dtype) branch-free;
-    an entry that is exactly zero is not distinguishable from an untouched one here,
-    which is why this kernel is used only with ``threshold > 0``, where zeros go anyway.
+    sort), keeping ``v != 0 and |v| >= threshold`` (v rounded to the output dtype),
+    so the result is the same set as ``spgemm_rows_internal``'s.
 
     Parameters and returns as ``spgemm_rows_internal`` (``min_efficiency`` in [0, 1]
     replaces ``dense_scan_ratio``).
@@ -614,7 +615,7 @@ def spgemm_grouped_internal(
                     out_v[pos] = acc[j * GROUP + r]
                     acc[j * GROUP + r] = 0.0
                     out_j[pos] = j
-                    if abs(out_v[pos]) >= threshold:
+                    if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
                         pos += 1
                 if top_k >= 0:
                     pos = _top_k_compact(out_j, out_v, start, pos, top_k)
@@ -639,7 +640,7 @@ def spgemm_grouped_internal(
                     out_v[pos] = acc1[j]
                     acc1[j] = 0.0
                     out_j[pos] = j
-                    if abs(out_v[pos]) >= threshold:
+                    if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
                         pos += 1
                 if top_k >= 0:
                     pos = _top_k_compact(out_j, out_v, start, pos, top_k)

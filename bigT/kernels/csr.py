@@ -249,8 +249,9 @@ def spgemm(
 
     Entries with ``|v| < threshold`` (absolute, tested on the value rounded to the
     result dtype) are never written; with ``top_k`` each row then keeps its ``top_k``
-    largest |v| (ties go to the smaller column). ``threshold=0`` keeps every
-    structurally computed entry, explicit zeros included, as scipy does.
+    largest |v| (ties go to the smaller column). Exact zeros are dropped even at
+    ``threshold=0``, as scipy's product drops them, so ``threshold=0`` gives scipy's
+    pattern.
 
     One pass (no symbolic pass: it would repeat every multiply-add only to size
     buffers that pruning then mostly leaves empty): each row range writes into its own
@@ -269,11 +270,11 @@ def spgemm(
         Force the index dtype of the result; by default int32 when nnz and the shape
         fit, int64 otherwise (never a silent overflow).
     method : {None, "rows", "grouped"}
-        Kernel. ``"grouped"`` (default when ``threshold > 0``) multiplies 8
+        Kernel; both give the same entries. ``"grouped"`` (default) multiplies 8
         neighbouring rows of A per pass over B with vector FMAs
-        (``_csr_kernels.spgemm_grouped_internal``); it cannot tell an exact zero from
-        an untouched entry, so ``threshold = 0`` always uses ``"rows"`` (one row at a
-        time, every structural entry kept, like scipy).
+        (``_csr_kernels.spgemm_grouped_internal``), falling back to one row at a
+        time in groups whose rows share few columns; ``"rows"`` is one row at a time
+        throughout (``_csr_kernels.spgemm_rows_internal``).
 
     Returns
     -------
@@ -288,11 +289,9 @@ def spgemm(
     """
     threshold, top_k = _check_threshold(threshold, top_k)
     if method is None:
-        method = "grouped" if threshold > 0 else "rows"
+        method = "grouped"
     if method not in ("rows", "grouped"):
         raise ValueError(f"method must be 'rows' or 'grouped', got {method!r}")
-    if method == "grouped" and threshold == 0:
-        raise ValueError("method='grouped' needs threshold > 0 (it drops exact zeros)")
     for X, nm in ((A, "A"), (B, "B")):
         if sp.issparse(X) and X.ndim != 2:
             raise ShapeMismatchError(f"{nm} must be 2-D, got shape {X.shape}")
@@ -412,7 +411,7 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
     if data.dtype.kind == "c":
         raise InvalidMatrixError(f"A: complex values are not supported ({data.dtype})")
     vector = X.ndim == 1
-    X2 = np.ascontiguousarray(X.reshape(X.shape[0], -1), dtype=fdt)
+    X2 = np.ascontiguousarray(X[:, None] if vector else X, dtype=fdt)
     k = X2.shape[1]
     if out is None:
         result = np.zeros((m, k), fdt)
@@ -476,8 +475,8 @@ def add_diag_scaled(A, d, B):
 
     Returns
     -------
-    scipy.sparse.csr_array, shape (m, n), dtype = promotion of A, d, B. The union of
-    both patterns is stored (entries that cancel to 0 are kept).
+    scipy.sparse.csr_array, shape (m, n), dtype = promotion of A, d, B. Entries that
+    are exactly 0 are not stored (as in scipy's ``A + B``).
     """
     d = _vector(d, A.shape[0] if sp.issparse(A) else -1, "d", "one factor per row")
     if sp.issparse(A) and sp.issparse(B) and A.shape != B.shape:
@@ -522,7 +521,8 @@ def diagonal(A):
 
 
 def prune(A, threshold=0.0, top_k=None):
-    """A without its entries |v| < threshold, then the top_k largest |v| per row.
+    """A without its entries |v| < threshold (and exact zeros), then the top_k
+    largest |v| per row (ties to the smaller column).
 
     Returns csr_array of A's float dtype (sorted, duplicates summed before pruning).
     """
