@@ -1,0 +1,72 @@
+"""``bigT invert``: the stratified inverse of a stored T (bigT.stratified_inverse)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+from .. import config
+
+TERMS_HELP = (
+    "series terms n: the store holds T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k (paper eq. "
+    "13), so --terms 0 is F^-1 alone and each term costs one sparse product (power form). "
+    "The paper also counts bounces from 1 (§5.1 calls T_4^-1 the five-bounce inverse); "
+    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1 (default 4)")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "invert", help="stratified inverse of a stored T, out of core, term by term",
+        description="Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} "
+                    "(I - T F^-1)^k (paper eq. 13) of a bigT store, term by term, into a "
+                    "versioned store. An interrupted run is resumed by running the same "
+                    "command again; the store always holds the last complete term.")
+    p.add_argument("T", metavar="T.zarr")
+    p.add_argument("-o", "--output", required=True, metavar="X.zarr",
+                   help="the inverse store (created, or resumed when it holds the same "
+                        "T and parameters)")
+    p.add_argument("--terms", type=int, default=4, help=TERMS_HELP)
+    p.add_argument("--prune", type=float, default=config.DEFAULT_PRUNE,
+                   help="drop entries below this (absolute, on the dimensionless terms "
+                        "M^k) inside each product (default %(default)g)")
+    p.add_argument("--tol", type=float, default=None,
+                   help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
+    p.add_argument("--method", choices=("power", "horner", "newton-schulz"), default="power",
+                   help="power: P_k = M P_{k-1}, X_k = X_{k-1} + F^-1 P_k (default); horner: "
+                        "X_n = F^-1 + (I - F^-1 T) X_{n-1}; newton-schulz: X <- X (2I - T X)")
+    p.add_argument("--first-bounce", default="diag", metavar="diag|identity|FILE.npy",
+                   help="F: diag(T) (default), identity (the naive choice), or a .npy vector "
+                        "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="dask.distributed scheduler address (default: local threads)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="threads of the local scheduler (default %(default)s)")
+    p.add_argument("--memory-limit", default=None, metavar="SIZE",
+                   help="bound the tile cache and product batches, e.g. 2GiB")
+    p.add_argument("--json", default=None, metavar="FILE",
+                   help="also write the report as JSON")
+    p.add_argument("--force", action="store_true",
+                   help="run even when the estimated spectral radius of M is >= 1")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=invert_cmd)
+
+
+def invert_cmd(args) -> int:
+    from ..algorithms import stratified_inverse
+
+    fb = args.first_bounce
+    if fb not in ("diag", "identity") and not os.path.exists(fb):
+        from ..errors import BigTError
+
+        raise BigTError(f"--first-bounce: {fb!r} is neither diag, identity nor a .npy file")
+    report = stratified_inverse(
+        args.T, args.output, terms=args.terms, prune=args.prune, tol=args.tol,
+        first_bounce=fb, method=args.method, client=args.scheduler,
+        memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
+        workers=args.workers)
+    print(report.table())
+    print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report.to_dict(), f, indent=1, default=str)
+    return 0

@@ -1,0 +1,74 @@
+"""Every method against the dense formula F^-1 sum_k (I - T F^-1)^k (eq. 13), float64,
+no pruning, on random diagonally dominant matrices with several tiles."""
+
+import numpy as np
+import pytest
+
+import bigT
+
+from inverse_helpers import dense, dense_stratified, random_dominant
+
+
+@pytest.mark.parametrize("method", ["power", "horner"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_power_and_horner_equal_eq13(tmp_path, make_store, method, seed):
+    A = random_dominant(70, seed=seed)
+    T = make_store(A, tile_size=16)
+    for terms in (3, 5):
+        out = tmp_path / f"X{terms}.zarr"
+        rep = bigT.stratified_inverse(T, out, terms=terms, prune=0, method=method,
+                                      progress=False)
+        assert rep.terms == terms
+        np.testing.assert_allclose(dense(out), dense_stratified(A, terms), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_newton_schulz_equals_power_at_2j_minus_1(tmp_path, make_store, steps):
+    A = random_dominant(50, seed=3)
+    T = make_store(A, tile_size=16)
+    held = 2**steps - 1
+    rep = bigT.stratified_inverse(T, tmp_path / "NS.zarr", terms=held, prune=0,
+                                  method="newton-schulz", progress=False)
+    assert rep.terms == held
+    rep_p = bigT.stratified_inverse(T, tmp_path / "P.zarr", terms=held, prune=0,
+                                    progress=False)
+    np.testing.assert_allclose(dense(tmp_path / "NS.zarr"), dense(tmp_path / "P.zarr"),
+                               atol=1e-6)
+    np.testing.assert_allclose(dense(tmp_path / "NS.zarr"), dense_stratified(A, held),
+                               atol=1e-6)
+    assert rep_p.terms == held
+
+
+def test_newton_schulz_terms_round_up(tmp_path, make_store):
+    A = random_dominant(40, seed=4)
+    T = make_store(A, tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "NS.zarr", terms=4, prune=0,
+                                  method="newton-schulz", progress=False)
+    assert rep.terms == 7  # fewest steps j with 2^j - 1 >= 4
+    assert [h.term for h in rep.history] == [0, 1, 3, 7]
+
+
+def test_float32_store(tmp_path, make_store):
+    A = random_dominant(48, seed=5)
+    T = make_store(A, tile_size=16, dtype="float32")
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=4, prune=0, progress=False)
+    X = bigT.open(tmp_path / "X.zarr")
+    assert X.dtype == np.float32
+    np.testing.assert_allclose(X.to_scipy().toarray(),
+                               dense_stratified(A.astype(np.float32), 4), atol=2e-6)
+
+
+def test_residual_estimate_is_unbiased_scale(tmp_path, make_store):
+    from bigT.algorithms import estimate_residual, resolve_first_bounce
+    from bigT.schedule.operators import MOperand, TileCache
+
+    A = random_dominant(120, seed=6, density=0.3)
+    T = make_store(A, tile_size=32)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=1, prune=0, progress=False)
+    X = bigT.open(tmp_path / "X.zarr")
+    exact = np.linalg.norm(np.eye(120) - A @ X.to_scipy().toarray())
+    fb = resolve_first_bounce(T)
+    M = MOperand(T, fb.finv, fb.active, True, TileCache(1 << 20))
+    rel, absolute = estimate_residual(M, X, fb, probes=256, seed=1)
+    assert absolute == pytest.approx(exact, rel=0.1)
+    assert rel == pytest.approx(exact / np.sqrt(120), rel=0.1)

@@ -1,0 +1,129 @@
+"""The inverse store: term metadata, refusal of a different T/parameters, resume after
+a crash mid-term (same result as an uninterrupted run), early stops."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import bigT
+from bigT.schedule import graph
+
+from inverse_helpers import dense, dense_stratified, random_dominant
+
+
+class Crash(RuntimeError):
+    pass
+
+
+def test_metadata_and_info(tmp_path, make_store):
+    A = random_dominant(40, seed=1)
+    T = make_store(A)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=1e-6,
+                                  progress=False)
+    X = bigT.open(tmp_path / "X.zarr")
+    inv = X.metadata["inverse"]
+    assert inv["term"] == 2 and inv["method"] == "power" and inv["prune"] == 1e-6
+    assert inv["first_bounce"] == "diag"
+    assert inv["residual"] == pytest.approx(rep.residual)
+    assert inv["spectral_radius"] == pytest.approx(rep.spectral_radius)
+    rho = max(abs(np.linalg.eigvals(np.eye(40) - A / np.diag(A)[None, :])))
+    assert rep.spectral_radius == pytest.approx(rho, rel=0.05)
+    d = rep.to_dict()
+    assert len(d["history"]) == 3 and "term" in rep.table()
+
+
+def test_refuses_other_parameters_and_resumes_same(tmp_path, make_store):
+    A = random_dominant(40, seed=2)
+    T = make_store(A)
+    out = tmp_path / "X.zarr"
+    bigT.stratified_inverse(T, out, terms=2, prune=0, progress=False)
+    with pytest.raises(bigT.StoreError, match="prune"):
+        bigT.stratified_inverse(T, out, terms=3, prune=1e-3, progress=False)
+    with pytest.raises(bigT.StoreError, match="method"):
+        bigT.stratified_inverse(T, out, terms=3, prune=0, method="horner", progress=False)
+    T2 = make_store(random_dominant(40, seed=9), name="T2.zarr")
+    with pytest.raises(bigT.StoreError, match="T"):
+        bigT.stratified_inverse(T2, out, terms=3, prune=0, progress=False)
+    rep = bigT.stratified_inverse(T, out, terms=4, prune=0, progress=False)
+    assert rep.resumed_from == 2 and rep.terms == 4
+    assert [h.term for h in rep.history] == [0, 1, 2, 3, 4]
+    np.testing.assert_allclose(dense(out), dense_stratified(A, 4), atol=1e-12)
+    rep = bigT.stratified_inverse(T, out, terms=3, prune=0, progress=False)
+    assert rep.terms == 4 and rep.stopped.startswith("already held")
+    (tmp_path / "junk").mkdir()
+    with pytest.raises(bigT.StoreError, match="not a bigT inverse"):
+        bigT.stratified_inverse(T, tmp_path / "junk", terms=1, progress=False)
+
+
+@pytest.mark.parametrize("method", ["power", "newton-schulz"])
+def test_crash_mid_term_then_resume(tmp_path, make_store, monkeypatch, method):
+    A = random_dominant(96, seed=4, density=0.2)
+    T = make_store(A, tile_size=16)  # 6 tile rows
+    ref = tmp_path / "ref.zarr"
+    bigT.stratified_inverse(T, ref, terms=3, prune=1e-6, method=method, progress=False)
+
+    out = tmp_path / "X.zarr"
+    calls = {"n": 0}
+    crash_op = "power" if method == "power" else "ns-update"
+
+    def hook(op, i):
+        if op == crash_op:
+            calls["n"] += 1
+            # term 1 of power (6 rows) passes; crash on the 4th row of term 2
+            if calls["n"] == (6 + 4 if method == "power" else 6 + 4):
+                raise Crash("injected")
+
+    monkeypatch.setattr(graph, "task_hook", hook)
+    with pytest.raises(Crash):
+        bigT.stratified_inverse(T, out, terms=3, prune=1e-6, method=method, progress=False)
+    monkeypatch.setattr(graph, "task_hook", None)
+    # the previous term is still readable and says which term it is
+    X_prev = bigT.open(out)
+    assert X_prev.metadata["inverse"]["term"] == 1
+    np.testing.assert_allclose(X_prev.to_scipy().toarray(), dense_stratified(A, 1),
+                               atol=1e-5)
+
+    done = []
+    monkeypatch.setattr(graph, "task_hook", lambda op, i: done.append((op, i)))
+    rep = bigT.stratified_inverse(T, out, terms=3, prune=1e-6, method=method, progress=False)
+    monkeypatch.setattr(graph, "task_hook", None)
+    assert rep.resumed_from == 1 and rep.terms == 3
+    # rows completed before the crash were not recomputed
+    assert len([d for d in done if d[0] == crash_op]) < 12
+    np.testing.assert_array_equal(dense(out), dense(ref))
+
+
+def test_tol_stops_early(tmp_path, make_store):
+    A = random_dominant(60, seed=5, margin=0.3)
+    T = make_store(A)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=20, prune=0, tol=1e-3,
+                                  progress=False)
+    assert rep.terms < 20 and rep.stopped.startswith("tol")
+    assert rep.residual <= 1e-3
+    assert all(h.residual > 1e-3 for h in rep.history[:-1])
+
+
+def test_flat_scene_finishes_with_zero_products(tmp_path, make_store):
+    d = 0.5 + np.linspace(0, 1, 50)
+    T = make_store(np.diag(d), tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=6, progress=False)
+    assert rep.products == 0 and rep.terms == 6
+    assert rep.spectral_radius == 0
+    assert "exhausted" in rep.stopped
+    np.testing.assert_array_equal(dense(tmp_path / "X.zarr"), np.diag(1 / d))
+    assert rep.residual == pytest.approx(0, abs=1e-12)
+
+
+def test_converged_block_rows_are_skipped(tmp_path, make_store):
+    # two decoupled blocks: pixels 0..31 interreflect, 32..63 do not (M = 0 there), so
+    # P's tile rows 2, 3 are empty from term 1 on and never scheduled as factors
+    A = random_dominant(64, seed=6, density=0.4)
+    A[32:, :] = 0
+    A[:, 32:] = 0
+    A[32:, 32:] = np.diag(1 + np.arange(32) / 32)
+    T = make_store(A, tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=3, prune=0, progress=False)
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense_stratified(A, 3), atol=1e-12)
+    for h in rep.history[2:]:
+        assert h.tiles_computed == 4  # only the 2x2 tiles of the coupled block
+        assert h.tiles_skipped == 2   # the diagonal tiles of rows 2, 3 meet empty P rows
