@@ -157,7 +157,7 @@ def run_compensate(args) -> int:
               disable=not args.progress) as bar:
         for files, frames in source.batches(args.batch):
             t1 = time.perf_counter()
-            _, l_in = compensate_frames(frames, X=X, T=Tm, choice=choice, clip=clip,
+            l_in = compensate_frames(frames, X=X, T=Tm, choice=choice, clip=clip,
                                         report=report, progress=args.progress, cache=cache)
             t_comp += time.perf_counter() - t1
             report.frames += len(frames)

@@ -18,6 +18,7 @@ import numpy as np
 from .. import config
 from ..errors import ImageError, InvalidMatrixError, ShapeMismatchError
 from ..storage.pixel_order import PixelOrder
+from ._pixels import frames_to_matrix, matrix_to_frames
 from ._stream import TileCache, as_store, compute_dtype, stream_matmul
 
 PATHS = ("explicit", "matrix-free", "auto")
@@ -56,13 +57,12 @@ def _as_frames(images, store, name="<array>"):
 
 def to_vectors(frames: np.ndarray, order: PixelOrder, dtype) -> np.ndarray:
     """(K, H, W) frames -> (n, K) matrix-ordered columns of ``dtype``."""
-    return np.ascontiguousarray(order.to_matrix(frames[None] if frames.ndim == 2 else frames),
-                                dtype=dtype)
+    return frames_to_matrix(frames[None] if frames.ndim == 2 else frames, order, dtype)
 
 
-def to_frames(vectors: np.ndarray, order: PixelOrder) -> np.ndarray:
-    """(n, K) matrix-ordered columns -> (K, H, W) float64 frames."""
-    return np.asarray(order.to_images(vectors.reshape(order.n, -1)), dtype=np.float64)
+def to_frames(vectors: np.ndarray, order: PixelOrder, clip=None) -> np.ndarray:
+    """(n, K) matrix-ordered columns -> (K, H, W) float64 frames (clipped to ``clip``)."""
+    return matrix_to_frames(vectors, order, clip)[0]
 
 
 # --- matrix-free stratified inverse ---------------------------------------------------
@@ -192,23 +192,10 @@ class CompensationReport:
         return self.frames / self.seconds if self.seconds > 0 else float("inf")
 
 
-def _clip(values: np.ndarray, clip, report: CompensationReport | None):
-    if clip is None:
-        return values
-    lo, hi = clip
-    if report is not None:
-        if lo is not None:
-            report.clipped_low += int(np.count_nonzero(values < lo))
-        if hi is not None:
-            report.clipped_high += int(np.count_nonzero(values > hi))
-        report.pixels += values.size
-    return np.clip(values, lo, hi)
-
-
 def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice, clip=(0, 1),
                       report: CompensationReport | None = None, progress: bool = False,
                       cache: TileCache | None = None):
-    """One batch: (K, H, W) desired frames -> (K, H, W) projector inputs (unclipped, clipped)."""
+    """One batch: (K, H, W) desired frames -> (K, H, W) projector inputs, clipped."""
     store = X if choice.path == "explicit" else T
     order = pixel_order_of(store, frames.shape[1:])
     B = to_vectors(frames, order, compute_dtype(store))
@@ -216,8 +203,12 @@ def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice,
         Y = stream_matmul(X, B, progress=progress, desc="X pass", cache=cache)
     else:
         Y = matrix_free_apply(T, B, choice.terms, progress=progress, cache=cache)
-    raw = to_frames(Y, order)
-    return raw, _clip(raw, clip, report)
+    frames_out, below, above = matrix_to_frames(Y, order, clip)
+    if report is not None:
+        report.clipped_low += below
+        report.clipped_high += above
+        report.pixels += frames_out.size
+    return frames_out
 
 
 def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=None,
@@ -262,7 +253,7 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
     cache = TileCache(cache_bytes)
     t0 = time.perf_counter()
     for s in range(0, len(frames), batch):
-        _, out[s:s + batch] = compensate_frames(frames[s:s + batch], X=X, T=T, choice=choice,
+        out[s:s + batch] = compensate_frames(frames[s:s + batch], X=X, T=T, choice=choice,
                                                 clip=clip, report=report, progress=progress,
                                                 cache=cache)
     report.seconds = time.perf_counter() - t0

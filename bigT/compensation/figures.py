@@ -51,9 +51,9 @@ def scan_lines(path, lines: dict, *, title: str, target: float | None = None) ->
     if target is not None:
         ax.axhline(target, color="k", lw=0.8, ls="--", label="desired")
     ax.set_xlabel("column")
-    ax.set_ylabel("camera intensity")
+    ax.set_ylabel("intensity")
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="best")
     ax.grid(alpha=0.3)
     fig.tight_layout()
     path = Path(path)

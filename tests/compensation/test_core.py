@@ -202,3 +202,21 @@ def test_bad_image_shape_is_image_error(small_scene, tmp_path):
         compensate(X, np.zeros((11, 12)))
     with pytest.raises(ImageError, match="NaN"):
         compensate(X, np.full((s["H"], s["W"]), np.nan))
+
+
+@pytest.mark.parametrize("order", ["row-major", "tile-major"])
+def test_pixel_kernels_match_pixel_order(order):
+    from bigT.compensation._pixels import frames_to_matrix, matrix_to_frames
+    from bigT.storage.pixel_order import PixelOrder
+
+    po = PixelOrder((13, 21), order, (8, 8))  # ragged image tiles
+    frames = np.random.default_rng(0).uniform(-0.5, 1.5, (5, 13, 21))
+    B = frames_to_matrix(frames, po, np.float64)
+    np.testing.assert_array_equal(B, po.to_matrix(frames))
+    back, below, above = matrix_to_frames(B, po, (0.0, 1.0))
+    np.testing.assert_array_equal(back, np.clip(frames, 0, 1))
+    assert (below, above) == (np.count_nonzero(frames < 0), np.count_nonzero(frames > 1))
+    raw, below, above = matrix_to_frames(B, po, (0.0, None))
+    np.testing.assert_array_equal(raw, np.maximum(frames, 0))
+    assert above == 0
+    np.testing.assert_array_equal(matrix_to_frames(B, po, None)[0], po.to_images(B))

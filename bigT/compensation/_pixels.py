@@ -1,0 +1,69 @@
+"""Frames <-> matrix-ordered batches in one pass (numba), clipping fused in.
+
+``PixelOrder.to_matrix`` / ``to_images`` do the same with three numpy passes each
+(gather, transpose, cast); at 384x512 and 64 frames those cost as much as a pass over X,
+so the hot path uses these kernels and keeps ``PixelOrder`` as the reference (tests
+compare the two).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: Matrix rows handled per block: the (block, K) slab of the batch stays in L2.
+_BLOCK = 256
+
+
+@njit(nogil=True, cache=True)
+def _gather_internal(frames, perm, out):
+    n, k = out.shape
+    for b0 in range(0, n, _BLOCK):
+        b1 = min(b0 + _BLOCK, n)
+        for c in range(k):
+            src = frames[c]
+            for i in range(b0, b1):
+                out[i, c] = src[perm[i]]
+
+
+@njit(nogil=True, cache=True)
+def _scatter_internal(Y, perm, lo, hi, do_lo, do_hi, out):
+    n, k = Y.shape
+    below = 0
+    above = 0
+    for b0 in range(0, n, _BLOCK):
+        b1 = min(b0 + _BLOCK, n)
+        for c in range(k):
+            dst = out[c]
+            for i in range(b0, b1):
+                v = np.float64(Y[i, c])
+                if do_lo and v < lo:
+                    v = lo
+                    below += 1
+                elif do_hi and v > hi:
+                    v = hi
+                    above += 1
+                dst[perm[i]] = v
+    return below, above
+
+
+def frames_to_matrix(frames: np.ndarray, order, dtype) -> np.ndarray:
+    """(K, H, W) frames -> (n, K) C-contiguous batch in the store's pixel order."""
+    K = frames.shape[0]
+    src = np.ascontiguousarray(frames.reshape(K, -1))
+    out = np.empty((order.n, K), dtype=dtype)
+    _gather_internal(src, order.permutation, out)
+    return out
+
+
+def matrix_to_frames(Y: np.ndarray, order, clip=None) -> tuple[np.ndarray, int, int]:
+    """(n, K) batch -> (K, H, W) float64 frames, clipped to ``clip`` = (lo, hi) (either
+    may be None); returns the frames and the counts of values below lo and above hi."""
+    Y = np.ascontiguousarray(Y.reshape(order.n, -1))
+    K = Y.shape[1]
+    lo, hi = (None, None) if clip is None else clip
+    out = np.empty((K, order.n), dtype=np.float64)
+    below, above = _scatter_internal(Y, order.permutation, 0.0 if lo is None else float(lo),
+                                     0.0 if hi is None else float(hi), lo is not None,
+                                     hi is not None, out)
+    return out.reshape(K, *order.image_shape), int(below), int(above)
