@@ -326,6 +326,18 @@ def quality(args, out):
             row(f"stratified_inverse n={terms} ({secs:.1f} s)", compensate(Xs, desired, clip=None))
     lines["exact inverse"] = scan_line(row("exact inverse F^-1 (I - A)",
                                            compensate(X, desired, clip=None)))
+    # Throughput at this size, where sparse LU is a serious rival (DESIGN.md).
+    frames = np.random.default_rng(1).uniform(0.2, 0.8, (64, *size))
+    compensate(X, frames[:1])
+    for batch in (1, 64):
+        k = 8 if batch == 1 else 64
+        t0 = time.perf_counter()
+        compensate(X, frames[:k], batch=batch)
+        res[f"explicit_batch{batch}_fps"] = k / (time.perf_counter() - t0)
+    print(f"  explicit exact X at {size[0]}x{size[1]}: batch 1 {res['explicit_batch1_fps']:.1f} "
+          f"frames/s, batch 64 {res['explicit_batch64_fps']:.1f} frames/s")
+    if not args.no_splu:
+        res.update(splu_in_child(T.path, frames[:8], args))
     from bigT.compensation.figures import scan_lines
 
     res["plot"] = str(scan_lines(out / "scanlines_terms.png", lines, target=c,

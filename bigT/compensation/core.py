@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..errors import ImageError, InvalidMatrixError, ShapeMismatchError
+from ..errors import BigTError, ImageError, InvalidMatrixError, ShapeMismatchError
 from ..storage.pixel_order import PixelOrder
 from ._pixels import frames_to_matrix, matrix_to_frames
 from ._stream import TileCache, as_store, compute_dtype, stream_matmul
@@ -100,7 +100,7 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     """
     terms = int(terms)
     if terms < 0:
-        raise ValueError(f"terms must be >= 0, got {terms}")
+        raise BigTError(f"terms must be >= 0, got {terms}")
     dtype = compute_dtype(T)
     finv = (1.0 / (first_bounce_diag(T) if F is None else np.asarray(F, np.float64)))
     finv = finv.astype(dtype)[:, None]
@@ -145,13 +145,13 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
     c_t = None if T is None else int(terms * T.nnz)
     if path == "explicit" or (path == "auto" and T is None):
         if X is None:
-            raise ValueError("the explicit path needs the inverse X")
+            raise BigTError("the explicit path needs the inverse X")
         why = "asked for" if path == "explicit" else "no T given for the matrix-free path"
         return PathChoice("explicit", f"{why}: one pass over X, nnz(X) = {c_x:,} per frame",
                           None, c_x, c_t)
     if path == "matrix-free" or X is None:
         if T is None:
-            raise ValueError("the matrix-free path needs the transport T")
+            raise BigTError("the matrix-free path needs the transport T (--matrix-free T.zarr)")
         why = "asked for" if path == "matrix-free" else "no inverse X given"
         return PathChoice("matrix-free", f"{why}: {terms} passes over T, {terms} x nnz(T) = "
                           f"{c_t:,} per frame", terms, c_x, c_t)
@@ -324,7 +324,7 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     X = as_store(X, "X")
     bounces = int(bounces)
     if bounces < 0:
-        raise ValueError(f"bounces must be >= 0, got {bounces}")
+        raise BigTError(f"bounces must be >= 0, got {bounces}")
     if tuple(T.shape) != tuple(X.shape):
         raise ShapeMismatchError(f"T is {T.shape} but X is {X.shape}")
     frames, single, order_t = _as_frames(image, T)

@@ -115,3 +115,11 @@ def test_cli_errors_are_one_line_status_2(stores, tmp_path, capsys):
     assert "3 channels" in capsys.readouterr().err
     assert main(["compensate", str(d / "X.zarr"), str(tmp_path / "wrong.png"), "-o",
                  str(tmp_path / "o.png"), "--clip", "1,0"]) == 2
+
+
+def test_cli_matrix_free_without_T_is_an_error(stores, tmp_path, capsys):
+    d, T, X = stores
+    write_image(tmp_path / "d.npy", np.full((H, W), 0.4))
+    assert main(["compensate", "-", str(tmp_path / "d.npy"), "-o", str(tmp_path / "p.npy"),
+                 "--no-progress"]) == 2
+    assert "needs the transport T" in capsys.readouterr().err
