@@ -141,6 +141,9 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
     if terms is None and X is not None:
         terms = inverse_terms(X)
     terms = int(config.DEFAULT_COMPENSATION_TERMS if terms is None else terms)
+    if X is None and T is None:
+        raise BigTError("compensation needs the inverse X (explicit path) or the transport T "
+                        "(matrix-free path, --matrix-free T.zarr)")
     c_x = None if X is None else int(X.nnz)
     c_t = None if T is None else int(terms * T.nnz)
     if path == "explicit" or (path == "auto" and T is None):

@@ -122,4 +122,7 @@ def test_cli_matrix_free_without_T_is_an_error(stores, tmp_path, capsys):
     write_image(tmp_path / "d.npy", np.full((H, W), 0.4))
     assert main(["compensate", "-", str(tmp_path / "d.npy"), "-o", str(tmp_path / "p.npy"),
                  "--no-progress"]) == 2
-    assert "needs the transport T" in capsys.readouterr().err
+    assert "needs the inverse X" in capsys.readouterr().err
+    assert main(["compensate", "-", str(tmp_path / "d.npy"), "-o", str(tmp_path / "p.npy"),
+                 "--path", "matrix-free", "--no-progress"]) == 2
+    assert "the transport T" in capsys.readouterr().err
