@@ -120,6 +120,11 @@ def bench_size(H, W, threshold, repeat, n_threads, methods):
     if n_threads != 1:
         t, C = timed(lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=1), repeat)
         rows.append(("bigT spgemm (1 thr)", t, C))
+    t, C = timed(
+        lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=n_threads, method="rows"),
+        repeat,
+    )
+    rows.append((f"bigT spgemm rows ({n_threads} thr)", t, C))
     if "topn" in methods:
         try:
             from sparse_dot_topn import sp_matmul_topn  # noqa: PLC0415
@@ -143,8 +148,13 @@ def bench_size(H, W, threshold, repeat, n_threads, methods):
             def gb_prod():
                 P = (G @ G).new()
                 if threshold > 0:
-                    keep = P.apply(gb.unary.abs).new().select(gb.select.valuege, threshold).new()
-                    P = P.dup(mask=keep.S)
+                    # The thunk must carry the matrix dtype (a Python float is not
+                    # taken as one: nothing would be selected away).
+                    t = M.dtype.type(threshold)
+                    keep = P.apply(gb.unary.abs).new().select(gb.select.valuege, t).new()
+                    Q = gb.Matrix(P.dtype, P.nrows, P.ncols)
+                    Q(keep.S) << P
+                    P = Q
                 return P
 
             t, P = timed(gb_prod, repeat)

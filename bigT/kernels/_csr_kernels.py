@@ -371,8 +371,8 @@ def diagonal_internal(indptr, indices, data, out):
 def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
     """out[r0:r1] += A[r0:r1] @ x for a dense x of shape (n_cols, k), C-contiguous.
 
-    Each row is summed in float64 (a k-vector that stays in L1 for k <= 64) and added
-    to ``out`` once. The input checks are fused into the loop, since for k = 1 a
+    Each row is summed in a k-vector that stays in L1 (float64 for k = 1, x's dtype
+    for k > 1) and added to ``out`` once. The input checks are fused into the loop, since for k = 1 a
     separate validation pass would cost as much as the product: a row's indptr and
     column indices are checked before they are used, and a NaN/Inf anywhere in A's
     data (or in the rows of x that A uses) shows up as a non-finite row sum.
@@ -389,7 +389,9 @@ def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
     n_cols = x.shape[0]
     k = x.shape[1]
     nnz = indices.shape[0]
-    tmp = np.zeros(k, np.float64)
+    # k > 1 sums in x's dtype: float32 lanes are twice as many per vector FMA, and
+    # the k-wide update is compute-bound (measured: float64 lanes lose to scipy).
+    tmp = np.zeros(k, x.dtype)
     for i in range(r0, r1):
         start = indptr[i]
         stop = indptr[i + 1]
@@ -437,7 +439,7 @@ def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
         for c in range(k):
             tmp[c] = 0.0
         for p in range(start, stop):
-            a = np.float64(data[p])
+            a = data[p]
             xrow = x[indices[p]]
             for c in range(k):
                 tmp[c] += a * xrow[c]
