@@ -196,15 +196,16 @@ def throughput(args, out):
               f"({100 * res[f'cache_fraction_K{K}']:.0f} % hits) {wall_w:.2f} s "
               f"({K / wall_w:.2f} frames/s, {cpu_w:.2f} CPU-s)")
         del cache
-    t0 = time.perf_counter()
-    compensate(X, frames, batch=64, cache_bytes=args.cache_mb << 20)
-    res["compensate_batch64_fps"] = len(frames) / (time.perf_counter() - t0)
-    t0 = time.perf_counter()
-    compensate(X, frames[:64], batch=64, cache_bytes=0)
-    res["compensate_batch64_nocache_fps"] = 64 / (time.perf_counter() - t0)
+    wall, cpu = timed(lambda: compensate(X, frames, batch=64, cache_bytes=args.cache_mb << 20))
+    res["compensate_batch64_fps"] = len(frames) / wall
+    res["compensate_batch64_cpu_ms_per_frame"] = 1e3 * cpu / len(frames)
+    wall0, cpu0 = timed(lambda: compensate(X, frames[:64], batch=64, cache_bytes=0))
+    res["compensate_batch64_nocache_fps"] = 64 / wall0
+    res["compensate_batch64_nocache_cpu_ms_per_frame"] = 1e3 * cpu0 / 64
     print(f"  compensate(), {len(frames)} frames, batch 64, end to end (images in/out, clip): "
-          f"{res['compensate_batch64_fps']:.2f} frames/s with the tile cache, "
-          f"{res['compensate_batch64_nocache_fps']:.2f} frames/s re-reading X every batch")
+          f"{res['compensate_batch64_fps']:.2f} frames/s ({1e3 * cpu / len(frames):.1f} CPU-ms "
+          f"per frame) with the tile cache; {res['compensate_batch64_nocache_fps']:.2f} frames/s "
+          f"({1e3 * cpu0 / 64:.1f} CPU-ms per frame) re-reading X every batch")
     for cache_mb in (args.cache_mb, 0):
         t0 = time.perf_counter()
         compensate(None, frames[:64], T=T, terms=4, path="matrix-free", batch=64,
@@ -364,7 +365,9 @@ def main(argv=None):
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {"cpus": os.cpu_count()}
+    results = {"cpus": os.cpu_count(), "load_average_at_start": os.getloadavg()}
+    print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs "
+          "(wall-clock rates scale with the share of the machine this run gets)")
     if "quality" not in args.skip:
         results["quality"] = quality(args, out)
     if "throughput" not in args.skip:
