@@ -271,20 +271,26 @@ def _fingerprint(T, fb: FirstBounce, prune: float, method: str) -> dict:
     }
 
 
-def _memory_plan(memory_limit, workers, T):
-    """(workers, cache bytes, max right-operand nnz per product batch)."""
+def _memory_plan(memory_limit, workers):
+    """(cache bytes, whole-operand bytes, max right-operand nnz per product batch).
+
+    The tile cache holds tile rows of M (reused by every term and mat-vec) and of the
+    right factor; a right factor (P_{k-1}, S, R) that fits ``whole`` bytes is read once
+    per term and shared by all tasks; otherwise each task multiplies batches of its
+    needed tile rows of at most ``max_nnz`` entries. Measured peak RSS is reported by
+    benchmarks/bench_inverse.py.
+    """
     if memory_limit is None:
-        return workers, 512 << 20, None
-    # A product task holds its left tiles, a batch of right rows (12-16 B per entry,
-    # read and stacked: x2) and the output with the kernel's temporaries (~x2);
-    # 35 % of the limit goes to the tile cache, a quarter stays for the interpreter,
-    # zarr buffers and the output being compressed.
-    base = 200 << 20
-    avail = max(memory_limit - base, 16 << 20)
+        return 1 << 30, 1 << 30, None
+    # ~300 MB for the interpreter, numba, zarr buffers and the rows being written;
+    # of the rest 35 % for the cache, 35 % for a shared right factor, 30 % for the
+    # tasks in flight (left row + batch + output + kernel buffers, ~4x the batch).
+    avail = max(memory_limit - (300 << 20), 32 << 20)
     cache = int(0.35 * avail)
-    per_task = int(0.4 * avail) // max(1, workers)
-    max_nnz = max(per_task // 64, 10_000)
-    return workers, cache, max_nnz
+    whole = int(0.35 * avail)
+    per_task = int(0.3 * avail) // max(1, workers)
+    max_nnz = max(per_task // (4 * tasks.BYTES_PER_ENTRY), 10_000)
+    return cache, whole, max_nnz
 
 
 class _Progress:
@@ -307,7 +313,7 @@ class _Progress:
 # --- the estimates -----------------------------------------------------------------------
 
 def _m_matvec(M: MOperand, V, client, workers, tag):
-    return graph.matvec(f"matvec-M-{tag}", M.matvec_row, M.grid[0], M.T.tile_row_range, V,
+    return graph.matvec(f"matvec-M-{tag}", M.matvec_row, M.grid[0], M.row_range, V,
                         token_parts=(M.T.path,), client=client, workers=workers)
 
 
@@ -345,7 +351,7 @@ def estimate_residual(M: MOperand, X, fb: FirstBounce, probes=None, seed=0, clie
         return 0.0, 0.0
     rng = np.random.default_rng(seed + 7919)
     Z = rng.choice(np.array([-1.0, 1.0]), size=(X.shape[0], p)) * fb.active[:, None]
-    Xz = graph.matvec("matvec-X", lambda i, V: X.get_tile_row(i) @ V, X.grid[0],
+    Xz = graph.matvec("matvec-X", StoreOperand(X).matvec_row, X.grid[0],
                       X.tile_row_range, Z, token_parts=(X.path,), client=client,
                       workers=workers)
     U = Xz * fb.f[:, None]
@@ -461,7 +467,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
         inv = {"params": params, "term": None, "dir": None, "history": []}
         _write_inverse(out, inv)
 
-    workers, cache_bytes, max_nnz = _memory_plan(memory_limit, workers, T)
+    cache_bytes, whole_bytes, max_nnz = _memory_plan(memory_limit, workers)
     # dask runs tile rows on `workers` threads; with fewer tile rows than threads the
     # kernel splits each product over the threads instead.
     kernel_threads = 1 if T.grid[0] >= workers else workers
@@ -488,7 +494,8 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
                  "spectral_radius": rho, "excluded_pixels": fb.excluded}
     n = T.shape[0]
     common = dict(M=M, finv=fb.finv, f=fb.f, active=fb.active, threshold=prune,
-                  dtype=np.dtype(T.dtype), n=n, max_right_nnz=max_nnz)
+                  dtype=np.dtype(T.dtype), n=n, max_right_nnz=max_nnz,
+                  whole_bytes=whole_bytes)
     products = 0
     stopped = "terms reached"
 

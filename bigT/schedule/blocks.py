@@ -37,34 +37,36 @@ def diag_rows(start: int, stop: int, n: int, values: np.ndarray, dtype) -> sp.cs
     return sp.csr_array((v[rows], (rows, rows + start)), shape=(stop - start, n))
 
 
-def m_tile(T_ij: sp.csr_array, finv_cols: np.ndarray, diagonal_block: bool,
-           active_rows: np.ndarray | None, zero_diagonal: bool) -> sp.csr_array:
-    """Tile (i, j) of M = D - T F^-1 from tile (i, j) of T.
+def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.ndarray,
+           zero_diagonal: bool) -> sp.csr_array:
+    """Rows ``start:start + r`` of M = D - T F^-1 from the same rows of T.
 
     Parameters
     ----------
-    T_ij : csr_array, shape (r, c)
-    finv_cols : (c,) ndarray, 1/F of the tile's columns (0 where excluded).
-    diagonal_block : bool
-        Whether i == j (then D contributes and local row == local column on the
-        diagonal).
-    active_rows : (r,) bool ndarray or None
-        D's diagonal for the tile's rows; used when ``diagonal_block``.
+    T_rows : csr_array, shape (r, n), global columns
+    start : int, global index of the first row
+    finv : (n,) ndarray, 1/F (0 on excluded pixels)
+    active_rows : (r,) bool ndarray, D's diagonal on these rows
     zero_diagonal : bool
-        F = diag T: the diagonal of M is exactly 1 - T_ii / T_ii = 0, so it is
-        dropped instead of being left as rounding noise.
+        F = diag T: M's diagonal is exactly 1 - T_ii / T_ii = 0 and is dropped instead
+        of being left as rounding noise.
+
+    Returns
+    -------
+    csr_array, shape (r, n), sorted indices
     """
-    M = scale_cols(T_ij, -np.asarray(finv_cols, dtype=T_ij.dtype))
-    if not diagonal_block:
-        return M
+    M = scale_cols(T_rows, -np.asarray(finv, dtype=T_rows.dtype))
     coo = M.tocoo()
-    off = coo.row != coo.col
+    off = coo.col != coo.row + start
     r, c, v = coo.row[off], coo.col[off], coo.data[off]
     if not zero_diagonal:
-        d = np.asarray(active_rows, dtype=M.dtype) + M.diagonal()
+        d = np.zeros(M.shape[0], dtype=M.dtype)
+        on = ~off
+        np.add.at(d, coo.row[on], coo.data[on])
+        d += np.asarray(active_rows, dtype=M.dtype)
         nz = np.flatnonzero(d)
         r = np.concatenate([r, nz])
-        c = np.concatenate([c, nz])
+        c = np.concatenate([c, nz + start])
         v = np.concatenate([v, d[nz]])
     out = sp.csr_array((v, (r, c)), shape=M.shape)
     out.sum_duplicates()
@@ -72,65 +74,59 @@ def m_tile(T_ij: sp.csr_array, finv_cols: np.ndarray, diagonal_block: bool,
     return out
 
 
-def hstack_tiles(tiles: list[sp.csr_array], n_rows: int, dtype) -> sp.csr_array:
-    """Tiles of one tile row side by side (compact columns: only the given tiles)."""
-    if not tiles:
-        return empty((n_rows, 0), dtype)
-    if len(tiles) == 1:
-        return sp.csr_array(tiles[0])
-    return sp.csr_array(sp.hstack(tiles, format="csr"))
-
-
-def vstack_rows(rows: list[sp.csr_array], n_cols: int, dtype) -> sp.csr_array:
-    """Tile rows (global columns) stacked, in the order of the matching tiles."""
-    if not rows:
-        return empty((0, n_cols), dtype)
-    if len(rows) == 1:
-        return sp.csr_array(rows[0])
-    return sp.csr_array(sp.vstack(rows, format="csr"))
-
-
-def row_product(left_tiles: list[sp.csr_array], right_rows: list[sp.csr_array],
-                n_rows: int, n_cols: int, threshold: float, dtype,
-                max_right_nnz: int | None = None, n_threads: int = 1) -> sp.csr_array:
-    """sum_j L_ij @ B_j for the given matching pairs, entries below ``threshold`` pruned.
+def assemble_rows(row_blocks: list[tuple[int, sp.csr_array]], n_rows: int, n_cols: int,
+                  dtype) -> sp.csr_array:
+    """An (n_rows, n_cols) CSR holding the given row blocks at their starts and empty
+    rows elsewhere (the right operand of a product restricted to some tile rows).
 
     Parameters
     ----------
-    left_tiles : list of csr_array, shapes (n_rows, c_j)
-    right_rows : list of csr_array, shapes (c_j, n_cols)
-    max_right_nnz : int, optional
-        Memory bound: the right rows are multiplied in batches of at most this many
-        stored entries, partial sums are added unpruned and pruned once at the end
-        (the same result up to rounding as one product).
-    n_threads : int
-        Threads of the kernel (1 when dask already runs tile rows in parallel).
+    row_blocks : list of (start, csr_array of shape (r, n_cols)), ascending starts
+    """
+    counts = np.zeros(n_rows, dtype=np.int64)
+    for start, B in row_blocks:
+        counts[start:start + B.shape[0]] = np.diff(B.indptr)
+    indptr = np.zeros(n_rows + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    nnz = int(indptr[-1])
+    idx_dtype = np.int32 if nnz < 2**31 and n_cols < 2**31 else np.int64
+    if not row_blocks:
+        return sp.csr_array((n_rows, n_cols), dtype=dtype)
+    indices = np.concatenate([B.indices for _, B in row_blocks]).astype(idx_dtype, copy=False)
+    data = np.concatenate([B.data for _, B in row_blocks]).astype(dtype, copy=False)
+    out = sp.csr_array((data, indices, indptr.astype(idx_dtype)), shape=(n_rows, n_cols))
+    out.has_sorted_indices = all(B.has_sorted_indices for _, B in row_blocks)
+    return out
+
+
+def row_product(left_row: sp.csr_array, right, threshold: float,
+                n_threads: int = 1) -> sp.csr_array:
+    """L_i @ B with entries below ``threshold`` pruned inside the kernel's row loop.
+
+    Parameters
+    ----------
+    left_row : csr_array, shape (r, n), global columns (a tile row of the left factor)
+    right : csr_array of shape (n, n), or a list of them
+        The right factor, whole, or in batches of its tile rows (each the full shape
+        with the other rows empty, see :func:`assemble_rows`): partial products are
+        then added unpruned and pruned once at the end (the same result up to
+        rounding as one product; the memory bound of ``memory_limit``).
     n_threads : int
         Threads of the kernel (1 when dask already runs tile rows in parallel).
 
     Returns
     -------
-    csr_array, shape (n_rows, n_cols)
+    csr_array, shape (r, n)
     """
-    if not left_tiles:
-        return empty((n_rows, n_cols), dtype)
-    batches, cur, cur_nnz = [], [], 0
-    for k, B in enumerate(right_rows):
-        if cur and max_right_nnz is not None and cur_nnz + B.nnz > max_right_nnz:
-            batches.append(cur)
-            cur, cur_nnz = [], 0
-        cur.append(k)
-        cur_nnz += B.nnz
-    batches.append(cur)
-    if len(batches) == 1:
-        L = hstack_tiles(left_tiles, n_rows, dtype)
-        B = vstack_rows(right_rows, n_cols, dtype)
-        return spgemm(L, B, threshold=threshold, n_threads=n_threads)
+    if not isinstance(right, list):
+        return spgemm(left_row, right, threshold=threshold, n_threads=n_threads)
+    if not right:
+        return empty((left_row.shape[0], left_row.shape[1]), left_row.dtype)
+    if len(right) == 1:
+        return spgemm(left_row, right[0], threshold=threshold, n_threads=n_threads)
     acc = None
-    for batch in batches:
-        L = hstack_tiles([left_tiles[k] for k in batch], n_rows, dtype)
-        B = vstack_rows([right_rows[k] for k in batch], n_cols, dtype)
-        part = spgemm(L, B, threshold=0.0, n_threads=n_threads)
+    for B in right:
+        part = spgemm(left_row, B, threshold=0.0, n_threads=n_threads)
         acc = part if acc is None else sp.csr_array(acc + part)
     return prune(acc, threshold=threshold)
 

@@ -68,7 +68,7 @@ class StoreOperand:
     store : BlockCSR
     row_scale : (n,) ndarray, optional
     cache : TileCache, optional
-        Tile rows read through it (only for operands read more than once).
+        Tile rows (and the assembled matrix) are kept there when it is given.
     """
 
     def __init__(self, store, row_scale=None, cache: TileCache | None = None):
@@ -77,7 +77,16 @@ class StoreOperand:
         self.cache = cache
         self.shape = tuple(store.shape)
         self.dtype = np.dtype(store.dtype)
-        self.nonempty = np.diff(np.asarray(store.tile_indptr)) > 0
+        indptr = np.asarray(store.tile_indptr)
+        self.nonempty = np.diff(indptr) > 0
+        self.nnz = int(store.nnz)
+        self._whole = None
+        self._lock = threading.Lock()
+        self._row_nnz = np.add.reduceat(np.append(np.asarray(store.tile_nnz), 0),
+                                        indptr[:-1]) * self.nonempty
+
+    def row_nnz(self, j) -> int:
+        return int(self._row_nnz[j])
 
     def tile_columns(self, i) -> np.ndarray:
         return np.asarray(self.store.tile_columns(i), dtype=np.int64)
@@ -95,20 +104,33 @@ class StoreOperand:
             return self._read_row(j)
         return self.cache.get((self.store.path, "row", int(j)), lambda: self._read_row(j))
 
-    def tiles(self, i, js) -> list[sp.csr_array]:
-        out = []
-        for j in js:
-            t = sp.csr_array(self.store.get_tile(i, int(j)))
-            if self.row_scale is not None:
-                a, b = self.store.tile_row_range(i)
-                t = scale_rows(t, np.asarray(self.row_scale[a:b], dtype=t.dtype))
-            out.append(t)
+    def assembled(self, js) -> sp.csr_array:
+        """The (n, n) matrix restricted to tile rows ``js`` (others empty)."""
+        blocks_ = [(self.store.tile_row_range(j)[0], self._read_row(j)) for j in js]
+        return blocks.assemble_rows(blocks_, self.shape[0], self.shape[1], self.dtype)
+
+    def whole(self) -> sp.csr_array:
+        """The whole matrix in memory, read once per pass by the first task that needs
+        it and shared by the others (held by this operand, outside the LRU cache, so
+        tile rows of M cannot evict it mid-pass)."""
+        with self._lock:
+            if self._whole is None:
+                js = [j for j in range(len(self.nonempty)) if self.nonempty[j]]
+                self._whole = self.assembled(js)
+            return self._whole
+
+    def matvec_row(self, i, V) -> np.ndarray:
+        a, b = self.store.tile_row_range(i)
+        out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
+        if self.nonempty[i]:
+            spmm_dense(self._read_row(i), V, out=out, n_threads=1)
         return out
 
 
 class MOperand:
-    """M = D - T F^-1 (paper eq. 13 with the preconditioner F), never stored: its tiles
-    are made from T's tiles when first needed and cached.
+    """M = D - T F^-1 (paper eq. 13 with the preconditioner F), never stored: its tile
+    rows are made from T's when first needed and kept in the cache (every term and
+    every mat-vec uses them).
 
     Parameters
     ----------
@@ -128,56 +150,30 @@ class MOperand:
         self.shape = tuple(T.shape)
         self.dtype = np.dtype(T.dtype)
         self.grid = tuple(T.grid)
-        self._key = (T.path, "M", bool(zero_diagonal), id(finv))
         self.row_range = T.tile_row_range
-
-    def col_range(self, j):
-        return self.T.tile_row_range(j)  # square tiles, square matrix
+        self._key = (T.path, "M", bool(zero_diagonal), id(finv))
 
     def tile_columns(self, i) -> np.ndarray:
+        """Tile columns of M's (possibly) nonzero tiles in tile row i: T's, plus the
+        diagonal tile when D contributes there."""
         js = np.asarray(self.T.tile_columns(i), dtype=np.int64)
         a, b = self.T.tile_row_range(i)
         if not self.zero_diagonal and self.active[a:b].any() and i not in set(js.tolist()):
             js = np.sort(np.append(js, i))
         return js
 
-    def _make_tile(self, i, j):
+    def _make_row(self, i):
         a, b = self.T.tile_row_range(i)
-        c, d = self.col_range(j)
-        Tij = sp.csr_array(self.T.get_tile(i, j)) if self.T.has_tile(i, j) else \
-            blocks.empty((b - a, d - c), self.dtype)
-        return blocks.m_tile(Tij, self.finv[c:d], i == j, self.active[a:b], self.zero_diagonal)
-
-    def tile(self, i, j) -> sp.csr_array:
-        return self.cache.get(self._key + (int(i), int(j)), lambda: self._make_tile(int(i), int(j)))
-
-    def tiles(self, i, js) -> list[sp.csr_array]:
-        return [self.tile(i, j) for j in js]
+        return blocks.m_rows(sp.csr_array(self.T.get_tile_row(i)), a, self.finv,
+                             self.active[a:b], self.zero_diagonal)
 
     def row(self, i) -> sp.csr_array:
         """Tile row i of M, shape (rows_i, n), global columns."""
-        a, b = self.T.tile_row_range(i)
-        n = self.shape[1]
-        js = self.tile_columns(i)
-        if len(js) == 0:
-            return blocks.empty((b - a, n), self.dtype)
-        parts = []
-        for j in js:
-            t = self.tile(i, j).tocoo()
-            c, _ = self.col_range(j)
-            parts.append((t.row, t.col + c, t.data))
-        r = np.concatenate([p[0] for p in parts])
-        c = np.concatenate([p[1] for p in parts])
-        v = np.concatenate([p[2] for p in parts])
-        out = sp.csr_array((v, (r, c)), shape=(b - a, n))
-        out.sort_indices()
-        return out
+        return self.cache.get(self._key + ("row", int(i)), lambda: self._make_row(int(i)))
 
     def matvec_row(self, i, V) -> np.ndarray:
-        """Rows i of M @ V, V of shape (n, k)."""
+        """Rows of tile row i of M @ V, V of shape (n, k)."""
         a, b = self.T.tile_row_range(i)
         out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        for j in self.tile_columns(i):
-            c, d = self.col_range(j)
-            spmm_dense(self.tile(i, j), V[c:d], out=out, n_threads=1)
+        spmm_dense(self.row(i), V, out=out, n_threads=1)
         return out

@@ -6,7 +6,8 @@ with X = F^-1 S stored. The context (``graph.Context``) carries:
 
 ``M`` (:class:`~.operators.MOperand`), ``finv``/``f``/``active`` ((n,) arrays),
 ``threshold``, ``dtype``, ``n``, ``writers`` (name -> writer), ``done`` (name -> set
-of complete tile rows), ``max_right_nnz``, ``kernel_threads`` and the
+of complete tile rows), ``whole_bytes`` and ``max_right_nnz`` (memory plan),
+``kernel_threads`` and the
 method's operands (below).
 """
 
@@ -18,6 +19,10 @@ import scipy.sparse as sp
 from . import blocks
 from ._backend import prune, scale_rows
 
+#: Bytes one stored entry takes in memory (value, column index, share of the row
+#: pointers and of the product's temporaries), for the memory plan.
+BYTES_PER_ENTRY = 16
+
 
 def _write(ctx, name, i, block):
     # Rows of one store are independent directories: writers need no lock.
@@ -26,12 +31,32 @@ def _write(ctx, name, i, block):
 
 
 def _product(ctx, left, right, i, js_left, threshold):
-    """sum over j of left_ij @ right_j for the tile pairs with both factors nonzero."""
+    """Tile row i of left @ right, pruned; only tile pairs with both factors nonzero
+    count (and are read): right's empty tile rows are never read.
+
+    The right factor is used whole (read once per pass and shared through the cache)
+    when it fits ``ctx.whole_bytes``; otherwise in batches of its needed tile rows of
+    at most ``ctx.max_right_nnz`` entries (the memory bound).
+    """
     use = [int(j) for j in js_left if right.nonempty[j]]
-    a, b = ctx.M.T.tile_row_range(i)
-    out = blocks.row_product(left.tiles(i, use), [right.row(j) for j in use], b - a, ctx.n,
-                             threshold, ctx.dtype, ctx.max_right_nnz, ctx.kernel_threads)
-    return out, len(use), len(js_left) - len(use)
+    a, b = ctx.M.row_range(i)
+    skipped = len(js_left) - len(use)
+    if not use:
+        return blocks.empty((b - a, ctx.n), ctx.dtype), 0, skipped
+    L = left.row(i)
+    if right.nnz * BYTES_PER_ENTRY <= ctx.whole_bytes:
+        B = right.whole()
+    else:
+        B, cur, cur_nnz = [], [], 0
+        for j in use:
+            if cur and ctx.max_right_nnz and cur_nnz + right.row_nnz(j) > ctx.max_right_nnz:
+                B.append(right.assembled(cur))
+                cur, cur_nnz = [], 0
+            cur.append(j)
+            cur_nnz += right.row_nnz(j)
+        B.append(right.assembled(cur))
+    out = blocks.row_product(L, B, threshold, ctx.kernel_threads)
+    return out, len(use), skipped
 
 
 def power_row(ctx, i):
@@ -39,7 +64,7 @@ def power_row(ctx, i):
 
     Term 1 needs no product: P_1 = M P_0 = M (P_0 = D), pruned.
     """
-    a, b = ctx.M.T.tile_row_range(i)
+    a, b = ctx.M.row_range(i)
     if ctx.P_prev is None:
         P = prune(ctx.M.row(i), threshold=ctx.threshold)
         computed, skipped = 0, 0
@@ -59,7 +84,7 @@ def horner_row(ctx, i):
 
     S_{n-1} = F X_{n-1} is read from the previous X (``ctx.S_prev``).
     """
-    a, b = ctx.M.T.tile_row_range(i)
+    a, b = ctx.M.row_range(i)
     MS, computed, skipped = _product(ctx, ctx.M, ctx.S_prev, i, ctx.M.tile_columns(i),
                                      ctx.threshold)
     S = sp.csr_array(blocks.identity_rows(a, b, ctx.n, ctx.active, ctx.dtype) + MS)
@@ -73,7 +98,7 @@ def horner_row(ctx, i):
 def ns_residual_row(ctx, i):
     """Newton-Schulz, first product: R[i] = (I - T X)[i] = (D - S + M S)[i], pruned,
     with S = F X (so I - T X = D - (D - M) S on the active pixels)."""
-    a, b = ctx.M.T.tile_row_range(i)
+    a, b = ctx.M.row_range(i)
     MS, computed, skipped = _product(ctx, ctx.M, ctx.S, i, ctx.M.tile_columns(i), 0.0)
     R = blocks.identity_rows(a, b, ctx.n, ctx.active, ctx.dtype) - ctx.S.row(i) + MS
     R = prune(sp.csr_array(R), threshold=ctx.threshold)
@@ -87,7 +112,7 @@ def ns_update_row(ctx, i):
 
     Together with :func:`ns_residual_row`: X' = X + X (I - T X) = X (2I - T X).
     """
-    a, b = ctx.M.T.tile_row_range(i)
+    a, b = ctx.M.row_range(i)
     SR, computed, skipped = _product(ctx, ctx.S, ctx.R, i, ctx.S.tile_columns(i),
                                      ctx.threshold)
     S = sp.csr_array(ctx.S.row(i) + SR)
@@ -100,7 +125,7 @@ def ns_update_row(ctx, i):
 
 def diag_row(ctx, i):
     """X_0[i] = F^-1 rows (term 0)."""
-    a, b = ctx.M.T.tile_row_range(i)
+    a, b = ctx.M.row_range(i)
     X = blocks.diag_rows(a, b, ctx.n, ctx.finv, ctx.dtype)
     _write(ctx, "X", i, X)
     return {"i": i, "nnz_P": int(X.nnz), "nnz_X": int(X.nnz), "computed": 0, "skipped": 0}

@@ -72,3 +72,26 @@ def test_residual_estimate_is_unbiased_scale(tmp_path, make_store):
     rel, absolute = estimate_residual(M, X, fb, probes=256, seed=1)
     assert absolute == pytest.approx(exact, rel=0.1)
     assert rel == pytest.approx(exact / np.sqrt(120), rel=0.1)
+
+
+def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
+    """The memory-bounded path (right factor in batches of tile rows, partial sums
+    pruned once) gives the dense result too."""
+    from bigT.algorithms import stratified
+
+    A = random_dominant(80, seed=7, density=0.25)
+    T = make_store(A, tile_size=16)
+    monkeypatch.setattr(stratified, "_memory_plan", lambda limit, workers: (1 << 20, 0, 300))
+    for method in ("power", "newton-schulz"):
+        rep = bigT.stratified_inverse(T, tmp_path / f"{method}.zarr", terms=3, prune=0,
+                                      method=method, progress=False)
+        np.testing.assert_allclose(dense(tmp_path / f"{method}.zarr"),
+                                   dense_stratified(A, rep.terms), atol=1e-10)
+
+
+def test_memory_limit_argument(tmp_path, make_store):
+    A = random_dominant(64, seed=8)
+    T = make_store(A, tile_size=16)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=0, memory_limit="64MiB",
+                            progress=False)
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense_stratified(A, 2), atol=1e-10)

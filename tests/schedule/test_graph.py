@@ -61,14 +61,14 @@ def test_zero_tile_pairs_are_never_read(tmp_path, monkeypatch):
     A[32:, 32:] = np.diag(1 + np.arange(32) / 32)
     T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype="float64")
     reads = []
-    orig = StoreOperand.row
+    orig = StoreOperand._read_row
 
     def row(self, j):
         r = orig(self, j)
         reads.append((str(self.store.path), int(j), r.nnz))
         return r
 
-    monkeypatch.setattr(StoreOperand, "row", row)
+    monkeypatch.setattr(StoreOperand, "_read_row", row)
     rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=3, prune=0, progress=False)
     P_reads = [r for r in reads if r[0].endswith("/P")]
     assert P_reads and all(nnz > 0 for _, _, nnz in P_reads)
