@@ -104,8 +104,8 @@ def check_image(image: np.ndarray, path="<array>", shape: Sequence[int] | None =
         image = image[:, :, 0]
     if image.ndim == 3:
         raise ImageError(
-            f"colour image with {image.shape[2]} channels; bigT's transport is grayscale: "
-            "convert it to one channel first", path)
+            f"image with {image.shape[2]} channels (colour or alpha); bigT's transport is "
+            "grayscale: convert it to one channel first", path)
     if image.ndim != 2:
         raise ImageError(f"expected a 2-D grayscale image, got an array of shape {image.shape}", path)
     image = _to_unit(image, path)
