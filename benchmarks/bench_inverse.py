@@ -9,7 +9,8 @@ X, the residual estimate, the error against the known true inverse F^-1 (I - A)
     python benchmarks/bench_inverse.py --size 192x256 --terms 4 --prune 1e-5 \
         --method power,horner
 
-The scene comes from ``bigT.scenes.corner(size=..., path=...)``.
+The scene comes from ``bigT.scenes.corner(size=..., path=...)``, or (until that lands)
+from a stand-in built with the scenes layer's geometry/radiosity pieces (make_scene).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ import time
 
 import numpy as np
 
+# run from a checkout: the repository's bigT, whatever the venv's install points at
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
 
 def _size(text):
     h, w = text.lower().split("x")
@@ -32,23 +36,57 @@ def _size(text):
 
 
 def make_scene(size, path, density):
-    import inspect
+    """Build the corner scene at ``path``; returns (T, A, F, description, seconds).
 
+    ``bigT.scenes.corner`` when it exists. Until it lands, a stand-in built from the
+    scenes layer's geometry and radiosity pieces (wall_corner, form_factors with
+    ``density`` as the form-factor cut, interreflection, transport_rows): T = (sum_k
+    A^k) F, truncated at 1e-7, so F^-1 (I - A) is its inverse up to that truncation.
+    """
+    import bigT
     import bigT.scenes as scenes
 
-    kw = {}
-    params = inspect.signature(scenes.corner).parameters
-    if density is not None:
-        if "density" in params:
-            kw["density"] = density
-        else:
-            print(f"note: bigT.scenes.corner takes no density; --density {density} ignored",
-                  file=sys.stderr)
-    if "tile_size" in params and os.environ.get("BIGT_BENCH_TILE"):
-        kw["tile_size"] = int(os.environ["BIGT_BENCH_TILE"])
     t0 = time.perf_counter()
-    scene = scenes.corner(size=size, path=path, **kw)
-    return scene, time.perf_counter() - t0
+    if hasattr(scenes, "corner"):
+        import inspect
+
+        kw = {}
+        if density is not None and "density" in inspect.signature(scenes.corner).parameters:
+            kw["density"] = density
+        sc = scenes.corner(size=size, path=path, **kw)
+        return sc.T, sc.A, np.asarray(sc.F), "bigT.scenes.corner", time.perf_counter() - t0
+    import scipy.sparse as sp
+
+    from bigT.scenes.geometry import wall_corner
+    from bigT.scenes.radiosity import form_factors, interreflection, transport_rows
+
+    cut = 1e-6 if density is None else density
+    P = wall_corner(size)
+    A = interreflection(form_factors(P, cut), np.full(P.n, 0.6))
+    f = 0.6 * P.first_bounce_gain()
+    rows = []
+    for r0 in range(0, P.n, 4096):
+        Tr, _ = transport_rows(A, f, r0, min(P.n, r0 + 4096), prune=1e-7, stop=1e-7,
+                               max_bounces=60)
+        rows.append(Tr)
+    T = sp.csr_array(sp.vstack(rows, format="csr"))
+    os.makedirs(path, exist_ok=True)
+    kw = dict(image_shape=size, pixel_order="tile-major", dtype="float32")
+    Ts = bigT.from_scipy(T, os.path.join(path, "T.zarr"), **kw)
+    As = bigT.from_scipy(A, os.path.join(path, "A.zarr"), **kw)
+    F = f[Ts.pixel_order.permutation]
+    np.save(os.path.join(path, "F.npy"), F)
+    return Ts, As, F, f"stand-in corner (form-factor cut {cut:g})", time.perf_counter() - t0
+
+
+def load_scene(path):
+    import bigT
+
+    if os.path.exists(os.path.join(path, "F.npy")):
+        return (bigT.open(os.path.join(path, "T.zarr")), bigT.open(os.path.join(path, "A.zarr")),
+                np.load(os.path.join(path, "F.npy")))
+    sc = bigT.scenes.load(path)
+    return sc.T, sc.A, np.asarray(sc.F)
 
 
 def true_inverse_error(X, A, F):
@@ -71,16 +109,20 @@ def true_inverse_error(X, A, F):
 def child(args):
     import bigT
 
-    scene = bigT.scenes.load(args.scene)
+    T, A, F = load_scene(args.scene)
     out = os.path.join(args.workdir, f"X-{args.method}.zarr")
+    if os.path.exists(out):
+        import shutil
+
+        shutil.rmtree(out)
     t0 = time.perf_counter()
-    rep = bigT.stratified_inverse(scene.T, out, terms=args.terms, prune=args.prune,
+    rep = bigT.stratified_inverse(T, out, terms=args.terms, prune=args.prune,
                                   method=args.method, memory_limit=args.memory_limit,
                                   progress=False)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     X = bigT.open(out)
-    err = true_inverse_error(X, scene.A, scene.F)
+    err = true_inverse_error(X, A, F)
     res = {"method": args.method, "wall_s": wall, "peak_rss_bytes": peak,
            "error_vs_true_inverse": err, "nnz_X": int(X.nnz), "n": int(X.shape[0]),
            "report": rep.to_dict()}
@@ -107,10 +149,9 @@ def main(argv=None):
     workdir = args.workdir or tempfile.mkdtemp(prefix="bench_inverse_")
     scene_path = os.path.join(workdir, f"corner-{args.size[0]}x{args.size[1]}.zarr")
     if not os.path.exists(scene_path):
-        scene, t_scene = make_scene(args.size, scene_path, args.density)
-        print(f"scene {args.size[0]}x{args.size[1]}: n={scene.T.shape[0]} "
-              f"nnz(T)={scene.T.nnz} ({scene.T.nnz / scene.T.shape[0]:.0f}/row), "
-              f"rho={getattr(scene, 'spectral_radius', float('nan')):.3f}, built in {t_scene:.1f} s")
+        T, A, F, what, t_scene = make_scene(args.size, scene_path, args.density)
+        print(f"scene {args.size[0]}x{args.size[1]} ({what}): n={T.shape[0]} nnz(T)={T.nnz} "
+              f"({T.nnz / T.shape[0]:.0f}/row), nnz(A)={A.nnz}, built in {t_scene:.1f} s")
     results = []
     for method in args.method.split(","):
         cmd = [sys.executable, os.path.abspath(__file__), "--_child", "--scene", scene_path,
