@@ -518,7 +518,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
         products += sum(s["computed"] for s in stats)
         return stats, stores
 
-    def finish_term(k, X, stats, t0, extra_skipped_rows=0):
+    def finish_term(k, X, stats, t0):
         res_rel, res_abs = estimate_residual(M, X, fb, seed=seed + k, client=client,
                                              workers=workers)
         rec = TermRecord(
@@ -527,7 +527,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
             nnz_X=int(X.nnz),
             tiles_computed=int(sum(s["computed"] for s in stats)),
             tiles_skipped=int(sum(s["skipped"] for s in stats)),
-            rows_skipped=int(extra_skipped_rows),
+            rows_skipped=int(sum(1 for s in stats if s.get("row_skipped"))),
             residual=res_rel, residual_abs=res_abs)
         # The X store records its own term first, so a crash between the flip and the
         # root's record is repaired on resume (_reconcile).

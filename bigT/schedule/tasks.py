@@ -71,12 +71,20 @@ def power_row(ctx, i):
     else:
         P, computed, skipped = _product(ctx, ctx.M, ctx.P_prev, i, ctx.M.tile_columns(i),
                                         ctx.threshold)
+        if computed == 0:
+            # every factor tile of this row met an empty (converged) row of P_{k-1}:
+            # no product; X's row is carried over
+            return _finish_power(ctx, i, P, ctx.X_prev.row(i), 0, skipped, True)
     Xp = ctx.X_prev.row(i)
     X = blocks.add_scaled(Xp, ctx.finv[a:b], P) if P.nnz else Xp
+    return _finish_power(ctx, i, P, X, computed, skipped, False)
+
+
+def _finish_power(ctx, i, P, X, computed, skipped, row_skipped):
     _write(ctx, "P", i, P)
     _write(ctx, "X", i, X)
     return {"i": i, "nnz_P": int(P.nnz), "nnz_X": int(X.nnz), "computed": computed,
-            "skipped": skipped}
+            "skipped": skipped, "row_skipped": row_skipped}
 
 
 def horner_row(ctx, i):

@@ -127,3 +127,4 @@ def test_converged_block_rows_are_skipped(tmp_path, make_store):
     for h in rep.history[2:]:
         assert h.tiles_computed == 4  # only the 2x2 tiles of the coupled block
         assert h.tiles_skipped == 2   # the diagonal tiles of rows 2, 3 meet empty P rows
+        assert h.rows_skipped == 2    # rows 2, 3: no product at all
