@@ -106,11 +106,35 @@ def synthetic_local(path, size, nnz_per_row, *, diag=0.8, spread=0.3, radius=Non
     return w.finalize()
 
 
-def exact_inverse_from_scene(scene, path):
+def corner_scene(size, path):
+    """(T, A, F, description): ``bigT.scenes.corner`` when it exists; until it lands, the
+    stand-in of benchmarks/bench_inverse.py built from the scenes layer's geometry and
+    radiosity pieces (T = sum_k A^k F truncated at 1e-7, so F^-1 (I - A) inverts it up to
+    that truncation). F is in the stores' (matrix) pixel order."""
+    scenes = _have("bigT", "scenes")
+    if getattr(scenes, "corner", None) is not None:
+        sc = scenes.corner(size=size, path=str(path))
+        return sc.T, sc.A, np.asarray(sc.F, dtype=np.float64), "bigT.scenes.corner"
+    from bigT.scenes.geometry import wall_corner
+    from bigT.scenes.radiosity import form_factors, interreflection, transport_rows
+
+    P = wall_corner(size)
+    A = interreflection(form_factors(P, 1e-6), np.full(P.n, 0.6))
+    f = 0.6 * P.first_bounce_gain()
+    rows = [transport_rows(A, f, r0, min(P.n, r0 + 4096), prune=1e-7, stop=1e-7,
+                           max_bounces=60)[0] for r0 in range(0, P.n, 4096)]
+    T = sp.csr_array(sp.vstack(rows, format="csr"))
+    kw = dict(image_shape=size, pixel_order="tile-major", dtype="float32", overwrite=True)
+    Ts = bigT.from_scipy(T, Path(path) / "T.zarr", **kw)
+    As = bigT.from_scipy(A, Path(path) / "A.zarr", **kw)
+    return Ts, As, f[Ts.pixel_order.permutation], "stand-in corner (scenes geometry/radiosity)"
+
+
+def exact_inverse_from_scene(A, F, path):
     """X = F^-1 (I - A) from the scene's ground truth, tile row by tile row."""
     from bigT.storage import BlockCSRWriter
 
-    A, F = scene.A, np.asarray(scene.F, dtype=np.float64)
+    F = np.asarray(F, dtype=np.float64)
     w = BlockCSRWriter(path, A.shape, tile_size=A.tile_size, dtype="float32",
                        pixel_order=A.pixel_order, metadata={"exact_inverse": True},
                        overwrite=True)
@@ -129,6 +153,10 @@ def stratified(T, path, terms, prune=None):
     fn = _have("bigT.algorithms", "stratified_inverse")
     if fn is None:
         return None, None
+    import shutil
+
+    if Path(path).exists():  # a fresh inverse of this run's T (the engine resumes otherwise)
+        shutil.rmtree(path)
     kw = {} if prune is None else {"prune": prune}
     t0 = time.perf_counter()
     try:
@@ -146,17 +174,15 @@ def throughput(args, out):
     corner = None if args.synthetic else getattr(_have("bigT", "scenes"), "corner", None)
     if corner is not None:
         t0 = time.perf_counter()
-        scene = corner(size=size, path=str(out / f"corner_{size[0]}x{size[1]}.zarr"))
+        T, A, F, res["T"] = corner_scene(size, out / f"corner_{size[0]}x{size[1]}")
         res["scene_seconds"] = time.perf_counter() - t0
-        T = scene.T
         X, secs = stratified(T, str(out / "X_stratified4.zarr"), 4)
         if X is None:
-            X = exact_inverse_from_scene(scene, out / "X_exact.zarr")
+            X = exact_inverse_from_scene(A, F, out / "X_exact.zarr")
             res["X"] = "exact inverse F^-1 (I - A) from the scene's ground truth"
         else:
             res["X"] = "bigT.stratified_inverse, 4 terms"
             res["invert_seconds"] = secs
-        res["T"] = "bigT.scenes.corner"
     else:
         T = synthetic_local(out / "T_synth.zarr", size, args.t_nnz, seed=1)
         X = synthetic_local(out / "X_synth.zarr", size, args.x_nnz, seed=2)
@@ -282,21 +308,17 @@ def splu_in_child(path, frames, args):
 # --- part 2 -----------------------------------------------------------------------------
 
 def quality(args, out):
-    corner = getattr(_have("bigT", "scenes"), "corner", None)
-    if corner is None:
-        print("[quality] bigT.scenes.corner not available: skipped")
-        return {"skipped": "no scene generator"}
     size = _size(args.scene_size)
-    scene = corner(size=size, path=str(out / f"corner_q_{size[0]}x{size[1]}.zarr"))
-    T = scene.T
-    X = exact_inverse_from_scene(scene, out / "X_q_exact.zarr")
+    T, A, F, what = corner_scene(size, out / f"corner_q_{size[0]}x{size[1]}")
+    X = exact_inverse_from_scene(A, F, out / "X_q_exact.zarr")
     n = T.shape[0]
     # A constant target the exact inverse reproduces without clipping above 1.
     ones = np.ones(size)
     c = float(min(0.5, 0.9 / compensate(X, ones, clip=None).max()))
     desired = np.full(size, c)
     seen0 = relight(T, desired)
-    res = {"size": list(size), "n": n, "nnz_T_per_row": T.nnz / n, "target": c, "rows": []}
+    res = {"size": list(size), "n": n, "nnz_T_per_row": T.nnz / n, "target": c, "rows": [],
+           "scene": what}
 
     def row(label, l_in_raw):
         l_in = np.clip(l_in_raw, 0, 1)
@@ -310,7 +332,7 @@ def quality(args, out):
               f"{100 * r['clipped']:.2f} %")
         return seen
 
-    print(f"[quality] corner {size[0]}x{size[1]}, n = {n:,}, T {T.nnz / n:.0f} nnz/row, "
+    print(f"[quality] {what} {size[0]}x{size[1]}, n = {n:,}, T {T.nnz / n:.0f} nnz/row, "
           f"constant target {c:.3f}")
     r0 = dict(label="uncompensated", rel_error=relative_error(seen0, desired),
               fluct_image=fluctuation(seen0), fluct_scanline=fluctuation(scan_line(seen0)),
@@ -322,7 +344,7 @@ def quality(args, out):
     for terms in range(1, 5):
         raw = compensate(None, desired, T=T, terms=terms, path="matrix-free", clip=None)
         lines[f"{terms} term(s)"] = scan_line(row(f"stratified n={terms} (eq. 13, unpruned)", raw))
-        Xs, secs = stratified(T, str(out / f"X_q_{terms}.zarr"), terms)
+        Xs, secs = stratified(T, str(out / f"X_q_{terms}"), terms)
         if Xs is not None:
             row(f"stratified_inverse n={terms} ({secs:.1f} s)", compensate(Xs, desired, clip=None))
     lines["exact inverse"] = scan_line(row("exact inverse F^-1 (I - A)",
