@@ -100,7 +100,70 @@ def maxdiff(C, ref):
     return float(np.abs(D.data).max()) if D.nnz else 0.0
 
 
-def bench_size(H, W, threshold, repeat, n_threads, methods):
+def profile_spgemm(M, threshold, repeat):
+    """Single-thread CPU seconds of the phases of bigT's grouped spgemm on M @ M."""
+    from numba import njit  # noqa: PLC0415
+
+    from bigT import kernels  # noqa: PLC0415
+    from bigT.kernels import _csr_kernels as K  # noqa: PLC0415
+    from bigT.kernels.csr import _as_csr  # noqa: PLC0415
+
+    @njit(nogil=True)
+    def setup_and_scatter(ap, aj, ax, bp, bj, bx, n_cols, scatter):
+        # The grouped kernel without its emission: group set-up (+ the scatter).
+        G = K.GROUP
+        acc = np.zeros(n_cols * G)
+        stamp = np.full(bp.shape[0] - 1, -1, np.int64)
+        slot = np.zeros(bp.shape[0] - 1, np.int64)
+        max_row = np.max(ap[1:] - ap[:-1])
+        ulist = np.empty(G * max_row + 1, np.int64)
+        avals = np.zeros((G * max_row + 1) * G)
+        n = ap.shape[0] - 1
+        for g0 in range(0, n, G):
+            nu = 0
+            for r in range(min(G, n - g0)):
+                for p in range(ap[g0 + r], ap[g0 + r + 1]):
+                    k = aj[p]
+                    if stamp[k] != g0:
+                        stamp[k] = g0
+                        slot[k] = nu
+                        ulist[nu] = k
+                        avals[nu * G: nu * G + G] = 0.0
+                        nu += 1
+                    avals[slot[k] * G + r] += ax[p]
+            if scatter:
+                K._group_scatter(ulist, nu, avals, bp, bj, bx, acc)
+                acc[:] = 0.0
+        return acc.sum()
+
+    def cpu(f):
+        best = np.inf
+        for _ in range(repeat):
+            t = time.process_time()
+            f()
+            best = min(best, time.process_time() - t)
+        return best
+
+    a = _as_csr(M, "A")
+    args = (a.indptr, a.indices, a.data, a.indptr, a.indices, a.data, M.shape[1])
+    setup_and_scatter(*args, False)
+    n = M.shape[0]
+    t_check = cpu(lambda: _as_csr(M, "A"))
+    t_work = cpu(lambda: K.row_work_internal(a.indptr, a.indices, a.indptr))
+    t_setup = cpu(lambda: setup_and_scatter(*args, False))
+    t_scatter = cpu(lambda: setup_and_scatter(*args, True)) - t_setup
+    t_kernel = cpu(lambda: K.spgemm_grouped_internal(0, n, *args, threshold, -1, 0.25, 1024))
+    t_total = cpu(lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=1))
+    t_scipy = cpu(lambda: M @ M)
+    print("   profile, 1 thread, CPU seconds (process_time, best of %d):" % repeat)
+    print(f"     checks {t_check:.3f} | row work {t_work:.3f} | group set-up {t_setup:.3f} | "
+          f"scatter {t_scatter:.3f} | emission+prune+buffers "
+          f"{t_kernel - t_setup - t_scatter:.3f} | wrapper rest "
+          f"{t_total - t_kernel - t_check - t_work:.3f} | total {t_total:.3f} "
+          f"(scipy M@M {t_scipy:.3f})")
+
+
+def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False):
     from bigT import kernels  # noqa: PLC0415
 
     M, source = corner_M(H, W)
@@ -114,6 +177,8 @@ def bench_size(H, W, threshold, repeat, n_threads, methods):
     t_raw, raw = timed(lambda: M @ M, repeat)
     print(f"   (scipy M@M alone {t_raw:.2f} s, {raw.nnz / n:.0f} nnz/row unpruned; "
           f"pruned {ref.nnz / n:.0f} nnz/row)")
+    # sparse_dot_topn allocates n_rows x top_n up front: give it the largest row.
+    top_n = max(int(np.diff(raw.indptr).max()), 1)
     del raw
     t, C = timed(lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=n_threads), repeat)
     rows.append((f"bigT spgemm ({n_threads} thr)", t, C))
@@ -132,7 +197,7 @@ def bench_size(H, W, threshold, repeat, n_threads, methods):
             Ms = sp.csr_matrix(M)
             t, C = timed(
                 lambda: sp_matmul_topn(
-                    Ms, Ms, top_n=n, threshold=threshold, sort=False, n_threads=n_threads
+                    Ms, Ms, top_n=top_n, threshold=threshold, sort=False, n_threads=n_threads
                 ),
                 repeat,
             )
@@ -162,9 +227,13 @@ def bench_size(H, W, threshold, repeat, n_threads, methods):
         except ImportError as exc:
             print(f"   python-graphblas unavailable: {exc}")
 
+    print("   (sparse_dot_topn top_n = largest row of the unpruned product, %d)" % top_n)
     print(f"   {'method':<30} {'time [s]':>9} {'scipy/x':>8} {'nnz/row':>8} {'max|diff|':>10}")
     for name, t, C in rows:
         print(f"   {name:<30} {t:9.3f} {t_ref / t:8.2f} {C.nnz / n:8.0f} {maxdiff(C, ref):10.2e}")
+
+    if profile:
+        profile_spgemm(M, threshold, repeat)
 
     print(f"   spmm_dense: A @ X, X of shape (n, k), {M.dtype}")
     print(f"   {'k':>4} {'scipy [s]':>10} {'bigT [s]':>9} {'scipy/bigT':>10} {'max|diff|':>10}")
@@ -185,11 +254,12 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--methods", default="topn,graphblas", help="rivals to run besides scipy")
+    ap.add_argument("--profile", action="store_true", help="CPU time of spgemm's phases")
     args = ap.parse_args(argv)
     methods = set(filter(None, args.methods.split(",")))
     for size in args.sizes.split(","):
         H, W = (int(v) for v in size.lower().split("x"))
-        bench_size(H, W, args.threshold, args.repeat, args.threads, methods)
+        bench_size(H, W, args.threshold, args.repeat, args.threads, methods, args.profile)
 
 
 if __name__ == "__main__":

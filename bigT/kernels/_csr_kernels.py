@@ -531,6 +531,26 @@ with _slp_vectorizer():
 
 
 @njit(nogil=True, cache=True)
+def _group_emit(acc, lo, hi, n_rows, threshold, cursor, out_j, out_v):
+    """Move the lanes of acc[lo:hi+1, :n_rows] to the rows' regions, zeroing acc.
+
+    Row r's kept entries (``v != 0 and |v| >= threshold``) go to ``cursor[r]`` on,
+    in column order; the writes are unconditional and the cursor advances by the
+    test, so the loop has no data-dependent branch.
+    """
+    for j in range(lo, hi + 1):
+        o = j * GROUP
+        for r in range(n_rows):
+            c = cursor[r]
+            out_v[c] = acc[o + r]
+            out_j[c] = j
+            v = out_v[c]
+            cursor[r] = c + ((v != 0) & (abs(v) >= threshold))
+        for r in range(GROUP):
+            acc[o + r] = 0.0
+
+
+@njit(nogil=True, cache=True)
 def spgemm_grouped_internal(
     r0, r1, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, n_cols,
     threshold, top_k, min_efficiency, capacity,
@@ -573,6 +593,7 @@ def spgemm_grouped_internal(
         max_row = max(max_row, a_indptr[i + 1] - a_indptr[i])
     ulist = np.empty(GROUP * max_row + 1, np.int64)
     avals = np.zeros((GROUP * max_row + 1) * GROUP, np.float64)
+    cursor = np.zeros(GROUP, np.int64)
     pos = 0
     for g0 in range(r0, r1, GROUP):
         g1 = min(g0 + GROUP, r1)
@@ -605,20 +626,29 @@ def spgemm_grouped_internal(
                 lo = min(lo, b_indices[bs])
                 hi = max(hi, b_indices[be - 1])
         span = hi - lo + 1
-        need = pos + (g1 - g0) * (min(span, union_work) + 1)
+        need = pos + (g1 - g0) * (min(span, union_work) + 1) + 1
         if need > out_j.shape[0]:
             out_j = _grow(out_j, pos, need)
             out_v = _grow(out_v, pos, need)
         if useful >= min_efficiency * GROUP * union_work:
             _group_scatter(ulist, nu, avals, b_indptr, b_indices, b_data, acc)
+            # One pass over the span reads each accumulator line once and writes
+            # row r into its own region [pos + r * bound, ...); the regions are then
+            # closed up (a short move of the kept entries only).
+            bound = min(span, union_work) + 1
+            for r in range(g1 - g0):
+                cursor[r] = pos + r * bound
+            _group_emit(acc, lo, hi, g1 - g0, threshold, cursor, out_j, out_v)
+            base = pos
             for r in range(g1 - g0):
                 start = pos
-                for j in range(lo, hi + 1):
-                    out_v[pos] = acc[j * GROUP + r]
-                    acc[j * GROUP + r] = 0.0
-                    out_j[pos] = j
-                    if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
-                        pos += 1
+                src = base + r * bound
+                cnt = cursor[r] - src
+                if src != start:
+                    for t in range(cnt):
+                        out_j[start + t] = out_j[src + t]
+                        out_v[start + t] = out_v[src + t]
+                pos = start + cnt
                 if top_k >= 0:
                     pos = _top_k_compact(out_j, out_v, start, pos, top_k)
                 row_nnz[g0 - r0 + r] = pos - start
