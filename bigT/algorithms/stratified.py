@@ -117,6 +117,7 @@ class InverseReport:
     n: int
     nnz_T: int
     history: list[TermRecord] = field(default_factory=list)
+    seconds_spectral_radius: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -130,6 +131,8 @@ class InverseReport:
             lines.append(f"{r.term:>4} {r.seconds:>8.2f} {r.nnz_P:>12d} {r.nnz_X:>12d} "
                          f"{r.tiles_computed:>10d} {r.tiles_skipped:>8d} {res:>10}")
         rho = "-" if self.spectral_radius is None else f"{self.spectral_radius:.4f}"
+        lines.append(f"spectral radius estimate {self.seconds_spectral_radius:.2f} s, "
+                     f"total {self.seconds:.2f} s")
         lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}, "
                      f"first bounce {self.first_bounce}), spectral radius of M {rho}, "
                      f"{self.excluded_pixels} pixels left out, stopped: {self.stopped}")
@@ -478,6 +481,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
     history = [TermRecord(**h) for h in inv.get("history", [])]
 
     rho = inv.get("spectral_radius")
+    t_rho = time.perf_counter()
     if rho is None:
         rho = estimate_spectral_radius(M, fb.active, seed=seed, client=client,
                                        workers=workers)
@@ -489,6 +493,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
             f"(first_bounce={fb.kind!r}): the series diverges. Try first_bounce='diag', "
             "a higher threshold on T's small entries (or denoising it), fixing "
             "negative or zero diagonal entries, or force=True to run anyway", T.path)
+    t_rho = time.perf_counter() - t_rho
 
     base_meta = {"method": method, "prune": prune, "first_bounce": fb.kind,
                  "spectral_radius": rho, "excluded_pixels": fb.excluded}
@@ -633,4 +638,4 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
         residual=None if last is None else last.residual, stopped=stopped,
         resumed_from=resumed_from, products=products,
         seconds=time.perf_counter() - t_start, n=T.shape[0], nnz_T=int(T.nnz),
-        history=history)
+        history=history, seconds_spectral_radius=t_rho)

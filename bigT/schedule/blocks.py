@@ -56,22 +56,26 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
     csr_array, shape (r, n), sorted indices
     """
     M = scale_cols(T_rows, -np.asarray(finv, dtype=T_rows.dtype))
-    coo = M.tocoo()
-    off = coo.col != coo.row + start
-    r, c, v = coo.row[off], coo.col[off], coo.data[off]
+    # CSR surgery instead of a COO round trip: a tile row of a big T has ~10^7 entries
+    # and every extra copy of them counts against the memory limit.
+    rows = np.repeat(np.arange(M.shape[0], dtype=M.indices.dtype), np.diff(M.indptr))
+    on = M.indices == rows + start
+    del rows
+    d = None
     if not zero_diagonal:
-        d = np.zeros(M.shape[0], dtype=M.dtype)
-        on = ~off
-        np.add.at(d, coo.row[on], coo.data[on])
-        d += np.asarray(active_rows, dtype=M.dtype)
+        d = np.asarray(active_rows, dtype=M.dtype) + M.diagonal(k=start)
+    if on.any():
+        keep = ~on
+        cs = np.concatenate([[0], np.cumsum(on, dtype=np.int64)])
+        indptr = (M.indptr - cs[M.indptr]).astype(M.indptr.dtype)
+        M = sp.csr_array((M.data[keep], M.indices[keep], indptr), shape=M.shape)
+        M.has_sorted_indices = True
+    if d is not None:
         nz = np.flatnonzero(d)
-        r = np.concatenate([r, nz])
-        c = np.concatenate([c, nz + start])
-        v = np.concatenate([v, d[nz]])
-    out = sp.csr_array((v, (r, c)), shape=M.shape)
-    out.sum_duplicates()
-    out.sort_indices()
-    return out
+        D = sp.csr_array((d[nz], (nz, nz + start)), shape=M.shape)
+        M = sp.csr_array(M + D)
+        M.sort_indices()
+    return M
 
 
 def assemble_rows(row_blocks: list[tuple[int, sp.csr_array]], n_rows: int, n_cols: int,
