@@ -57,21 +57,37 @@ def test_clipping_counts_and_bounds(small_scene, tmp_path):
     np.testing.assert_allclose(unclipped, raw, rtol=1e-5, atol=1e-6)
 
 
+_STREAM_STORES = {}
+
+
+@pytest.fixture(scope="module")
+def stream_stores(tmp_path_factory):
+    """(tile_size, order) -> (T, X, T store, X store), written once per module."""
+    def get(tile_size, order):
+        key = (tile_size, order)
+        if key not in _STREAM_STORES:
+            d = tmp_path_factory.mktemp(f"s{tile_size}{order}")
+            T, X, _, _ = random_transport(10, 12, seed=tile_size)
+            _STREAM_STORES[key] = (T, X, make_store(T, d / "T.zarr", image_shape=(10, 12),
+                                                    tile_size=tile_size, pixel_order=order),
+                                   make_store(X, d / "X.zarr", image_shape=(10, 12),
+                                              tile_size=tile_size, pixel_order=order))
+        return _STREAM_STORES[key]
+    return get
+
+
 @pytest.mark.parametrize("batch", [1, 3, 64])
 @pytest.mark.parametrize("tile_size,order", [(120, "row-major"), (37, "row-major"),
                                               (29, "tile-major")])
-def test_streamed_equals_scipy(batch, tile_size, order, tmp_path):
+def test_streamed_equals_scipy(batch, tile_size, order, stream_stores):
     H, W = 10, 12
-    T, X, F, A = random_transport(H, W, seed=tile_size)
-    Xs = make_store(X, tmp_path / "X.zarr", image_shape=(H, W), tile_size=tile_size,
-                    pixel_order=order)
+    T, X, Ts, Xs = stream_stores(tile_size, order)
     rng = np.random.default_rng(batch)
     desired = rng.uniform(0, 1, (5, H, W))
     got = compensate(Xs, desired, clip=None, batch=batch)
     ref = (X.astype(np.float32).astype(np.float64) @ rowmajor(desired)).T.reshape(desired.shape)
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
-    seen = relight(make_store(T, tmp_path / "T.zarr", image_shape=(H, W), tile_size=tile_size,
-                              pixel_order=order), desired, batch=batch)
+    seen = relight(Ts, desired, batch=batch)
     np.testing.assert_allclose(seen, (T @ rowmajor(desired)).T.reshape(desired.shape),
                                rtol=1e-4, atol=1e-5)
 
