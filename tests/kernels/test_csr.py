@@ -344,3 +344,19 @@ def test_spmm_dense_checks():
     bad = sp.csr_array((np.array([1.0]), np.array([7]), np.array([0, 1, 1, 1])), shape=(3, 3))
     with pytest.raises(InvalidMatrixError, match="column index out of range"):
         spmm_dense(bad, np.ones(3))
+
+
+def test_spgemm_wide_sparse_rows():
+    """Few entries spread over a wide span: the grouped kernel's marked-block emission
+    (and the rows kernel's sorted-list emission)."""
+    rng = np.random.default_rng(11)
+    A = sp.random_array((200, 3000), density=0.001, format="csr", rng=rng)
+    B = sp.random_array((3000, 5000), density=0.0006, format="csr", rng=rng)
+    ref = _dense64(A) @ _dense64(B)
+    for method in ("rows", "grouped"):
+        for threshold in (0.0, 0.05):
+            C = spgemm(A, B, method=method, threshold=threshold)
+            _assert_canonical(C)
+            want = np.where(np.abs(ref) >= threshold, ref, 0.0)
+            np.testing.assert_allclose(C.toarray(), want, rtol=1e-12, atol=0)
+            assert C.nnz == np.count_nonzero(want)
