@@ -106,6 +106,21 @@ def true_inverse_error(X, A, F):
     return (num / den) ** 0.5
 
 
+def peak_rss() -> int:
+    """Peak resident set of this process in bytes: VmHWM of /proc/self/status (the
+    high-water mark of this process's own memory). Not ru_maxrss: after fork + exec
+    Linux carries the parent's high-water mark into the child's ru_maxrss, so a child
+    started by a parent that built a big scene would report the parent's peak."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
 def child(args):
     import bigT
 
@@ -120,7 +135,7 @@ def child(args):
                                   method=args.method, memory_limit=args.memory_limit,
                                   progress=False)
     wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = peak_rss()
     X = bigT.open(out)
     err = true_inverse_error(X, A, F)
     res = {"method": args.method, "wall_s": wall, "peak_rss_bytes": peak,
