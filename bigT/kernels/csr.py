@@ -180,7 +180,9 @@ def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True):
     indices = np.asarray(A.indices)
     data = np.asarray(A.data)
     if indptr.shape != (n_rows + 1,):
-        raise InvalidMatrixError(f"{name}: indptr has shape {indptr.shape}, expected ({n_rows + 1},)")
+        raise InvalidMatrixError(
+            f"{name}: indptr has shape {indptr.shape}, expected ({n_rows + 1},)"
+        )
     if indices.shape != data.shape or indices.ndim != 1:
         raise InvalidMatrixError(f"{name}: indices and data differ in shape")
     nnz = int(indptr[-1]) if n_rows >= 0 else 0
