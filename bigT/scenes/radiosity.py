@@ -1,0 +1,254 @@
+"""Radiosity transport between patches, built sparse and row block by row block.
+
+* Form factors (paper eq. 1 discretised, point to point):
+  ``FF_ij = cos_i cos_j a_j / (pi r^2 + (a_i + a_j) / 2)``. The ``(a_i + a_j)/2`` term
+  is the disk-approximation regularisation of Wallace et al. (1989): far pairs get the
+  textbook ``cos_i cos_j a_j / (pi r^2)``; touching pairs (across a fold) stay below 1
+  instead of blowing up. It is symmetric in i, j, so reciprocity
+  ``a_i FF_ij = a_j FF_ji`` holds exactly.
+* Truncation: a pair (both directions) is kept when ``max(FF_ij, FF_ji) >= cut``. As
+  ``FF_ij <= a_j / (pi r^2)``, only centres within ``r_max = sqrt(max(a) / (pi cut))``
+  can qualify; they are enumerated with a k-d tree, one chunk of rows at a time, so
+  the n^2 pairs are never formed.
+* ``A = diag(albedo) FF`` (paper eq. 3) and ``T = (I - A)^-1 F`` (eq. 6) by the
+  forward Neumann series (eq. 8), one tile row at a time:
+  ``R_0 = I[rows]``, ``R_k = R_{k-1} A`` (pruned), ``T[rows] = (sum_k R_k) F``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from .. import config
+from ..errors import DivergenceError, MemoryLimitError
+from .geometry import Patches
+
+
+def _pair_form_factors(P: Patches, i: np.ndarray, j: np.ndarray):
+    """FF_ij and FF_ji for pairs (i, j), zero where either surface faces away."""
+    d = P.points[j] - P.points[i]
+    r2 = np.einsum("ij,ij->i", d, d)
+    r = np.sqrt(r2)
+    cos_i = np.einsum("ij,ij->i", P.normals[i], d) / r
+    cos_j = -np.einsum("ij,ij->i", P.normals[j], d) / r
+    # 1e-9: coplanar patches (cos = 0 up to rounding) exchange no light
+    facing = (cos_i > 1e-9) & (cos_j > 1e-9)
+    k = np.where(facing, cos_i * cos_j, 0.0) / (np.pi * r2 + 0.5 * (P.areas[i] + P.areas[j]))
+    return k * P.areas[j], k * P.areas[i]
+
+
+def _visible(P: Patches, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """True where the segment p_i -> p_j passes through no occluding sphere.
+
+    Analytic ray-sphere test, vectorised over pairs: the point of the segment closest
+    to the centre is strictly inside the sphere. An endpoint lying on a sphere, with the
+    segment leaving it outward (cos > 0 was already required), touches it at distance R
+    exactly; the relative margin keeps that from counting as a hit.
+    """
+    ok = np.ones(len(i), dtype=bool)
+    if len(P.spheres) == 0 or len(i) == 0:
+        return ok
+    p = P.points[i]
+    d = P.points[j] - p
+    dd = np.einsum("ij,ij->i", d, d)
+    lo = np.minimum(p, P.points[j])
+    hi = np.maximum(p, P.points[j])
+    for cx, cy, cz, R in P.spheres:
+        c = np.array([cx, cy, cz])
+        near = ok & np.all((lo <= c + R) & (hi >= c - R), axis=1)
+        if not near.any():
+            continue
+        idx = np.flatnonzero(near)
+        pc = c - p[idx]
+        t = np.clip(np.einsum("ij,ij->i", pc, d[idx]) / dd[idx], 0.0, 1.0)
+        closest = pc - t[:, None] * d[idx]
+        inside = np.einsum("ij,ij->i", closest, closest) < R * R * (1.0 - config.SCENE_VISIBILITY_MARGIN)
+        ok[idx[inside]] = False
+    return ok
+
+
+def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
+                 max_nnz: int | None = None, progress=None) -> sp.csr_array:
+    """The (truncated) form-factor matrix FF, shape (n, n), float64, zero diagonal.
+
+    Parameters
+    ----------
+    P : Patches, in the matrix order wanted for FF.
+    cut : float >= 0
+        Pairs with ``max(FF_ij, FF_ji) < cut`` are dropped (both directions, so the
+        pattern stays symmetric and reciprocity holds for every stored entry).
+        ``cut = 0`` keeps every pair that sees each other (all n^2 pairs are tested:
+        small scenes only).
+    max_nnz : int, optional
+        Refuse (MemoryLimitError) beyond this many stored entries
+        (default ``config.SCENE_MAX_A_NNZ``).
+    """
+    n = P.n
+    chunk = chunk or config.SCENE_PAIR_CHUNK
+    max_nnz = config.SCENE_MAX_A_NNZ if max_nnz is None else int(max_nnz)
+    if cut < 0 or not math.isfinite(cut):
+        raise ValueError(f"cut must be a finite number >= 0, got {cut}")
+    if cut == 0 and n * n > config.SCENE_MAX_ALL_PAIRS:
+        raise MemoryLimitError(
+            f"cut = 0 tests all {n}^2 pairs, more than config.SCENE_MAX_ALL_PAIRS = "
+            f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. --ff-cut 1e-6) "
+            "or a density preset")
+    tree = None
+    r_max = math.inf
+    if cut > 0:
+        r_max = math.sqrt(P.areas.max() / (math.pi * cut))
+        tree = cKDTree(P.points)
+    rows, cols, vals = [], [], []
+    total = 0
+    from tqdm.auto import tqdm
+
+    for i0 in tqdm(range(0, n, chunk), desc="form factors", unit="chunk", disable=progress is False
+                   if progress is not None else None, leave=False):
+        i1 = min(n, i0 + chunk)
+        if tree is None:
+            i = np.repeat(np.arange(i0, i1), n)
+            j = np.tile(np.arange(n), i1 - i0)
+        else:
+            sub = cKDTree(P.points[i0:i1])
+            pairs = sub.sparse_distance_matrix(tree, r_max, output_type="ndarray")
+            i = pairs["i"].astype(np.int64) + i0
+            j = pairs["j"].astype(np.int64)
+        keep = i != j
+        i, j = i[keep], j[keep]
+        f_ij, f_ji = _pair_form_factors(P, i, j)
+        keep = np.maximum(f_ij, f_ji) >= cut if cut > 0 else (f_ij > 0)
+        keep &= f_ij > 0
+        i, j, f_ij = i[keep], j[keep], f_ij[keep]
+        vis = _visible(P, i, j)
+        i, j, f_ij = i[vis], j[vis], f_ij[vis]
+        total += len(i)
+        if total > max_nnz:
+            raise MemoryLimitError(
+                f"the form-factor matrix passed {max_nnz} entries (config.SCENE_MAX_A_NNZ) "
+                f"after {i1} of {n} rows; raise the form-factor cut")
+        rows.append(i.astype(np.int32 if n < 2**31 else np.int64))
+        cols.append(j.astype(np.int32 if n < 2**31 else np.int64))
+        vals.append(f_ij)
+    coo = sp.coo_array((np.concatenate(vals) if vals else np.zeros(0),
+                        (np.concatenate(rows) if rows else np.zeros(0, np.int32),
+                         np.concatenate(cols) if cols else np.zeros(0, np.int32))), shape=(n, n))
+    FF = coo.tocsr()
+    FF.sum_duplicates()
+    FF.sort_indices()
+    return FF
+
+
+def interreflection(FF: sp.csr_array, albedo: np.ndarray) -> sp.csr_array:
+    """A = diag(albedo) FF, shape (n, n), float64."""
+    A = sp.csr_array(FF.multiply(np.asarray(albedo, np.float64)[:, None]))
+    A.sort_indices()
+    return A
+
+
+def gaussian_blur_matrix(size, sigma: float, order: np.ndarray) -> sp.csr_array:
+    """Projector defocus G, shape (n, n): column j spreads projector pixel j over the
+    image with a Gaussian of standard deviation ``sigma`` pixels, truncated at
+    ``ceil(3 sigma)`` and normalised so each column sums to 1 (no light lost).
+
+    ``order`` is the pixel order's permutation (matrix index -> row-major pixel).
+    """
+    H, W = (int(s) for s in size)
+    n = H * W
+    rad = int(math.ceil(config.SCENE_BLUR_TRUNCATE * sigma))
+    inv = np.empty(n, dtype=np.int64)
+    inv[order] = np.arange(n)
+    rr, cc = np.divmod(np.arange(n), W)
+    rows, cols, vals = [], [], []
+    for dr in range(-rad, rad + 1):
+        for dc in range(-rad, rad + 1):
+            w = math.exp(-(dr * dr + dc * dc) / (2.0 * sigma * sigma))
+            r2, c2 = rr + dr, cc + dc
+            ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
+            rows.append(inv[r2[ok] * W + c2[ok]])
+            cols.append(inv[np.flatnonzero(ok)])
+            vals.append(np.full(int(ok.sum()), w))
+    G = sp.coo_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                     shape=(n, n)).tocsr()
+    colsum = np.asarray(G.sum(axis=0)).ravel()
+    G = sp.csr_array(G.multiply(1.0 / colsum[None, :]))
+    G.sort_indices()
+    return G
+
+
+def _product(R, A, threshold):
+    try:
+        from ..kernels import spgemm
+    except ImportError:  # pragma: no cover - the kernels layer is part of bigT
+        C = sp.csr_array(R @ A)
+        if threshold > 0:
+            C.data[np.abs(C.data) < threshold] = 0
+            C.eliminate_zeros()
+        return C
+    return spgemm(R, A, threshold=threshold)
+
+
+def transport_rows(A: sp.csr_array, f: np.ndarray, r0: int, r1: int, *, prune: float,
+                   stop: float, max_bounces: int, G: sp.csr_array | None = None):
+    """Rows r0:r1 of T = (sum_k A^k) diag(f) [G], float64 CSR, and the bounce count.
+
+    ``R_k`` entries below ``prune`` are dropped inside the product; the series stops
+    once the newest bounce's largest entry times max(f) is below ``stop``.
+    """
+    n = A.shape[0]
+    m = r1 - r0
+    R = sp.csr_array((np.ones(m), np.arange(r0, r1), np.arange(m + 1)), shape=(m, n))
+    S = R.copy()
+    fmax = float(np.abs(f).max()) if len(f) else 0.0
+    k = 0
+    while R.nnz and A.nnz:
+        R = _product(R, A, prune)
+        k += 1
+        if R.nnz == 0:
+            break
+        S = S + R
+        if float(np.abs(R.data).max()) * fmax < stop:
+            break
+        if k >= max_bounces:
+            raise DivergenceError(
+                f"the bounce series of rows {r0}:{r1} had not converged after {k} bounces "
+                f"(largest entry {float(np.abs(R.data).max()):.3g}); the albedo is too high "
+                "for this geometry")
+    T = sp.csr_array(S.multiply(f[None, :]))
+    if G is not None:
+        T = sp.csr_array(T @ G)
+    T.sort_indices()
+    return T, k
+
+
+def power_spectral_radius(matvec, n: int, iterations: int) -> float:
+    """Perron root of a nonnegative operator N by power iteration on I + N.
+
+    The shift makes the Perron root strictly dominant even when N is imprimitive (the
+    corner's left/right wall coupling is bipartite), so the 1-norm ratio converges.
+    """
+    x = np.full(n, 1.0 / n)
+    lam = 0.0
+    for _ in range(iterations):
+        y = x + matvec(x)
+        s = float(np.abs(y).sum())
+        if s == 0:
+            return 0.0
+        lam = s / float(np.abs(x).sum()) - 1.0
+        x = y / s
+    return max(lam, 0.0)
+
+
+def bounce_images(A: sp.csr_array, F1: np.ndarray, max_bounces: int, rel_tol: float):
+    """b_k = A^k F 1 for k = 0..K, stopping when ||b_k|| < rel_tol ||b_0||."""
+    out = [np.asarray(F1, np.float64)]
+    n0 = np.linalg.norm(out[0])
+    while len(out) <= max_bounces:
+        b = A @ out[-1]
+        out.append(b)
+        if np.linalg.norm(b) < rel_tol * n0:
+            break
+    return out
