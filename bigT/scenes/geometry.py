@@ -52,6 +52,10 @@ class Patches:
         when no surface can hide another from a patch.
     reference_distance : float
         Distance at which a frontal patch gets first-bounce gain 1.
+    same_face_exchange : bool
+        Whether two patches of one face can see each other (a concave face). Every
+        face of the built-in scenes is planar or convex, so they cannot, and the
+        form factors search other faces only.
     """
 
     points: np.ndarray
@@ -62,6 +66,7 @@ class Patches:
     face: np.ndarray
     reference_distance: float
     spheres: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    same_face_exchange: bool = False
 
     @property
     def n(self) -> int:
@@ -71,7 +76,7 @@ class Patches:
         """The patches renumbered: patch k of the result is patch order[k]."""
         return Patches(self.points[order], self.normals[order], self.areas[order],
                        self.view_cos[order], self.distance[order], self.face[order],
-                       self.reference_distance, self.spheres)
+                       self.reference_distance, self.spheres, self.same_face_exchange)
 
     def first_bounce_gain(self) -> np.ndarray:
         """Projector irradiance per unit intensity: cos_t (d_ref / d)^2, shape (n,)."""

@@ -97,11 +97,16 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
             f"cut = 0 tests all {n}^2 pairs, more than config.SCENE_MAX_ALL_PAIRS = "
             f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. --ff-cut 1e-6) "
             "or a density preset")
-    tree = None
     r_max = math.inf
+    faces = np.unique(P.face)
+    trees = {}
     if cut > 0:
         r_max = math.sqrt(P.areas.max() / (math.pi * cut))
-        tree = cKDTree(P.points)
+        # one k-d tree per face: patches of one face never exchange light (every face
+        # of the built-in scenes is planar or convex), so only other faces are searched
+        for g in faces:
+            idx = np.flatnonzero(P.face == g)
+            trees[g] = (cKDTree(P.points[idx]), idx)
     rows, cols, vals = [], [], []
     total = 0
     from tqdm.auto import tqdm
@@ -109,14 +114,25 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
     for i0 in tqdm(range(0, n, chunk), desc="form factors", unit="chunk", disable=progress is False
                    if progress is not None else None, leave=False):
         i1 = min(n, i0 + chunk)
-        if tree is None:
+        if cut == 0:
             i = np.repeat(np.arange(i0, i1), n)
             j = np.tile(np.arange(n), i1 - i0)
+            if not P.same_face_exchange:
+                keep = P.face[i] != P.face[j]
+                i, j = i[keep], j[keep]
         else:
-            sub = cKDTree(P.points[i0:i1])
-            pairs = sub.sparse_distance_matrix(tree, r_max, output_type="ndarray")
-            i = pairs["i"].astype(np.int64) + i0
-            j = pairs["j"].astype(np.int64)
+            ii, jj = [], []
+            for h in np.unique(P.face[i0:i1]):
+                src = i0 + np.flatnonzero(P.face[i0:i1] == h)
+                sub = cKDTree(P.points[src])
+                for g, (tree, idx) in trees.items():
+                    if g == h and not P.same_face_exchange:
+                        continue
+                    pairs = sub.sparse_distance_matrix(tree, r_max, output_type="ndarray")
+                    ii.append(src[pairs["i"]])
+                    jj.append(idx[pairs["j"]])
+            i = np.concatenate(ii) if ii else np.zeros(0, np.int64)
+            j = np.concatenate(jj) if jj else np.zeros(0, np.int64)
         keep = i != j
         i, j = i[keep], j[keep]
         f_ij, f_ji = _pair_form_factors(P, i, j)

@@ -1,0 +1,72 @@
+"""``bigT scene``: build a synthetic scene (bigT.scenes) with its ground truth."""
+
+from __future__ import annotations
+
+import json
+
+from .store_cmds import _image_shape
+
+
+def _density(text: str):
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def register(subparsers) -> None:
+    from ..scenes import DENSITIES, SCENE_NAMES
+
+    p = subparsers.add_parser(
+        "scene", help="build a synthetic projector-camera scene with known ground truth",
+        description="Build a synthetic scene's light transport T = (I - A)^-1 F (radiosity, "
+                    "Lambertian form factors, paper eq. 6) tile row by tile row into a bigT "
+                    "store, with its ground truth (A, F, spectral radius, bounce shares) in "
+                    "the store's ground_truth/ group and a preview PNG of T 1 beside it. "
+                    "dihedral4 is the paper's 4x4 example (eq. 34).")
+    p.add_argument("name", choices=SCENE_NAMES)
+    p.add_argument("--size", type=_image_shape, default=None, metavar="HxW",
+                   help="image size (default: 96x128; cornell 64x80 = 5120 patches)")
+    p.add_argument("-o", "--output", required=True, metavar="T.zarr")
+    p.add_argument("--albedo", type=float, default=0.6, help="Lambertian albedo in [0, 1)")
+    p.add_argument("--density", type=_density, default=None,
+                   metavar="|".join(DENSITIES) + "|CUT",
+                   help="preset of (form-factor cut, threshold), or a form-factor cut; "
+                        "default exact for small scenes, dense otherwise")
+    p.add_argument("--ff-cut", type=float, default=None,
+                   help="drop patch pairs whose form factor is below this (sparsity of A)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="truncate T: entries and bounces below this are dropped (0: exact)")
+    p.add_argument("--noise", type=float, default=0.0, help="std of additive camera noise")
+    p.add_argument("--noise-floor", type=float, default=None,
+                   help="entries below this are dropped after the noise (default 3 x noise)")
+    p.add_argument("--blur", type=float, default=0.0,
+                   help="projector defocus: Gaussian std in pixels (0: none)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tile-size", type=int, default=None)
+    p.add_argument("--pixel-order", choices=("tile-major", "row-major"), default="tile-major")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
+    p.add_argument("--no-preview", action="store_true", help="do not write the preview PNG")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=scene_cmd)
+
+
+def scene_cmd(args) -> int:
+    from ..scenes import make
+
+    kwargs = dict(overwrite=args.overwrite, preview=not args.no_preview, dtype=args.dtype)
+    if args.name != "dihedral4":
+        kwargs.update(albedo=args.albedo, density=args.density, ff_cut=args.ff_cut,
+                      threshold=args.threshold, noise=args.noise, noise_floor=args.noise_floor,
+                      blur=args.blur, seed=args.seed, tile_size=args.tile_size,
+                      pixel_order=args.pixel_order,
+                      progress=False if args.no_progress else None)
+    scene = make(args.name, args.size, args.output, **kwargs)
+    if args.json:
+        print(json.dumps(scene.summary, indent=1))
+    else:
+        print(scene.describe())
+        print(f"-> {scene.path}")
+    return 0

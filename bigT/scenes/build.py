@@ -1,0 +1,576 @@
+"""Synthetic projector-camera scenes written as bigT stores with their ground truth.
+
+A scene is built in four steps, each in bounded memory:
+
+1. geometry (:mod:`.geometry`): the surface patch seen by every pixel, renumbered into
+   the store's pixel order (image-tile-major by default, DESIGN.md "Pixel order");
+2. interreflection (:mod:`.radiosity`): A = diag(albedo) FF, sparse, in memory (its
+   size is capped by ``config.SCENE_MAX_A_NNZ``);
+3. transport: T = (sum_k A^k) F [G] (paper eq. 6/8) one tile row at a time with the
+   pruned products of the kernels layer, each tile row written by
+   :class:`bigT.BlockCSRWriter` as soon as it is done, so T never sits in memory whole;
+4. acquisition (optional): Gaussian defocus G of the projector, additive camera noise
+   on every stored entry and a noise floor below which entries are dropped.
+
+Layout on disk: ``path`` is the T store (a bigT block-CSR group) and holds the ground
+truth in its subgroup ``ground_truth/``::
+
+    T.zarr/                    bigT store of T; metadata["scene"] = the summary below
+      ground_truth/            zarr group, attributes["bigT_scene"] = summary
+        A/                     bigT store of A (matrix order of T)
+        F/                     float64 (n,) first bounce, matrix order
+
+For a noise-free scene without truncation (``threshold=0``) and without blur, the
+exact inverse is F^-1 (I - A); :func:`exact_inverse_rows` gives it tile row by tile
+row, so the error of an inverse can be measured at full scale without any dense
+inversion. The whole scene is written under a temporary sibling and moved into place
+when complete: a failed or interrupted call leaves ``path`` as it was.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import config
+from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError, StoreError
+from ..storage import BlockCSRWriter, PixelOrder, from_scipy
+from ..storage import open as open_store
+from ..storage.block_csr import atomic_write_json, group_json
+from . import geometry, radiosity
+
+#: The 4x4 transport of the paper's dihedral (eq. 34), true first bounce 1.75 I.
+DIHEDRAL4_T = np.array([
+    [1.7713, 0.0213, 0.1835, 0.0675],
+    [0.0213, 1.7713, 0.1835, 0.0675],
+    [0.1835, 0.1835, 1.7875, 0.0137],
+    [0.0675, 0.0675, 0.0137, 1.7550],
+])
+DIHEDRAL4_F = 1.75
+
+#: Density presets: (form-factor cut, T threshold). "exact" keeps every pair and every
+#: bounce (small scenes only: all n^2 pairs are tested).
+DENSITIES = {
+    "exact": (0.0, 0.0),
+    "sparse": (config.SCENE_SPARSE_FF_CUT, config.SCENE_SPARSE_THRESHOLD),
+    "dense": (config.SCENE_DENSE_FF_CUT, config.SCENE_DENSE_THRESHOLD),
+}
+
+GROUND_TRUTH = "ground_truth"
+SCENE_ATTR = "bigT_scene"
+
+SCENE_NAMES = ("dihedral4", "corner", "convex", "flat", "cornell", "hemispheres")
+
+#: Default image size of each scene; cornell's gives the paper's 5120 patches.
+DEFAULT_SIZES = {"corner": (96, 128), "convex": (96, 128), "flat": (96, 128),
+                 "cornell": (64, 80), "hemispheres": (96, 128)}
+
+
+@dataclass
+class Scene:
+    """A scene on disk and its ground truth.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The T store; the ground truth is in ``path / "ground_truth"``.
+    T, A : BlockCSR, shape (n, n)
+        Light transport and interreflection (matrix order, ``pixel_order``).
+    F : ndarray, (n,) float64
+        True first bounce (diagonal of F), matrix order.
+    pixel_order : PixelOrder
+    summary : dict
+        Name, parameters, nnz, spectral radii, bounce shares, timings (JSON).
+    """
+
+    path: Path
+    T: object
+    A: object
+    F: np.ndarray
+    pixel_order: PixelOrder
+    summary: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.summary.get("name", "")
+
+    @property
+    def spectral_radius(self) -> float:
+        """Estimated spectral radius of M = I - T F^-1 with F = diag(T) (what
+        ``bigT invert`` uses by default)."""
+        return self.summary.get("spectral_radius")
+
+    @property
+    def bounce_shares(self) -> list[float]:
+        """||A^k F 1|| / ||T 1|| for k = 0, 1, ...: each bounce's share of T 1."""
+        return self.summary.get("bounce_shares", [])
+
+    @property
+    def exact(self) -> bool:
+        """True when F^-1 (I - A) is the exact inverse of T (no truncation, noise, blur)."""
+        return bool(self.summary.get("exact"))
+
+    @property
+    def preview(self) -> Path | None:
+        p = self.summary.get("preview")
+        return None if p is None else Path(p)
+
+    def exact_inverse_rows(self, i: int) -> sp.csr_array:
+        """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64."""
+        return exact_inverse_rows(self.A, self.F, i, self.T.tile_size)
+
+    def inverse_error(self, X) -> float:
+        """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row.
+
+        The error of an inverse X (BlockCSR of the same grid) against the exact inverse
+        of the scene, without any dense matrix; exact for a noise-free, untruncated scene
+        (:attr:`exact`), otherwise the distance to the untruncated scene's inverse.
+        """
+        if X.shape != self.T.shape or X.tile_size != self.T.tile_size:
+            raise ShapeMismatchError(f"X is {X.shape} with tile size {X.tile_size}, the scene "
+                                     f"is {self.T.shape} with tile size {self.T.tile_size}",
+                                     getattr(X, "path", None))
+        num = den = 0.0
+        for i in range(X.grid[0]):
+            ref = self.exact_inverse_rows(i)
+            diff = sp.csr_array(X.get_tile_row(i), dtype=np.float64) - ref
+            num += float(np.sum(diff.data ** 2))
+            den += float(np.sum(ref.data ** 2))
+        return math.sqrt(num / den) if den else 0.0
+
+    def describe(self) -> str:
+        s = self.summary
+        H, W = s["image_shape"]
+        lines = [
+            f"scene {s['name']} {H}x{W} (n = {s['n']}), albedo {s['albedo']}, "
+            f"form-factor cut {s['ff_cut']:g}, threshold {s['threshold']:g}, "
+            f"noise {s['noise']:g}, blur {s['blur']:g}",
+            f"  T: {s['nnz_T']} nonzeros ({s['nnz_T'] / s['n']:.1f} per row), "
+            f"A: {s['nnz_A']} ({s['nnz_A'] / s['n']:.1f} per row), up to {s['bounces']} "
+            f"bounces per row",
+            f"  spectral radius of M = I - T diag(T)^-1: {s['spectral_radius']:.4f}; "
+            f"of A: {s['spectral_radius_A']:.4f}",
+            "  bounce shares of T 1: " + ", ".join(f"{100 * v:.2f}%" for v in s["bounce_shares"]),
+            f"  built in {s['seconds']:.1f} s"
+            + (f"; preview {s['preview']}" if s.get("preview") else ""),
+            "  exact inverse F^-1 (I - A) " + ("holds" if s["exact"] else
+                                               "holds up to truncation/noise/blur"),
+        ]
+        return "\n".join(lines)
+
+
+def exact_inverse_rows(A, F, i: int, tile_size: int) -> sp.csr_array:
+    """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64 (from A's store)."""
+    n = A.shape[0]
+    r0, r1 = i * tile_size, min(n, (i + 1) * tile_size)
+    Arows = sp.csr_array(A.get_tile_row(i), dtype=np.float64)
+    eye = sp.csr_array((np.ones(r1 - r0), np.arange(r0, r1), np.arange(r1 - r0 + 1)),
+                       shape=(r1 - r0, n))
+    return sp.csr_array(sp.diags_array(1.0 / np.asarray(F[r0:r1], np.float64)) @ (eye - Arows))
+
+
+# --- building ----------------------------------------------------------------------------
+
+def _resolve_density(density, ff_cut, threshold, n):
+    if isinstance(density, str):
+        if density not in DENSITIES:
+            raise ValueError(f"density must be one of {tuple(DENSITIES)} or a number, got {density!r}")
+        cut, thr = DENSITIES[density]
+    elif density is None:
+        # small scenes are exact by default; larger ones thresholded like a capture
+        cut, thr = DENSITIES["exact" if n * n <= config.SCENE_MAX_ALL_PAIRS else "dense"]
+    else:
+        cut, thr = float(density), DENSITIES["dense"][1]
+    cut = cut if ff_cut is None else float(ff_cut)
+    thr = thr if threshold is None else float(threshold)
+    for name, v in (("ff_cut", cut), ("threshold", thr)):
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+    return cut, thr
+
+
+def _albedo_vector(albedo, size, perm) -> tuple[np.ndarray, object]:
+    H, W = size
+    a = np.asarray(albedo, dtype=np.float64)
+    if a.ndim == 0:
+        vec = np.full(H * W, float(a))
+        label = float(a)
+    elif a.shape == (H, W):
+        vec = a.ravel()[perm]
+        label = "texture"
+    else:
+        raise ShapeMismatchError(f"albedo must be a number or an (H, W) = {size} texture, "
+                                 f"got shape {a.shape}")
+    if not np.isfinite(vec).all() or (vec < 0).any() or (vec >= 1).any():
+        raise InvalidMatrixError("albedo must lie in [0, 1) (a surface reflecting all light "
+                                 "makes the bounce series diverge)")
+    return vec, label
+
+
+def _patches(name, size):
+    if name == "corner":
+        return geometry.wall_corner(size, concave=True)
+    if name == "convex":
+        return geometry.wall_corner(size, concave=False)
+    if name == "flat":
+        return geometry.flat_wall(size)
+    if name == "cornell":
+        return geometry.cornell_box(size)
+    if name == "hemispheres":
+        return geometry.hemisphere_field(size)
+    raise ValueError(f"unknown scene {name!r}; choose from {SCENE_NAMES}")
+
+
+def _tmp_sibling(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
+
+
+def _check_target(path: Path, overwrite: bool):
+    if path.exists():
+        if not overwrite:
+            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
+        try:
+            open_store(path, allow_incomplete=True)
+        except BigTError:
+            if path.is_dir() and not any(path.iterdir()):
+                return
+            raise StoreError("exists and is not a bigT store; refusing to overwrite it", path) from None
+
+
+def _move_into_place(tmp: Path, path: Path):
+    if path.exists():
+        trash = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.old")
+        os.replace(path, trash)
+        os.replace(tmp, path)
+        shutil.rmtree(trash, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
+
+
+def _add_noise(rows: sp.csr_array, noise: float, floor: float, rng) -> sp.csr_array:
+    """Camera noise on every stored entry, then the noise floor: entries below ``floor``
+    (including those the noise made negative) are dropped, as a thresholded capture."""
+    rows = rows.copy()
+    if noise > 0:
+        rows.data = rows.data + rng.normal(0.0, noise, rows.data.shape)
+    if floor > 0:
+        rows.data[rows.data < floor] = 0.0
+        rows.eliminate_zeros()
+    return rows
+
+
+def _power_radius_T(T, d, iterations):
+    """rho(M) for M = I - T diag(d)^-1: M = -N with N = offdiag(T) diag(d)^-1 >= 0,
+    so rho(M) = rho(N), the Perron root (streams T once per iteration)."""
+    inv = np.zeros_like(d)
+    inv[d > 0] = 1.0 / d[d > 0]
+    return radiosity.power_spectral_radius(lambda x: T @ (x * inv) - x * (d > 0), T.shape[0],
+                                           iterations)
+
+
+def _write_ground_truth(root: Path, A: sp.csr_array, F: np.ndarray, po, tile_size, summary):
+    import zarr
+
+    gt = root / GROUND_TRUTH
+    gt.mkdir()
+    atomic_write_json(gt / "zarr.json", group_json({SCENE_ATTR: summary}))
+    from_scipy(A, gt / "A", tile_size=tile_size, dtype="float64", image_shape=po.image_shape,
+               pixel_order=po.order, image_tile=po.image_tile, input_order="matrix")
+    arr = zarr.create_array(store=str(gt / "F"), shape=F.shape, dtype="float64",
+                            chunks=(max(1, min(len(F), config.CHUNK_ELEMENTS)),),
+                            fill_value=float("nan"))
+    arr[:] = F
+
+
+def _preview(path: Path, image: np.ndarray, title: str) -> Path:
+    """T 1 (the camera's view of a white projector image) with three horizontal scan
+    lines drawn on it and plotted beside it (paper Fig. 8)."""
+    from ..compensation.figures import _pyplot
+
+    plt = _pyplot()
+    H, W = image.shape
+    rows = sorted({H // 4, H // 2, (3 * H) // 4})
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
+    ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest")
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, r in enumerate(rows):
+        ax0.axhline(r, color=colours[k], lw=1)
+        ax1.plot(image[r], color=colours[k], lw=1.3, label=f"row {r}")
+    ax0.set_title("T 1 (white projector image)", fontsize=9)
+    ax0.set_xticks([])
+    ax0.set_yticks([])
+    ax1.set_xlabel("column")
+    ax1.set_ylabel("intensity")
+    ax1.set_title("horizontal scan lines", fontsize=9)
+    ax1.grid(alpha=0.3)
+    ax1.legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def preview_path(path: Path) -> Path:
+    """Where the preview PNG of the scene stored at ``path`` goes: beside the store."""
+    name = path.name[:-5] if path.name.endswith(".zarr") else path.name
+    return path.with_name(f"{name}-preview.png")
+
+
+def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=None,
+          threshold=None, noise=0.0, noise_floor=None, blur=0.0, seed=0, tile_size=None,
+          pixel_order="tile-major", dtype="float32", overwrite=False, preview=True,
+          progress=None) -> Scene:
+    """Build a named scene at ``path`` (see :func:`corner` and friends).
+
+    Parameters
+    ----------
+    name : {"corner", "convex", "flat", "cornell", "hemispheres"}
+    size : (H, W), optional
+        Image size; default ``DEFAULT_SIZES[name]``. n = H W.
+    path : str or os.PathLike
+        Directory of the T store (e.g. ``corner.zarr``); the preview PNG goes beside it.
+    albedo : float in [0, 1) or (H, W) ndarray
+        Lambertian albedo, one value or a texture (row-major image).
+    density : {"exact", "sparse", "dense"} or float, optional
+        Preset of (form-factor cut, threshold); a float is a form-factor cut. Default:
+        "exact" when all n^2 pairs can be tested (n^2 <= config.SCENE_MAX_ALL_PAIRS),
+        else "dense".
+    ff_cut : float, optional
+        Overrides the preset's form-factor cut: pairs with max(FF_ij, FF_ji) below it
+        exchange no light (controls the nonzeros of A).
+    threshold : float, optional
+        Overrides the preset's truncation of T: the bounce series of a row stops when
+        the newest bounce's largest entry is below it, bounces are pruned at
+        ``config.SCENE_PRUNE_FRACTION`` of it, and entries of T below it are dropped.
+        0: no truncation (exact).
+    noise : float
+        Standard deviation of additive camera noise on every stored entry of T.
+    noise_floor : float, optional
+        Entries of T below it are dropped after the noise; default 3 * noise.
+    blur : float
+        Standard deviation (pixels) of the projector's Gaussian defocus (0: none).
+    seed : int
+        Seeds the noise (tile row i uses the stream (seed, i)).
+    tile_size : int, optional
+        Default ``config.DEFAULT_TILE_SIZE``.
+    pixel_order : {"tile-major", "row-major"}
+    dtype : {"float32", "float64"}
+        dtype of T's values (A, F and the ground truth are float64).
+    overwrite : bool
+        Replace an existing bigT store at ``path``.
+    preview : bool
+        Write ``<name>-preview.png`` beside the store.
+    progress : bool, optional
+        Progress bars (None: on a terminal only).
+
+    Returns
+    -------
+    Scene
+    """
+    t_start = time.perf_counter()
+    if path is None:
+        raise ValueError("path is required: the directory of the scene's T store")
+    path = Path(os.fspath(path))
+    size = tuple(int(s) for s in (DEFAULT_SIZES[name] if size is None and name in DEFAULT_SIZES
+                                  else size))
+    if len(size) != 2 or min(size) < 1:
+        raise ShapeMismatchError(f"size must be (H, W) with H, W >= 1, got {size}")
+    for label, v in (("noise", noise), ("blur", blur)):
+        if not (math.isfinite(float(v)) and float(v) >= 0):
+            raise ValueError(f"{label} must be a finite number >= 0, got {v}")
+    noise, blur = float(noise), float(blur)
+    floor = 3.0 * noise if noise_floor is None else float(noise_floor)
+    _check_target(path, overwrite)
+    H, W = size
+    n = H * W
+    po = PixelOrder(size, pixel_order)
+    perm = po.permutation
+    cut, thr = _resolve_density(density, ff_cut, threshold, n)
+    albedo_vec, albedo_label = _albedo_vector(albedo, size, perm)
+
+    t0 = time.perf_counter()
+    P = _patches(name, size).take(perm)
+    FF = radiosity.form_factors(P, cut, progress=progress)
+    A = radiosity.interreflection(FF, albedo_vec)
+    del FF
+    f = albedo_vec * P.first_bounce_gain()
+    G = radiosity.gaussian_blur_matrix(size, blur, perm) if blur > 0 else None
+    seconds_ff = time.perf_counter() - t0
+
+    fmax = float(f.max()) if n else 0.0
+    prune = config.SCENE_PRUNE_FRACTION * thr / fmax if thr > 0 and fmax > 0 else 0.0
+    stop = thr if thr > 0 else config.SCENE_NEUMANN_TOL
+    exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    from tqdm.auto import tqdm
+
+    try:
+        t0 = time.perf_counter()
+        writer = BlockCSRWriter(tmp, (n, n), tile_size=tile_size, dtype=dtype, pixel_order=po)
+        max_bounces = 0
+        for i in tqdm(range(writer.grid[0]), desc=f"{name}: T rows", unit="tile row",
+                      disable=None if progress is None else not progress, leave=False):
+            r0, r1 = writer.tile_row_range(i)
+            rows, k = radiosity.transport_rows(A, f, r0, r1, prune=prune, stop=stop,
+                                               max_bounces=config.SCENE_MAX_BOUNCES, G=G)
+            max_bounces = max(max_bounces, k)
+            if thr > 0:
+                rows.data[rows.data < thr] = 0.0
+                rows.eliminate_zeros()
+            if noise > 0 or floor > 0:
+                rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
+            writer.write_tile_row(i, rows)
+        T = writer.finalize()
+        seconds_T = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        d = np.asarray(T.diagonal(), np.float64)
+        rho_M = _power_radius_T(T, d, config.SPECTRAL_RADIUS_ITERATIONS)
+        rho_A = radiosity.power_spectral_radius(lambda x: A @ x, n,
+                                                config.SPECTRAL_RADIUS_ITERATIONS)
+        white = np.ones(n)
+        T1 = T @ white
+        b0 = f * (G @ white if G is not None else white)
+        bounces = radiosity.bounce_images(A, b0, 30, config.SCENE_SHARE_TOL)
+        norm_T1 = float(np.linalg.norm(T1)) or 1.0
+        shares = [float(np.linalg.norm(b)) / norm_T1 for b in bounces]
+        seconds_stats = time.perf_counter() - t0
+
+        summary = {
+            "name": name, "image_shape": [H, W], "n": n, "pixel_order": po.order,
+            "albedo": albedo_label, "ff_cut": cut, "threshold": thr, "noise": noise,
+            "noise_floor": floor, "blur": blur, "seed": int(seed), "dtype": str(T.dtype),
+            "nnz_T": int(T.nnz), "nnz_A": int(A.nnz), "bounces": int(max_bounces),
+            "spectral_radius": float(rho_M), "spectral_radius_A": float(rho_A),
+            "bounce_shares": shares, "exact": bool(exact),
+            "seconds": 0.0, "seconds_form_factors": seconds_ff, "seconds_T": seconds_T,
+            "seconds_stats": seconds_stats,
+            "preview": str(preview_path(path)) if preview else None,
+        }
+        _write_ground_truth(tmp, A, f, po, T.tile_size, summary)
+        summary["seconds"] = time.perf_counter() - t_start
+        _finish(tmp, summary)
+        _move_into_place(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    scene = load(path)
+    if preview:
+        _preview(preview_path(path), po.to_images(T1), f"{name} {H}x{W}: T 1, "
+                 f"rho(M) = {rho_M:.3f}")
+    return scene
+
+
+def _finish(root: Path, summary: dict):
+    """Record the final summary in the ground-truth group and in T's metadata (so
+    ``bigT info`` shows it)."""
+    atomic_write_json(root / GROUND_TRUTH / "zarr.json", group_json({SCENE_ATTR: summary}))
+    open_store(root).update_metadata(scene=summary)
+
+
+def dihedral4(size=None, path=None, *, overwrite=False, dtype="float64", preview=True,
+              **_ignored) -> Scene:
+    """The paper's 4x4 dihedral (§5.1, eq. 34) exactly, true first bounce F = 1.75 I.
+
+    A = I - F T^-1 is stored as its ground truth, so that T = (I - A)^-1 F holds for
+    the printed (rounded) T. Other keyword arguments (size, albedo, ...) do not apply.
+    """
+    t0 = time.perf_counter()
+    if path is None:
+        raise ValueError("path is required: the directory of the scene's T store")
+    path = Path(os.fspath(path))
+    _check_target(path, overwrite)
+    T = DIHEDRAL4_T
+    F = np.full(4, DIHEDRAL4_F)
+    A = np.eye(4) - np.diag(F) @ np.linalg.inv(T)
+    d = np.diag(T)
+    M = np.eye(4) - T / d[None, :]
+    po = PixelOrder((2, 2), "row-major")
+    shares_T1 = T @ np.ones(4)
+    bounces = radiosity.bounce_images(sp.csr_array(A), F, 30, config.SCENE_SHARE_TOL)
+    summary = {
+        "name": "dihedral4", "image_shape": [2, 2], "n": 4, "pixel_order": po.order,
+        "albedo": None, "ff_cut": 0.0, "threshold": 0.0, "noise": 0.0, "noise_floor": 0.0,
+        "blur": 0.0, "seed": 0, "dtype": dtype, "nnz_T": 16,
+        "nnz_A": int(np.count_nonzero(A)), "bounces": 0,
+        "spectral_radius": float(max(abs(np.linalg.eigvals(M)))),
+        "spectral_radius_A": float(max(abs(np.linalg.eigvals(A)))),
+        "bounce_shares": [float(np.linalg.norm(b) / np.linalg.norm(shares_T1)) for b in bounces],
+        "exact": True, "seconds": 0.0,
+        "preview": str(preview_path(path)) if preview else None,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    try:
+        from_scipy(sp.csr_array(T), tmp, tile_size=2, dtype=dtype, image_shape=(2, 2))
+        _write_ground_truth(tmp, sp.csr_array(A), F, po, 2, summary)
+        summary["seconds"] = time.perf_counter() - t0
+        _finish(tmp, summary)
+        _move_into_place(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if preview:
+        _preview(preview_path(path), shares_T1.reshape(2, 2), "dihedral4 (paper eq. 34): T 1")
+    return load(path)
+
+
+def load(path) -> Scene:
+    """Reopen a scene written by :func:`build` (its T store and ground truth)."""
+    import zarr
+
+    path = Path(os.fspath(path))
+    T = open_store(path)
+    gt = path / GROUND_TRUTH
+    try:
+        attrs = zarr.open_group(str(gt), mode="r").attrs.asdict()
+        summary = attrs[SCENE_ATTR]
+        A = open_store(gt / "A")
+        F = np.asarray(zarr.open_array(str(gt / "F"), mode="r")[:], np.float64)
+    except (FileNotFoundError, KeyError, zarr.errors.NodeNotFoundError if hasattr(
+            zarr.errors, "NodeNotFoundError") else FileNotFoundError) as exc:
+        raise StoreError(f"no scene ground truth here ({exc.__class__.__name__}: {exc}); "
+                         "was it written by bigT scene?", path) from None
+    if F.shape != (T.shape[0],) or not np.isfinite(F).all():
+        raise StoreError("ground-truth F is damaged (wrong length or missing chunks)", gt / "F")
+    return Scene(path, T, A, F, T.pixel_order, summary)
+
+
+def _named(name):
+    def make(size=None, path=None, **kwargs) -> Scene:
+        return build(name, size, path, **kwargs)
+
+    make.__name__ = name
+    make.__qualname__ = name
+    make.__doc__ = f"Build the ``{name}`` scene; parameters as :func:`bigT.scenes.build`."
+    return make
+
+
+corner = _named("corner")
+convex = _named("convex")
+flat = _named("flat")
+cornell = _named("cornell")
+hemispheres = _named("hemispheres")
+
+
+def make(name: str, size=None, path=None, **kwargs) -> Scene:
+    """Build scene ``name`` (one of :data:`SCENE_NAMES`)."""
+    if name == "dihedral4":
+        return dihedral4(size, path, **kwargs)
+    if name not in SCENE_NAMES:
+        raise ValueError(f"unknown scene {name!r}; choose from {SCENE_NAMES}")
+    return build(name, size, path, **kwargs)
+
+
+__all__ = ["Scene", "SCENE_NAMES", "build", "corner", "convex", "cornell", "dihedral4",
+           "exact_inverse_rows", "flat", "hemispheres", "load", "make"]
