@@ -1,0 +1,205 @@
+"""Synthetic scenes against independent references: the paper's eq. 34, dense
+(I - A)^-1 F, physics identities (reciprocity, no transport on convex/flat surfaces,
+occlusion), and the stored ground truth reopened."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import bigT
+from bigT import scenes
+from bigT.errors import InvalidMatrixError, ShapeMismatchError, StoreError
+from bigT.scenes import geometry, radiosity
+
+# Paper eq. 34, typed in again here (not imported from bigT) as the reference.
+EQ34 = np.array([
+    [1.7713, 0.0213, 0.1835, 0.0675],
+    [0.0213, 1.7713, 0.1835, 0.0675],
+    [0.1835, 0.1835, 1.7875, 0.0137],
+    [0.0675, 0.0675, 0.0137, 1.7550],
+])
+
+
+def dense(store) -> np.ndarray:
+    return store.to_scipy().toarray().astype(np.float64)
+
+
+def dense_transport(scene) -> np.ndarray:
+    """(I - A)^-1 F from the stored ground truth, by a dense solve."""
+    A = dense(scene.A)
+    return np.linalg.solve(np.eye(A.shape[0]) - A, np.diag(scene.F))
+
+
+def test_dihedral4_is_eq34(tmp_path):
+    sc = scenes.dihedral4(path=tmp_path / "d4.zarr")
+    np.testing.assert_allclose(np.round(dense(sc.T), 4), EQ34, rtol=0, atol=0)
+    np.testing.assert_array_equal(sc.F, np.full(4, 1.75))
+    # the stored A reproduces T through T = (I - A)^-1 F
+    np.testing.assert_allclose(dense_transport(sc), EQ34, atol=1e-12)
+    assert sc.preview.exists()
+    # spectral radius of M = I - T diag(T)^-1 against numpy's eigenvalues
+    M = np.eye(4) - EQ34 / np.diag(EQ34)[None, :]
+    assert sc.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(M))), rel=1e-12)
+
+
+@pytest.mark.parametrize("name,size", [
+    ("corner", (8, 12)), ("convex", (8, 12)), ("flat", (6, 8)), ("cornell", (8, 10)),
+    ("hemispheres", (12, 16)),
+])
+def test_untruncated_scene_equals_dense_transport(tmp_path, name, size):
+    sc = scenes.make(name, size, tmp_path / f"{name}.zarr", density="exact", dtype="float64",
+                     preview=False)
+    assert sc.exact and sc.T.shape == (size[0] * size[1],) * 2
+    np.testing.assert_allclose(dense(sc.T), dense_transport(sc), rtol=0, atol=1e-6)
+    # F^-1 (I - A) is the exact inverse; inverse_error measures a stored matrix against it
+    X = np.diag(1.0 / sc.F) @ (np.eye(sc.T.shape[0]) - dense(sc.A))
+    np.testing.assert_allclose(dense(sc.T) @ X, np.eye(sc.T.shape[0]), atol=1e-9)
+    Xs = bigT.from_scipy(sp.csr_array(X), tmp_path / "X.zarr", tile_size=sc.T.tile_size,
+                         dtype="float64", input_order="matrix")
+    assert sc.inverse_error(Xs) < 1e-12
+
+
+@pytest.mark.parametrize("name", ["convex", "flat"])
+def test_no_interreflection_on_convex_and_flat(tmp_path, name):
+    sc = scenes.make(name, (8, 12), tmp_path / "s.zarr", density="exact", dtype="float64",
+                     preview=False)
+    T = dense(sc.T)
+    assert sc.A.nnz == 0
+    np.testing.assert_array_equal(T, np.diag(np.diag(T)))
+    assert sc.spectral_radius == 0.0
+
+
+def test_corner_interreflects_across_the_fold_only(tmp_path):
+    sc = scenes.corner((8, 12), tmp_path / "c.zarr", density="exact", dtype="float64",
+                       preview=False)
+    A = dense(sc.A)
+    wall = np.arange(8 * 12)[sc.pixel_order.permutation] % 12 >= 6  # right half, matrix order
+    assert A[np.ix_(wall, wall)].max() == 0 and A[np.ix_(~wall, ~wall)].max() == 0
+    assert A[np.ix_(wall, ~wall)].min() > 0  # every pair across the fold sees each other
+    assert 0 < sc.spectral_radius < 1
+    # T = (I - A)^-1 F has a bounce expansion: its shares decrease
+    shares = sc.bounce_shares
+    assert shares[0] > shares[1] > shares[2] > 0
+
+
+def test_form_factor_reciprocity():
+    P = geometry.cornell_box((10, 12))
+    FF = radiosity.form_factors(P, 0.0, progress=False).toarray()
+    lhs = P.areas[:, None] * FF
+    np.testing.assert_allclose(lhs, lhs.T, rtol=1e-12, atol=1e-18)
+    assert (FF.sum(axis=1) < 1).all()  # a patch cannot send out more than all its light
+
+
+def test_form_factor_cut_keeps_symmetric_pattern():
+    P = geometry.wall_corner((16, 20))
+    full = radiosity.form_factors(P, 0.0, progress=False)
+    cut = 2e-3
+    FF = radiosity.form_factors(P, cut, progress=False)
+    pattern = (FF != 0).astype(int)
+    assert (pattern != pattern.T).nnz == 0
+    # the kept entries are exactly the full ones whose pair passes the cut
+    F = full.toarray()
+    ref = np.where((F >= cut) | (F.T >= cut), F, 0.0)
+    np.testing.assert_allclose(FF.toarray(), ref, rtol=1e-12, atol=0)
+    assert 0 < FF.nnz < full.nnz
+
+
+def test_hemispheres_occlude():
+    P = geometry.hemisphere_field((24, 32))
+    with_vis = radiosity.form_factors(P, 0.0, progress=False)
+    open_P = geometry.Patches(P.points, P.normals, P.areas, P.view_cos, P.distance, P.face,
+                              P.reference_distance)  # same patches, no occluders
+    without = radiosity.form_factors(open_P, 0.0, progress=False)
+    assert with_vis.nnz < without.nnz
+    # two plane points on either side of a sphere, at its height, do not see each other
+    c = P.spheres[0]
+    p = np.array([[c[0] - 1.5 * c[3], c[1], c[2]], [c[0] + 1.5 * c[3], c[1], c[2]]])
+    probe = geometry.Patches(np.r_[p, p], np.tile([0.0, 0.0, -1.0], (4, 1)), np.ones(4),
+                             np.ones(4), np.ones(4), np.zeros(4, np.int32), 1.0, P.spheres)
+    assert not radiosity._visible(probe, np.array([0]), np.array([1]))[0]
+
+
+def test_ground_truth_reopens(tmp_path):
+    sc = scenes.corner((16, 24), tmp_path / "c.zarr", density="sparse", preview=False)
+    again = scenes.load(tmp_path / "c.zarr")
+    assert again.summary == sc.summary
+    np.testing.assert_array_equal(again.F, sc.F)
+    assert again.A.nnz == sc.A.nnz and again.T.nnz == sc.T.nnz
+    assert bigT.open(tmp_path / "c.zarr").metadata["scene"]["name"] == "corner"
+    bigT.from_scipy(sp.eye(4, format="csr"), tmp_path / "plain.zarr")
+    with pytest.raises(StoreError, match="ground truth"):
+        scenes.load(tmp_path / "plain.zarr")
+
+
+def test_threshold_truncates_and_stays_close(tmp_path):
+    exact = scenes.corner((12, 16), tmp_path / "e.zarr", density="exact", dtype="float64",
+                          preview=False)
+    thr = 1e-4
+    cut = scenes.corner((12, 16), tmp_path / "t.zarr", ff_cut=0.0, threshold=thr,
+                        dtype="float64", preview=False)
+    Te, Tt = dense(exact.T), dense(cut.T)
+    assert Tt[Tt != 0].min() >= thr
+    assert cut.T.nnz < exact.T.nnz
+    # bounces are pruned at config.SCENE_PRUNE_FRACTION (0.1) of thr, so a kept entry
+    # misses only such tails, and a dropped one was below thr up to those tails
+    kept = Tt != 0
+    assert np.abs(Tt[kept] - Te[kept]).max() < 0.2 * thr
+    assert np.abs(Te[~kept]).max() < 1.2 * thr
+
+
+def test_noise_floor_and_seed(tmp_path):
+    kw = dict(density="exact", noise=1e-4, preview=False, dtype="float64")
+    a = scenes.corner((8, 12), tmp_path / "a.zarr", seed=3, **kw)
+    b = scenes.corner((8, 12), tmp_path / "b.zarr", seed=3, **kw)
+    c = scenes.corner((8, 12), tmp_path / "c.zarr", seed=4, **kw)
+    Ta, Tb, Tc = dense(a.T), dense(b.T), dense(c.T)
+    np.testing.assert_array_equal(Ta, Tb)
+    assert not np.array_equal(Ta, Tc)
+    assert Ta[Ta != 0].min() >= 3e-4  # default floor: 3 x noise
+    assert not a.exact
+
+
+def test_blur_spreads_the_direct_bounce(tmp_path):
+    sharp = scenes.flat((10, 12), tmp_path / "s.zarr", density="exact", dtype="float64",
+                        preview=False)
+    blurred = scenes.flat((10, 12), tmp_path / "b.zarr", density="exact", blur=1.0,
+                          dtype="float64", preview=False)
+    G = radiosity.gaussian_blur_matrix((10, 12), 1.0, sharp.pixel_order.permutation)
+    np.testing.assert_allclose(dense(blurred.T), dense(sharp.T) @ G.toarray(), atol=1e-12)
+    np.testing.assert_allclose(G.sum(axis=0), 1.0)
+    assert blurred.T.nnz > sharp.T.nnz
+
+
+def test_bad_scene_input(tmp_path):
+    with pytest.raises(InvalidMatrixError, match="albedo"):
+        scenes.corner((4, 6), tmp_path / "x.zarr", albedo=1.0)
+    with pytest.raises(ShapeMismatchError, match="texture"):
+        scenes.corner((4, 6), tmp_path / "x.zarr", albedo=np.ones((3, 3)))
+    with pytest.raises(ValueError, match="density"):
+        scenes.corner((4, 6), tmp_path / "x.zarr", density="medium")
+    assert not (tmp_path / "x.zarr").exists()
+    # an existing store is kept unless overwrite=True; a non-bigT folder never replaced
+    sc = scenes.corner((4, 6), tmp_path / "c.zarr", preview=False)
+    with pytest.raises(StoreError, match="already exists"):
+        scenes.corner((4, 6), tmp_path / "c.zarr", albedo=0.3)
+    assert scenes.load(tmp_path / "c.zarr").summary == sc.summary
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    with pytest.raises(StoreError, match="not a bigT store"):
+        scenes.corner((4, 6), other, overwrite=True)
+    assert (other / "keep.txt").read_text() == "mine"
+    # no partial scene left behind by the failures
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".partial")]
+
+
+def test_albedo_texture(tmp_path):
+    tex = np.full((8, 12), 0.5)
+    tex[:, :3] = 0.1
+    sc = scenes.corner((8, 12), tmp_path / "t.zarr", albedo=tex, density="exact",
+                       preview=False)
+    F_img = sc.pixel_order.to_images(sc.F)
+    assert F_img[:, :3].max() < F_img[:, 3:6].min()
+    assert sc.summary["albedo"] == "texture"
