@@ -4,15 +4,14 @@ Part 1, throughput at 384x512 (n = 196608) with X read from disk in batches:
   * explicit X, batch 1 and batch 64 (frames/s; X streamed once per batch),
   * matrix-free T_n^-1 (n passes over T per batch),
   * scipy ``splu`` of T: factor time, then one solve per frame.
-  T and X come from ``bigT.scenes.corner`` and ``bigT.stratified_inverse`` when those
-  exist (X = F^-1 (I - A) from the scene's ground truth while the engine is missing);
-  ``--synthetic`` (or a missing scene generator) uses a synthetic local transport with
+  T and X come from ``bigT.scenes.corner`` (``--density``) and
+  ``bigT.stratified_inverse``; ``--synthetic`` uses a synthetic local transport with
   the same nnz/row as DESIGN.md's measured 4-term inverse instead, labelled as such.
 
 Part 2, quality on a small corner scene: fluctuation (max - min)/mean of the camera
 image for a constant target, uncompensated and compensated with the stratified inverse
-at 1..4 terms (matrix-free, i.e. eq. 13 unpruned; and ``stratified_inverse`` when
-available) and with the exact inverse. Writes a scan-line plot like the paper's Fig. 10.
+at 1..4 terms (matrix-free, i.e. eq. 13 unpruned; and ``stratified_inverse``) and with
+the exact inverse. Writes a scan-line plot like the paper's Fig. 10.
 
 Run:  nice -n 10 .venv/bin/python benchmarks/bench_compensate.py [--quick]
 """
@@ -39,14 +38,6 @@ from bigT.storage.pixel_order import PixelOrder  # noqa: E402
 def _size(text):
     h, w = text.lower().split("x")
     return int(h), int(w)
-
-
-def _have(module, name):
-    try:
-        mod = __import__(module, fromlist=[name])
-        return getattr(mod, name, None)
-    except ImportError:
-        return None
 
 
 # --- matrices ---------------------------------------------------------------------------
@@ -106,63 +97,43 @@ def synthetic_local(path, size, nnz_per_row, *, diag=0.8, spread=0.3, radius=Non
     return w.finalize()
 
 
-def corner_scene(size, path):
-    """(T, A, F, description): ``bigT.scenes.corner`` when it exists; until it lands, the
-    stand-in of benchmarks/bench_inverse.py built from the scenes layer's geometry and
-    radiosity pieces (T = sum_k A^k F truncated at 1e-7, so F^-1 (I - A) inverts it up to
-    that truncation). F is in the stores' (matrix) pixel order."""
-    scenes = _have("bigT", "scenes")
-    if getattr(scenes, "corner", None) is not None:
-        sc = scenes.corner(size=size, path=str(path))
-        return sc.T, sc.A, np.asarray(sc.F, dtype=np.float64), "bigT.scenes.corner"
-    from bigT.scenes.geometry import wall_corner
-    from bigT.scenes.radiosity import form_factors, interreflection, transport_rows
+def corner_scene(size, path, density):
+    """The corner scene ``bigT.scenes.corner`` at ``path`` (reused when a complete one
+    with the same size and density is there)."""
+    import bigT.scenes as scenes
 
-    P = wall_corner(size)
-    A = interreflection(form_factors(P, 1e-6), np.full(P.n, 0.6))
-    f = 0.6 * P.first_bounce_gain()
-    rows = [transport_rows(A, f, r0, min(P.n, r0 + 4096), prune=1e-7, stop=1e-7,
-                           max_bounces=60)[0] for r0 in range(0, P.n, 4096)]
-    T = sp.csr_array(sp.vstack(rows, format="csr"))
-    kw = dict(image_shape=size, pixel_order="tile-major", dtype="float32", overwrite=True)
-    Ts = bigT.from_scipy(T, Path(path) / "T.zarr", **kw)
-    As = bigT.from_scipy(A, Path(path) / "A.zarr", **kw)
-    return Ts, As, f[Ts.pixel_order.permutation], "stand-in corner (scenes geometry/radiosity)"
+    try:
+        sc = scenes.load(path)
+        if tuple(sc.summary["image_shape"]) == tuple(size) and sc.summary.get("density") == density:
+            return sc
+    except (bigT.BigTError, KeyError):
+        pass
+    return scenes.corner(size=size, path=str(path), density=density, overwrite=True,
+                         preview=False, progress=False)
 
 
-def exact_inverse_from_scene(A, F, path):
+def exact_inverse_from_scene(scene, path):
     """X = F^-1 (I - A) from the scene's ground truth, tile row by tile row."""
     from bigT.storage import BlockCSRWriter
 
-    F = np.asarray(F, dtype=np.float64)
-    w = BlockCSRWriter(path, A.shape, tile_size=A.tile_size, dtype="float32",
-                       pixel_order=A.pixel_order, metadata={"exact_inverse": True},
+    T = scene.T
+    w = BlockCSRWriter(path, T.shape, tile_size=T.tile_size, dtype="float32",
+                       pixel_order=T.pixel_order, metadata={"exact_inverse": True},
                        overwrite=True)
-    for i in range(A.grid[0]):
-        r0, r1 = A.tile_row_range(i)
-        eye = sp.csr_array((np.ones(r1 - r0), (np.arange(r1 - r0), np.arange(r0, r1))),
-                           shape=(r1 - r0, A.shape[1]))
-        block = sp.csr_array(sp.diags_array(1.0 / F[r0:r1]) @ (eye - A.get_tile_row(i)))
-        block.sum_duplicates()
-        block.sort_indices()
-        w.write_tile_row(i, block.astype(np.float32))
+    for i in range(T.grid[0]):
+        w.write_tile_row(i, scene.exact_inverse_rows(i).astype(np.float32))
     return w.finalize()
 
 
 def stratified(T, path, terms, prune=None):
-    fn = _have("bigT.algorithms", "stratified_inverse")
-    if fn is None:
-        return None, None
+    """A fresh ``bigT.stratified_inverse`` of T at ``path``: (X, seconds)."""
     import shutil
 
     if Path(path).exists():  # a fresh inverse of this run's T (the engine resumes otherwise)
         shutil.rmtree(path)
     kw = {} if prune is None else {"prune": prune}
     t0 = time.perf_counter()
-    try:
-        fn(T, path, terms=terms, progress=False, **kw)
-    except TypeError:
-        fn(T, path, terms=terms, **kw)
+    bigT.stratified_inverse(T, path, terms=terms, progress=False, **kw)
     return bigT.open(path), time.perf_counter() - t0
 
 
@@ -171,18 +142,15 @@ def stratified(T, path, terms, prune=None):
 def throughput(args, out):
     size = _size(args.size)
     res = {"size": list(size)}
-    corner = None if args.synthetic else getattr(_have("bigT", "scenes"), "corner", None)
-    if corner is not None:
+    if not args.synthetic:
         t0 = time.perf_counter()
-        T, A, F, res["T"] = corner_scene(size, out / f"corner_{size[0]}x{size[1]}")
+        scene = corner_scene(size, out / f"corner_{size[0]}x{size[1]}.zarr", args.density)
+        T = scene.T
+        res["T"] = f"bigT.scenes.corner, density {args.density}"
         res["scene_seconds"] = time.perf_counter() - t0
         X, secs = stratified(T, str(out / "X_stratified4.zarr"), 4)
-        if X is None:
-            X = exact_inverse_from_scene(A, F, out / "X_exact.zarr")
-            res["X"] = "exact inverse F^-1 (I - A) from the scene's ground truth"
-        else:
-            res["X"] = "bigT.stratified_inverse, 4 terms"
-            res["invert_seconds"] = secs
+        res["X"] = "bigT.stratified_inverse, 4 terms"
+        res["invert_seconds"] = secs
     else:
         T = synthetic_local(out / "T_synth.zarr", size, args.t_nnz, seed=1)
         X = synthetic_local(out / "X_synth.zarr", size, args.x_nnz, seed=2)
@@ -221,7 +189,6 @@ def throughput(args, out):
               f"({K / wall:.2f} frames/s, {cpu:.2f} CPU-s); tiles cached "
               f"({100 * res[f'cache_fraction_K{K}']:.0f} % hits) {wall_w:.2f} s "
               f"({K / wall_w:.2f} frames/s, {cpu_w:.2f} CPU-s)")
-        del cache
     wall, cpu = timed(lambda: compensate(X, frames, batch=64, cache_bytes=args.cache_mb << 20))
     res["compensate_batch64_fps"] = len(frames) / wall
     res["compensate_batch64_cpu_ms_per_frame"] = 1e3 * cpu / len(frames)
@@ -309,8 +276,9 @@ def splu_in_child(path, frames, args):
 
 def quality(args, out):
     size = _size(args.scene_size)
-    T, A, F, what = corner_scene(size, out / f"corner_q_{size[0]}x{size[1]}")
-    X = exact_inverse_from_scene(A, F, out / "X_q_exact.zarr")
+    scene = corner_scene(size, out / f"corner_q_{size[0]}x{size[1]}.zarr", "exact")
+    T, what = scene.T, "bigT.scenes.corner (exact)"
+    X = exact_inverse_from_scene(scene, out / "X_q_exact.zarr")
     n = T.shape[0]
     # A constant target the exact inverse reproduces without clipping above 1.
     ones = np.ones(size)
@@ -345,8 +313,7 @@ def quality(args, out):
         raw = compensate(None, desired, T=T, terms=terms, path="matrix-free", clip=None)
         lines[f"{terms} term(s)"] = scan_line(row(f"stratified n={terms} (eq. 13, unpruned)", raw))
         Xs, secs = stratified(T, str(out / f"X_q_{terms}"), terms)
-        if Xs is not None:
-            row(f"stratified_inverse n={terms} ({secs:.1f} s)", compensate(Xs, desired, clip=None))
+        row(f"stratified_inverse n={terms} ({secs:.1f} s)", compensate(Xs, desired, clip=None))
     lines["exact inverse"] = scan_line(row("exact inverse F^-1 (I - A)",
                                            compensate(X, desired, clip=None)))
     # Throughput at this size, where sparse LU is a serious rival (DESIGN.md).
@@ -378,6 +345,7 @@ def main(argv=None):
     p.add_argument("--x-nnz", type=int, default=445)
     p.add_argument("--t-nnz", type=int, default=385)
     p.add_argument("--synthetic", action="store_true", help="synthetic T and X for part 1")
+    p.add_argument("--density", default="sparse", help="density preset of the part 1 scene")
     p.add_argument("--no-splu", action="store_true")
     p.add_argument("--splu-gb", type=int, default=6, help="address-space limit of the splu child")
     p.add_argument("--splu-seconds", type=int, default=300)

@@ -3,11 +3,9 @@
 Not a test: prints one table per size, every method timed side by side in the same
 run (timings on a shared machine drift; compare only within one table).
 
-Input: M = I - T F^-1 of the synthetic corner scene (``bigT.scenes.corner``) when that
-is importable, else a stand-in with the same structure class: a concave corner of two
-walls, each pixel seeing a disc of ~385 pixels around its mirror image on the other
-wall, magnitudes decaying with distance, rows summing to -0.44 (rho(M) ~ 0.44 as in
-DESIGN.md), so pruning at 1e-5 actually drops entries of M @ M.
+Input: M = I - T F^-1 with F = diag(T) of the synthetic corner scene
+(``bigT.scenes.corner``). The default density knobs (form-factor cut 2e-4, threshold
+1e-6) give about DESIGN.md's 385 nonzeros per row at 96x128.
 
     python benchmarks/bench_kernels.py --sizes 96x128,192x256 --threshold 1e-5 --repeat 3
 """
@@ -22,57 +20,24 @@ import numpy as np
 import scipy.sparse as sp
 
 
-def stand_in_M(H, W, *, nnz_per_row=385, rho=0.44, dtype=np.float32, seed=0):
-    """A corner-like M = I - T F^-1 with ~nnz_per_row entries per row (zero diagonal).
+def corner_M(H, W, ff_cut, threshold):
+    """(M, description): M = I - T diag(T)^-1 (the engine's M, zero diagonal) of the
+    synthetic corner scene ``bigT.scenes.corner`` at H x W, float32 CSR."""
+    import tempfile  # noqa: PLC0415
 
-    Pixel (y, x) on the left half (x < W/2) sees the right half around its mirror
-    (y, W - 1 - x) and vice versa, through a disc of radius r (pi r^2 ~ nnz_per_row),
-    weights exp(-d^2 / (2 s^2)) with s = r / 2, jittered, scaled to row sum -rho.
-    """
-    rng = np.random.default_rng(seed)
-    r = np.sqrt(nnz_per_row / np.pi)
-    R = int(np.ceil(r))
-    dy, dx = np.mgrid[-R : R + 1, -R : R + 1]
-    disc = dy**2 + dx**2 <= r * r
-    dy, dx = dy[disc], dx[disc]
-    w0 = np.exp(-(dy**2 + dx**2) / (2 * (r / 2) ** 2))
-    ys, xs = np.divmod(np.arange(H * W), W)
-    mx = W - 1 - xs
-    ty = ys[:, None] + dy[None, :]
-    tx = mx[:, None] + dx[None, :]
-    left = xs < W // 2
-    # Stay on the other wall: a left pixel sees x >= W/2, a right pixel x < W/2.
-    ok = (ty >= 0) & (ty < H) & (tx >= 0) & (tx < W)
-    ok &= np.where(left[:, None], tx >= W // 2, tx < W // 2)
-    w = w0[None, :] * rng.uniform(0.5, 1.5, size=ty.shape)
-    w = np.where(ok, w, 0.0)
-    w *= rho / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    rows = np.repeat(np.arange(H * W), ok.sum(axis=1))
-    cols = (ty * W + tx)[ok]
-    M = sp.csr_array((-w[ok], (rows, cols)), shape=(H * W, H * W), dtype=dtype)
+    from bigT.scenes import corner  # noqa: PLC0415
+
+    with tempfile.TemporaryDirectory(prefix="bigT-bench-") as tmp:
+        scene = corner(size=(H, W), path=f"{tmp}/corner.zarr", ff_cut=ff_cut,
+                       threshold=threshold, preview=False, progress=False)
+        T = sp.csr_array(scene.T.to_scipy(), dtype=np.float32)
+    d = T.diagonal().astype(np.float32)
+    M = sp.csr_array(sp.eye_array(T.shape[0], dtype=np.float32, format="csr")
+                     - T @ sp.diags_array(1.0 / d))
+    M.eliminate_zeros()
     M.sum_duplicates()
-    return M
-
-
-def corner_M(H, W):
-    """(M, description) from the scene generator, or the stand-in."""
-    try:
-        from bigT.scenes import corner  # noqa: PLC0415
-
-        import tempfile  # noqa: PLC0415
-
-        tmp = tempfile.mkdtemp(prefix="bigT-bench-")
-        scene = corner(size=(H, W), path=f"{tmp}/corner.zarr")
-        T = scene.T.to_scipy()
-        F = np.asarray(scene.F, dtype=np.float64)
-        M = sp.eye_array(T.shape[0], dtype=T.dtype, format="csr") - T @ sp.diags_array(
-            (1.0 / F).astype(T.dtype)
-        )
-        M = sp.csr_array(M)
-        M.sum_duplicates()
-        return M, "bigT.scenes.corner"
-    except (ImportError, AttributeError) as exc:
-        return stand_in_M(H, W), f"stand-in corner (scene unavailable: {exc.__class__.__name__})"
+    M.sort_indices()
+    return M, f"bigT.scenes.corner (ff_cut {ff_cut:g}, threshold {threshold:g})"
 
 
 def timed(func, repeat):
@@ -163,10 +128,11 @@ def profile_spgemm(M, threshold, repeat):
           f"(scipy M@M {t_scipy:.3f})")
 
 
-def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False):
+def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False, ff_cut=2e-4,
+               scene_threshold=1e-6):
     from bigT import kernels  # noqa: PLC0415
 
-    M, source = corner_M(H, W)
+    M, source = corner_M(H, W, ff_cut, scene_threshold)
     n = M.shape[0]
     print(f"\n== {H}x{W}  n={n}  nnz/row={M.nnz / n:.0f}  dtype={M.dtype}  input: {source}")
     print(f"   M @ M, threshold {threshold:g}, best of {repeat}, {n_threads} threads")
@@ -255,11 +221,14 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--methods", default="topn,graphblas", help="rivals to run besides scipy")
     ap.add_argument("--profile", action="store_true", help="CPU time of spgemm's phases")
+    ap.add_argument("--ff-cut", type=float, default=2e-4, help="scene form-factor cut")
+    ap.add_argument("--scene-threshold", type=float, default=1e-6, help="scene threshold on T")
     args = ap.parse_args(argv)
     methods = set(filter(None, args.methods.split(",")))
     for size in args.sizes.split(","):
         H, W = (int(v) for v in size.lower().split("x"))
-        bench_size(H, W, args.threshold, args.repeat, args.threads, methods, args.profile)
+        bench_size(H, W, args.threshold, args.repeat, args.threads, methods, args.profile,
+                   args.ff_cut, args.scene_threshold)
 
 
 if __name__ == "__main__":

@@ -64,12 +64,12 @@ SCENE_VISIBILITY_MARGIN = 1e-7
 #: Density presets of the scenes (form-factor cut, threshold on T). "sparse" keeps about
 #: 20 entries per row of T, like a thresholded capture; "dense" several hundred (the
 #: out-of-core benchmark). Calibrated on the 384x512 corner (albedo 0.6): sparse gives
-#: A 14 and T ~17 entries per row, dense A 71 and T ~290 per row (57 M in all). Entries
-#: of T scale as 1/n, so at smaller sizes the same values keep more entries per row.
-SCENE_SPARSE_FF_CUT = 3e-4
-SCENE_SPARSE_THRESHOLD = 1e-6
+#: A 8 and T ~20 entries per row, dense A 71 and T ~300 per row (about 60 M in all).
+#: Entries of T scale as 1/n, so at smaller sizes the same values keep more per row.
+SCENE_SPARSE_FF_CUT = 5e-4
+SCENE_SPARSE_THRESHOLD = 1e-5
 SCENE_DENSE_FF_CUT = 1e-4
-SCENE_DENSE_THRESHOLD = 1e-8
+SCENE_DENSE_THRESHOLD = 1e-7
 #: Gaussian projector blur is truncated at this many standard deviations.
 SCENE_BLUR_TRUNCATE = 3.0
 #: Bounce terms R_k are pruned at this fraction of the T threshold (divided by max F).

@@ -7,7 +7,6 @@ frames at a time, so neither the frames nor the matrices need to fit in memory.
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 

@@ -32,7 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--density", type=_density, default=None,
                    metavar="|".join(DENSITIES) + "|CUT",
                    help="preset of (form-factor cut, threshold), or a form-factor cut; "
-                        "default exact for small scenes, dense otherwise")
+                        "default exact for small scenes, sparse otherwise")
     p.add_argument("--ff-cut", type=float, default=None,
                    help="drop patch pairs whose form factor is below this (sparsity of A)")
     p.add_argument("--threshold", type=float, default=None,

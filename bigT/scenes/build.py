@@ -180,21 +180,24 @@ def exact_inverse_rows(A, F, i: int, tile_size: int) -> sp.csr_array:
 # --- building ----------------------------------------------------------------------------
 
 def _resolve_density(density, ff_cut, threshold, n):
+    """(density label, form-factor cut, threshold) from a preset name or a cut, with
+    explicit overrides. No preset: "exact" when all n^2 pairs can be tested, else
+    "sparse"."""
+    if density is None:
+        density = "exact" if n * n <= config.SCENE_MAX_ALL_PAIRS else "sparse"
     if isinstance(density, str):
         if density not in DENSITIES:
             raise ValueError(f"density must be one of {tuple(DENSITIES)} or a number, got {density!r}")
         cut, thr = DENSITIES[density]
-    elif density is None:
-        # small scenes are exact by default; larger ones thresholded like a capture
-        cut, thr = DENSITIES["exact" if n * n <= config.SCENE_MAX_ALL_PAIRS else "dense"]
     else:
-        cut, thr = float(density), DENSITIES["dense"][1]
+        density = float(density)
+        cut, thr = density, DENSITIES["sparse"][1]
     cut = cut if ff_cut is None else float(ff_cut)
     thr = thr if threshold is None else float(threshold)
     for name, v in (("ff_cut", cut), ("threshold", thr)):
         if not (math.isfinite(v) and v >= 0):
             raise ValueError(f"{name} must be a finite number >= 0, got {v}")
-    return cut, thr
+    return density, cut, thr
 
 
 def _albedo_vector(albedo, size, perm) -> tuple[np.ndarray, object]:
@@ -341,9 +344,9 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     albedo : float in [0, 1) or (H, W) ndarray
         Lambertian albedo, one value or a texture (row-major image).
     density : {"exact", "sparse", "dense"} or float, optional
-        Preset of (form-factor cut, threshold); a float is a form-factor cut. Default:
-        "exact" when all n^2 pairs can be tested (n^2 <= config.SCENE_MAX_ALL_PAIRS),
-        else "dense".
+        Preset of (form-factor cut, threshold); a float is a form-factor cut (with the
+        sparse threshold). Default: "exact" when all n^2 pairs can be tested
+        (n^2 <= config.SCENE_MAX_ALL_PAIRS), else "sparse".
     ff_cut : float, optional
         Overrides the preset's form-factor cut: pairs with max(FF_ij, FF_ji) below it
         exchange no light (controls the nonzeros of A).
@@ -394,7 +397,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     n = H * W
     po = PixelOrder(size, pixel_order)
     perm = po.permutation
-    cut, thr = _resolve_density(density, ff_cut, threshold, n)
+    density, cut, thr = _resolve_density(density, ff_cut, threshold, n)
     albedo_vec, albedo_label = _albedo_vector(albedo, size, perm)
 
     t0 = time.perf_counter()
@@ -448,7 +451,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
 
         summary = {
             "name": name, "image_shape": [H, W], "n": n, "pixel_order": po.order,
-            "albedo": albedo_label, "ff_cut": cut, "threshold": thr, "noise": noise,
+            "albedo": albedo_label, "density": density, "ff_cut": cut, "threshold": thr, "noise": noise,
             "noise_floor": floor, "blur": blur, "seed": int(seed), "dtype": str(T.dtype),
             "nnz_T": int(T.nnz), "nnz_A": int(A.nnz), "bounces": int(max_bounces),
             "spectral_radius": float(rho_M), "spectral_radius_A": float(rho_A),

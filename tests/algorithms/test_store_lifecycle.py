@@ -3,7 +3,6 @@ a crash mid-term (same result as an uninterrupted run), early stops."""
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 import bigT
 from bigT.schedule import graph
