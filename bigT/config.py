@@ -26,8 +26,11 @@ DEFAULT_IMAGE_TILE = (8, 8)
 DEFAULT_PRUNE = 1e-5
 #: Random probes z used to estimate ||I - T X||_F by r = z - T (X z).
 RESIDUAL_PROBES = 4
-#: Power iterations used to estimate the spectral radius of M before the first product.
+#: Power iterations used to estimate the spectral radius of M before the first product
+#: (at most; at least the minimum, then until two estimates agree to the tolerance).
 SPECTRAL_RADIUS_ITERATIONS = 30
+SPECTRAL_RADIUS_MIN_ITERATIONS = 10
+SPECTRAL_RADIUS_RTOL = 1e-3
 
 # --- compensation -------------------------------------------------------------------
 #: Frames streamed against each row tile of X at once.

@@ -322,9 +322,14 @@ def _m_matvec(M: MOperand, V, client, workers, tag):
 
 def estimate_spectral_radius(M: MOperand, active, iterations=None, seed=0, client=None,
                              workers=2) -> float:
-    """rho(M) by power iteration (``config.SPECTRAL_RADIUS_ITERATIONS`` mat-vecs, each
-    streaming the tiles of M): the geometric mean of the growth ||M v|| / ||v|| over the
-    second half of the iterations (robust to a two-cycle from a +-rho pair)."""
+    """rho(M) by power iteration (at most ``config.SPECTRAL_RADIUS_ITERATIONS`` mat-vecs,
+    each streaming the tiles of M): the geometric mean of the growth ||M v|| / ||v|| over
+    the second half of the iterations (robust to a two-cycle from a +-rho pair).
+
+    Stops early, after at least ``config.SPECTRAL_RADIUS_MIN_ITERATIONS``, once two
+    estimates two iterations apart (both over an even window, so a two-cycle averages
+    out) agree to ``config.SPECTRAL_RADIUS_RTOL``: each mat-vec re-reads T from disk when
+    the tile cache cannot hold it."""
     iterations = iterations or config.SPECTRAL_RADIUS_ITERATIONS
     rng = np.random.default_rng(seed)
     v = rng.standard_normal((M.shape[0], 1)) * active[:, None]
@@ -333,6 +338,7 @@ def estimate_spectral_radius(M: MOperand, active, iterations=None, seed=0, clien
         return 0.0
     v /= nv
     logs = []
+    previous = None
     for it in range(iterations):
         w = _m_matvec(M, v, client, workers, f"rho{it}")
         nw = float(np.linalg.norm(w))
@@ -340,6 +346,12 @@ def estimate_spectral_radius(M: MOperand, active, iterations=None, seed=0, clien
             return 0.0 if nw == 0 else float("inf")
         logs.append(math.log(nw))
         v = w / nw
+        if len(logs) >= config.SPECTRAL_RADIUS_MIN_ITERATIONS and len(logs) % 2 == 0:
+            estimate = math.exp(np.mean(logs[len(logs) // 2:]))
+            if previous is not None and abs(estimate - previous) <= \
+                    config.SPECTRAL_RADIUS_RTOL * estimate:
+                return float(estimate)
+            previous = estimate
     h = len(logs) // 2
     return float(math.exp(np.mean(logs[h:])))
 
