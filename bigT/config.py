@@ -60,6 +60,9 @@ SCENE_PAIR_CHUNK = 2048
 #: A scene's form-factor matrix may hold at most this many entries (float64 + int32:
 #: ~12 bytes each, times ~3 while it is assembled).
 SCENE_MAX_A_NNZ = 150_000_000
+#: Scenes up to this many pixels are exact by default (no cut, no truncation: T is then
+#: dense, n^2 entries, and each bounce a dense product).
+SCENE_EXACT_MAX_N = 1024
 #: With no form-factor cut every pair is tested: refuse beyond this many pairs.
 SCENE_MAX_ALL_PAIRS = 64_000_000
 #: Relative margin of the ray-sphere occlusion test (an endpoint on a sphere is not a hit).
@@ -81,8 +84,10 @@ SCENE_PRUNE_FRACTION = 0.1
 SCENE_NEUMANN_TOL = 1e-12
 #: A bounce series not converged after this many bounces is reported as divergent.
 SCENE_MAX_BOUNCES = 200
-#: Bounce shares ||A^k F 1|| / ||T 1|| are listed until below this share (or 30 bounces).
+#: Bounce shares ||A^k F 1|| / ||T 1|| are listed until below this share, for at most
+#: this many bounces.
 SCENE_SHARE_TOL = 1e-4
+SCENE_SHARE_MAX_BOUNCES = 30
 #: Bytes of decoded tiles of X (or T) that compensation keeps between frame batches;
 #: beyond it tiles are re-read from disk on every pass (0: always re-read).
 COMPENSATE_CACHE_BYTES = 1 << 30

@@ -88,6 +88,36 @@ def _step(title: str, argv: list[str], log: list) -> None:
     log.append((title, "bigT " + " ".join(argv), buf.getvalue(), time.perf_counter() - t0))
 
 
+#: What a demo writes in its folder; a rerun replaces exactly these.
+DEMO_OUTPUTS = ("T.zarr", "X.zarr", "inputs", "compensated", "bounces", "report.md",
+                "T-preview.png", "invert.json")
+
+
+def _clear_previous_demo(out: Path) -> None:
+    """Remove an earlier demo's outputs from ``out``; refuse a folder that holds anything
+    else unless it is an earlier demo's (its report.md), so no user file is deleted."""
+    from ..errors import BigTError
+
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise BigTError("is not a folder", out)
+    entries = {p.name for p in out.iterdir()}
+    if entries and "report.md" not in entries:
+        raise BigTError("is not empty and holds no earlier demo (no report.md); choose an "
+                        "empty or new folder with --dir", out)
+    foreign = sorted(entries - set(DEMO_OUTPUTS))
+    if foreign:
+        raise BigTError("holds files the demo did not write (" + ", ".join(foreign[:3])
+                        + "); choose another folder with --dir", out)
+    for name in DEMO_OUTPUTS:
+        p = out / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+
+
 def demo_cmd(args) -> int:
     from ..images import write_image
     from ..scenes import load
@@ -96,13 +126,7 @@ def demo_cmd(args) -> int:
 
     H, W = _image_shape(args.size)
     out = Path(args.dir)
-    for old in ("T.zarr", "X.zarr", "inputs", "compensated", "bounces", "report.md",
-                "T-preview.png", "invert.json"):
-        p = out / old
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
+    _clear_previous_demo(out)
     out.mkdir(parents=True, exist_ok=True)
     quiet = ["--no-progress"] if args.no_progress else []
     log: list = []
@@ -121,7 +145,7 @@ def demo_cmd(args) -> int:
     scene = load(T_path)
     X = open_store(X_path)
     err = scene.inverse_error(X)
-    err0 = _first_bounce_error(scene)
+    err0 = scene.inverse_error(1.0 / np.asarray(scene.T.diagonal(), np.float64))
     line = (f"error of X against the exact inverse F^-1 (I - A): {err:.3e} (relative "
             f"Frobenius; F^-1 alone: {err0:.3e})")
     print(f"\n== {line}")
@@ -147,23 +171,6 @@ def demo_cmd(args) -> int:
     report = _write_report(out, scene, log, total)
     print(f"\n== demo finished in {total:.1f} s; report -> {report}")
     return 0
-
-
-def _first_bounce_error(scene) -> float:
-    """Relative Frobenius error of F^-1 (terms = 0) against the exact inverse."""
-    import scipy.sparse as sp
-
-    d = np.asarray(scene.T.diagonal(), np.float64)
-    num = den = 0.0
-    for i in range(scene.T.grid[0]):
-        ref = scene.exact_inverse_rows(i)
-        r0, r1 = scene.T.tile_row_range(i)
-        X0 = sp.csr_array((1.0 / d[r0:r1], np.arange(r0, r1), np.arange(r1 - r0 + 1)),
-                          shape=ref.shape)
-        diff = X0 - ref
-        num += float(np.sum(diff.data ** 2))
-        den += float(np.sum(ref.data ** 2))
-    return float(np.sqrt(num / den))
 
 
 def _write_report(out: Path, scene, log, total: float) -> Path:

@@ -32,7 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--density", type=_density, default=None,
                    metavar="|".join(DENSITIES) + "|CUT",
                    help="preset of (form-factor cut, threshold), or a form-factor cut; "
-                        "default exact for small scenes, sparse otherwise")
+                        "default exact up to 1024 pixels, sparse beyond")
     p.add_argument("--ff-cut", type=float, default=None,
                    help="drop patch pairs whose form factor is below this (sparsity of A)")
     p.add_argument("--threshold", type=float, default=None,
@@ -45,7 +45,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--tile-size", type=int, default=None)
     p.add_argument("--pixel-order", choices=("tile-major", "row-major"), default="tile-major")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--dtype", choices=("float32", "float64"), default=None,
+                   help="dtype of T's values (default float32; dihedral4 float64)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
     p.add_argument("--no-preview", action="store_true", help="do not write the preview PNG")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -56,7 +57,9 @@ def register(subparsers) -> None:
 def scene_cmd(args) -> int:
     from ..scenes import make
 
-    kwargs = dict(overwrite=args.overwrite, preview=not args.no_preview, dtype=args.dtype)
+    kwargs = dict(overwrite=args.overwrite, preview=not args.no_preview)
+    if args.dtype:
+        kwargs["dtype"] = args.dtype
     if args.name != "dihedral4":
         kwargs.update(albedo=args.albedo, density=args.density, ff_cut=args.ff_cut,
                       threshold=args.threshold, noise=args.noise, noise_floor=args.noise_floor,

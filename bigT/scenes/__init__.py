@@ -2,10 +2,10 @@
 
 ``bigT.scenes.<name>(size=(H, W), path=..., ...)`` builds a scene and returns a
 :class:`Scene`; names: ``dihedral4`` (paper eq. 34), ``corner``, ``convex``, ``flat``,
-``cornell``, ``hemispheres``. :func:`load` reopens one. See :mod:`bigT.scenes.build`.
+``cornell``, ``hemispheres``. :func:`load` reopens one. See :mod:`bigT.scenes.builder`.
 """
 
-from .build import (  # noqa: F401
+from .builder import (  # noqa: F401
     DENSITIES,
     SCENE_NAMES,
     Scene,

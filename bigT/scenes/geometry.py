@@ -53,9 +53,9 @@ class Patches:
     reference_distance : float
         Distance at which a frontal patch gets first-bounce gain 1.
     same_face_exchange : bool
-        Whether two patches of one face can see each other (a concave face). Every
-        face of the built-in scenes is planar or convex, so they cannot, and the
-        form factors search other faces only.
+        Whether two patches of one face may see each other (a concave face); True
+        unless the face is known planar or convex. The built-in scenes' faces all
+        are, so their builders set False and the form factors search other faces only.
     """
 
     points: np.ndarray
@@ -66,7 +66,7 @@ class Patches:
     face: np.ndarray
     reference_distance: float
     spheres: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    same_face_exchange: bool = False
+    same_face_exchange: bool = True
 
     @property
     def n(self) -> int:
@@ -101,8 +101,9 @@ def _patches(rays, omega, t, normals, face, d_ref, spheres=None) -> Patches:
     points = rays * t[:, None]
     cos_t = np.clip(-(normals * rays).sum(axis=1), 0.0, 1.0)
     areas = omega * t * t / np.maximum(cos_t, MIN_VIEW_COSINE)
+    # every face built here is a plane or a convex hemisphere: no light within a face
     return Patches(points, normals, areas, cos_t, t.copy(), face.astype(np.int32), d_ref,
-                   np.zeros((0, 4)) if spheres is None else spheres)
+                   np.zeros((0, 4)) if spheres is None else spheres, same_face_exchange=False)
 
 
 def wall_corner(size, *, concave=True, distance=1.0, fov_deg=60.0) -> Patches:

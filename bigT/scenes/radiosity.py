@@ -81,8 +81,9 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
     cut : float >= 0
         Pairs with ``max(FF_ij, FF_ji) < cut`` are dropped (both directions, so the
         pattern stays symmetric and reciprocity holds for every stored entry).
-        ``cut = 0`` keeps every pair that sees each other (all n^2 pairs are tested:
-        small scenes only).
+        ``cut = 0`` keeps every pair that sees each other (all n^2 pairs are tested,
+        less those within one face when ``P.same_face_exchange`` is False: small
+        scenes only).
     max_nnz : int, optional
         Refuse (MemoryLimitError) beyond this many stored entries
         (default ``config.SCENE_MAX_A_NNZ``).
@@ -98,13 +99,12 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
             f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. --ff-cut 1e-6) "
             "or a density preset")
     r_max = math.inf
-    faces = np.unique(P.face)
     trees = {}
     if cut > 0:
         r_max = math.sqrt(P.areas.max() / (math.pi * cut))
-        # one k-d tree per face: patches of one face never exchange light (every face
-        # of the built-in scenes is planar or convex), so only other faces are searched
-        for g in faces:
+        # one k-d tree per face: when patches of one face cannot exchange light (a
+        # planar or convex face), only the other faces are searched
+        for g in np.unique(P.face):
             idx = np.flatnonzero(P.face == g)
             trees[g] = (cKDTree(P.points[idx]), idx)
     rows, cols, vals = [], [], []
@@ -245,16 +245,21 @@ def power_spectral_radius(matvec, n: int, iterations: int) -> float:
 
     The shift makes the Perron root strictly dominant even when N is imprimitive (the
     corner's left/right wall coupling is bipartite), so the 1-norm ratio converges.
+    At most ``iterations`` mat-vecs; after ``config.SPECTRAL_RADIUS_MIN_ITERATIONS``
+    it stops once two successive estimates agree to ``config.SPECTRAL_RADIUS_RTOL``.
     """
     x = np.full(n, 1.0 / n)
     lam = 0.0
-    for _ in range(iterations):
+    for it in range(iterations):
         y = x + matvec(x)
         s = float(np.abs(y).sum())
         if s == 0:
             return 0.0
-        lam = s / float(np.abs(x).sum()) - 1.0
+        previous, lam = lam, s / float(np.abs(x).sum()) - 1.0
         x = y / s
+        if it + 1 >= config.SPECTRAL_RADIUS_MIN_ITERATIONS and \
+                abs(lam - previous) <= config.SPECTRAL_RADIUS_RTOL * abs(lam):
+            break
     return max(lam, 0.0)
 
 

@@ -50,13 +50,43 @@ def _is_bigt_or_empty(path: Path) -> bool:
 
 def _remove_existing(path: Path, overwrite: bool) -> None:
     """Refuse an existing path unless ``overwrite``; never delete what is not a bigT store."""
+    if path.exists():
+        check_replaceable(path, overwrite)
+        shutil.rmtree(path)
+
+
+def check_replaceable(path: Path, overwrite: bool) -> None:
+    """Refuse an existing ``path`` unless ``overwrite``, and refuse to replace anything
+    that is not a bigT store (or an empty directory) even then. Deletes nothing."""
+    if path.exists():
+        if not overwrite:
+            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
+        if not _is_bigt_or_empty(path):
+            raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
+
+
+def temporary_sibling(path: Path) -> Path:
+    """A fresh hidden directory name beside ``path`` to build a replacement in."""
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
+
+
+def move_into_place(tmp: Path, path: Path) -> None:
+    """Replace ``path`` (absent, or a bigT store) by the complete directory ``tmp``.
+
+    Two renames on the same file system; if the second fails the old store is renamed
+    back, so ``path`` is never left missing or half replaced.
+    """
     if not path.exists():
+        os.replace(tmp, path)
         return
-    if not overwrite:
-        raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
-    if not _is_bigt_or_empty(path):
-        raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
-    shutil.rmtree(path)
+    trash = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.old")
+    os.replace(path, trash)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        os.replace(trash, path)
+        raise
+    shutil.rmtree(trash, ignore_errors=True)
 
 
 def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
@@ -440,11 +470,7 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
                                      f"is {A.shape}", path)
     elif pixel_order != "row-major":
         raise ShapeMismatchError(f"pixel_order {pixel_order!r} needs image_shape", path)
-    if path.exists():
-        if not overwrite:
-            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
-        if not _is_bigt_or_empty(path):
-            raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
+    check_replaceable(path, overwrite)
 
     with np.errstate(over="ignore"):
         data = A.data.astype(dt)
@@ -458,7 +484,7 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     A.eliminate_zeros()
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
+    tmp = temporary_sibling(path)
     try:
         writer = BlockCSRWriter(tmp, A.shape, tile_size=tile_size, dtype=dt, pixel_order=po,
                                 metadata=metadata)
@@ -466,13 +492,7 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
             r0, r1 = writer.tile_row_range(i)
             writer.write_tile_row(i, A[r0:r1])
         writer.finalize()
-        if path.exists():
-            trash = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.old")
-            os.replace(path, trash)
-            os.replace(tmp, path)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        move_into_place(tmp, path)
     except DiskFullError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         raise DiskFullError(f"disk full while writing ({exc.problem}); nothing was changed at the "

@@ -39,6 +39,21 @@ def test_scene_cli_bad_albedo_is_one_line_error(tmp_path, capsys):
     assert "albedo" in err and len(err.strip().splitlines()) == 1
 
 
+def test_scene_cli_bad_density_is_one_line_error(tmp_path, capsys):
+    assert main(["scene", "corner", "--size", "4x6", "--density", "medium", "-o",
+                 str(tmp_path / "c.zarr")]) == 2
+    err = capsys.readouterr().err
+    assert "density" in err and len(err.strip().splitlines()) == 1
+
+
+def test_demo_refuses_a_folder_it_did_not_write(tmp_path, capsys):
+    (tmp_path / "inputs").mkdir()
+    (tmp_path / "inputs" / "mine.png").write_bytes(b"not the demo's")
+    assert main(["demo", "--dir", str(tmp_path), "--size", "8x12", "--no-progress"]) == 2
+    assert "no report.md" in capsys.readouterr().err
+    assert (tmp_path / "inputs" / "mine.png").read_bytes() == b"not the demo's"
+
+
 def test_demo_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--dir", str(out), "--size", "24x32", "--no-progress"]) == 0
@@ -57,3 +72,5 @@ def test_demo_end_to_end(tmp_path, capsys):
     err = next(l for l in text.splitlines() if "exact inverse F^-1 (I - A):" in l)
     assert float(err.split(":")[1].split()[0]) < 1e-3
     np.testing.assert_equal(bigT.open(out / "X.zarr").metadata["inverse"]["term"], 4)
+    # a rerun into the same folder replaces the earlier demo
+    assert main(["demo", "--dir", str(out), "--size", "24x32", "--no-progress"]) == 0

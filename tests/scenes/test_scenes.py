@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 import bigT
 from bigT import scenes
-from bigT.errors import InvalidMatrixError, ShapeMismatchError, StoreError
+from bigT.errors import BigTError, InvalidMatrixError, ShapeMismatchError, StoreError
 from bigT.scenes import geometry, radiosity
 
 # Paper eq. 34, typed in again here (not imported from bigT) as the reference.
@@ -49,16 +49,27 @@ def test_dihedral4_is_eq34(tmp_path):
     ("hemispheres", (12, 16)),
 ])
 def test_untruncated_scene_equals_dense_transport(tmp_path, name, size):
+    # tile size 32: several tile rows (and ragged ones), so row offsets are exercised
     sc = scenes.make(name, size, tmp_path / f"{name}.zarr", density="exact", dtype="float64",
-                     preview=False)
-    assert sc.exact and sc.T.shape == (size[0] * size[1],) * 2
+                     preview=False, tile_size=32)
+    n = size[0] * size[1]
+    assert sc.exact and sc.T.shape == (n, n) and sc.T.grid[0] >= 2
     np.testing.assert_allclose(dense(sc.T), dense_transport(sc), rtol=0, atol=1e-6)
     # F^-1 (I - A) is the exact inverse; inverse_error measures a stored matrix against it
-    X = np.diag(1.0 / sc.F) @ (np.eye(sc.T.shape[0]) - dense(sc.A))
-    np.testing.assert_allclose(dense(sc.T) @ X, np.eye(sc.T.shape[0]), atol=1e-9)
-    Xs = bigT.from_scipy(sp.csr_array(X), tmp_path / "X.zarr", tile_size=sc.T.tile_size,
-                         dtype="float64", input_order="matrix")
-    assert sc.inverse_error(Xs) < 1e-12
+    X = np.diag(1.0 / sc.F) @ (np.eye(n) - dense(sc.A))
+    np.testing.assert_allclose(dense(sc.T) @ X, np.eye(n), atol=1e-9)
+    po = sc.pixel_order
+    kw = dict(tile_size=32, dtype="float64", input_order="matrix", image_shape=po.image_shape,
+              pixel_order=po.order, image_tile=po.image_tile)
+    assert sc.inverse_error(bigT.from_scipy(sp.csr_array(X), tmp_path / "X.zarr", **kw)) < 1e-12
+    # a perturbed inverse: the tile-row sum equals the dense relative Frobenius error
+    Y = X + np.random.default_rng(0).normal(0, 1e-3, X.shape) * (np.abs(X) > 0)
+    ref = np.linalg.norm(Y - X) / np.linalg.norm(X)
+    got = sc.inverse_error(bigT.from_scipy(sp.csr_array(Y), tmp_path / "Y.zarr", **kw))
+    assert got == pytest.approx(ref, rel=1e-9) and got > 0
+    # a diagonal X (F^-1 alone) given as a vector
+    assert sc.inverse_error(1.0 / sc.F) == pytest.approx(
+        np.linalg.norm(np.diag(1.0 / sc.F) - X) / np.linalg.norm(X), rel=1e-9)
 
 
 @pytest.mark.parametrize("name", ["convex", "flat"])
@@ -82,6 +93,24 @@ def test_corner_interreflects_across_the_fold_only(tmp_path):
     # T = (I - A)^-1 F has a bounce expansion: its shares decrease
     shares = sc.bounce_shares
     assert shares[0] > shares[1] > shares[2] > 0
+
+
+@pytest.mark.parametrize("builder", [
+    lambda: geometry.wall_corner((8, 12)), lambda: geometry.wall_corner((8, 12), concave=False),
+    lambda: geometry.flat_wall((6, 8)), lambda: geometry.cornell_box((8, 10)),
+    lambda: geometry.hemisphere_field((12, 16)),
+])
+@pytest.mark.parametrize("cut", [0.0, 1e-3])
+def test_searching_other_faces_only_loses_nothing(builder, cut):
+    """The built-in faces are planar or convex: searching every pair, same face
+    included, finds exactly the same form factors."""
+    P = builder()
+    assert P.same_face_exchange is False
+    every = geometry.Patches(P.points, P.normals, P.areas, P.view_cos, P.distance, P.face,
+                             P.reference_distance, P.spheres, same_face_exchange=True)
+    A = radiosity.form_factors(P, cut, progress=False)
+    B = radiosity.form_factors(every, cut, progress=False)
+    assert (A != B).nnz == 0
 
 
 def test_form_factor_reciprocity():
@@ -162,14 +191,23 @@ def test_noise_floor_and_seed(tmp_path):
 
 
 def test_blur_spreads_the_direct_bounce(tmp_path):
-    sharp = scenes.flat((10, 12), tmp_path / "s.zarr", density="exact", dtype="float64",
-                        preview=False)
-    blurred = scenes.flat((10, 12), tmp_path / "b.zarr", density="exact", blur=1.0,
-                          dtype="float64", preview=False)
-    G = radiosity.gaussian_blur_matrix((10, 12), 1.0, sharp.pixel_order.permutation)
-    np.testing.assert_allclose(dense(blurred.T), dense(sharp.T) @ G.toarray(), atol=1e-12)
-    np.testing.assert_allclose(G.sum(axis=0), 1.0)
-    assert blurred.T.nnz > sharp.T.nnz
+    """On a flat wall (no interreflection) with defocus sigma, the camera image of
+    projector pixel (r, c) is f at each lit pixel times a normalised Gaussian centred
+    on (r, c): built here in image coordinates, independently of the pixel order."""
+    H, W, sigma = 10, 12, 1.0
+    sc = scenes.flat((H, W), tmp_path / "b.zarr", density="exact", blur=sigma,
+                     dtype="float64", preview=False)
+    po = sc.pixel_order
+    T = dense(sc.T)
+    f_img = po.to_images(sc.F)
+    rad = int(np.ceil(3 * sigma))
+    yy, xx = np.mgrid[0:H, 0:W]
+    for r, c in [(0, 0), (4, 5), (9, 11), (5, 0)]:
+        g = np.exp(-((yy - r) ** 2 + (xx - c) ** 2) / (2 * sigma ** 2))
+        g[(np.abs(yy - r) > rad) | (np.abs(xx - c) > rad)] = 0
+        expected = f_img * g / g.sum()
+        j = po.inverse_permutation[r * W + c]  # matrix index of projector pixel (r, c)
+        np.testing.assert_allclose(po.to_images(T[:, j]), expected, rtol=1e-12, atol=1e-15)
 
 
 def test_bad_scene_input(tmp_path):
@@ -177,8 +215,12 @@ def test_bad_scene_input(tmp_path):
         scenes.corner((4, 6), tmp_path / "x.zarr", albedo=1.0)
     with pytest.raises(ShapeMismatchError, match="texture"):
         scenes.corner((4, 6), tmp_path / "x.zarr", albedo=np.ones((3, 3)))
-    with pytest.raises(ValueError, match="density"):
+    with pytest.raises(BigTError, match="density"):
         scenes.corner((4, 6), tmp_path / "x.zarr", density="medium")
+    with pytest.raises(InvalidMatrixError, match="albedo"):
+        scenes.corner((4, 6), tmp_path / "x.zarr", albedo=0.0)
+    with pytest.raises(BigTError, match="noise"):
+        scenes.corner((4, 6), tmp_path / "x.zarr", noise=-1)
     assert not (tmp_path / "x.zarr").exists()
     # an existing store is kept unless overwrite=True; a non-bigT folder never replaced
     sc = scenes.corner((4, 6), tmp_path / "c.zarr", preview=False)

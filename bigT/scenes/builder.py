@@ -33,7 +33,6 @@ import math
 import os
 import shutil
 import time
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +44,7 @@ from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError, StoreErr
 from ..storage import BlockCSRWriter, PixelOrder, from_scipy
 from ..storage import open as open_store
 from ..storage.block_csr import atomic_write_json, group_json
+from ..storage.writer import check_replaceable, move_into_place, temporary_sibling
 from . import geometry, radiosity
 
 #: The 4x4 transport of the paper's dihedral (eq. 34), true first bounce 1.75 I.
@@ -104,13 +104,14 @@ class Scene:
 
     @property
     def spectral_radius(self) -> float:
-        """Estimated spectral radius of M = I - T F^-1 with F = diag(T) (what
-        ``bigT invert`` uses by default)."""
+        """Estimated spectral radius of M = I - T F^-1 with F = diag(T), the first bounce
+        ``bigT invert`` uses by default (its own estimate may differ in the last digits)."""
         return self.summary.get("spectral_radius")
 
     @property
     def bounce_shares(self) -> list[float]:
-        """||A^k F 1|| / ||T 1|| for k = 0, 1, ...: each bounce's share of T 1."""
+        """||A^k F G 1|| / ||T 1|| for k = 0, 1, ... (G = I without blur): each bounce's
+        share of T 1."""
         return self.summary.get("bounce_shares", [])
 
     @property
@@ -125,23 +126,48 @@ class Scene:
 
     def exact_inverse_rows(self, i: int) -> sp.csr_array:
         """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64."""
-        return exact_inverse_rows(self.A, self.F, i, self.T.tile_size)
+        return exact_inverse_rows(self.A, self.F, i)
 
     def inverse_error(self, X) -> float:
         """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row.
 
-        The error of an inverse X (BlockCSR of the same grid) against the exact inverse
-        of the scene, without any dense matrix; exact for a noise-free, untruncated scene
-        (:attr:`exact`), otherwise the distance to the untruncated scene's inverse.
+        Parameters
+        ----------
+        X : BlockCSR of T's shape, tile size and pixel order, or (n,) ndarray
+            An inverse on disk, or the diagonal of a diagonal one (e.g. 1 / diag(T)).
+
+        Returns
+        -------
+        float
+            The relative error against the exact inverse of the scene, without any dense
+            matrix. F^-1 (I - A) inverts the noise-free, untruncated scene without blur
+            (:attr:`exact`); otherwise this is the distance to that scene's inverse.
         """
-        if X.shape != self.T.shape or X.tile_size != self.T.tile_size:
-            raise ShapeMismatchError(f"X is {X.shape} with tile size {X.tile_size}, the scene "
-                                     f"is {self.T.shape} with tile size {self.T.tile_size}",
-                                     getattr(X, "path", None))
+        T = self.T
+        if isinstance(X, np.ndarray):
+            if X.shape != (T.shape[0],):
+                raise ShapeMismatchError(f"a diagonal X needs {T.shape[0]} entries, got {X.shape}")
+            diag = np.asarray(X, np.float64)
+
+            def rows(i):
+                r0, r1 = T.tile_row_range(i)
+                return sp.csr_array((diag[r0:r1], np.arange(r0, r1), np.arange(r1 - r0 + 1)),
+                                    shape=(r1 - r0, T.shape[1]))
+        else:
+            where = getattr(X, "path", None)
+            if X.shape != T.shape or X.tile_size != T.tile_size:
+                raise ShapeMismatchError(f"X is {X.shape} with tile size {X.tile_size}, the scene "
+                                         f"is {T.shape} with tile size {T.tile_size}", where)
+            if X.pixel_order is not None and X.pixel_order != T.pixel_order:
+                raise ShapeMismatchError(f"X's pixel order {X.pixel_order} is not the scene's "
+                                         f"{T.pixel_order}", where)
+
+            def rows(i):
+                return sp.csr_array(X.get_tile_row(i), dtype=np.float64)
         num = den = 0.0
-        for i in range(X.grid[0]):
+        for i in range(T.grid[0]):
             ref = self.exact_inverse_rows(i)
-            diff = sp.csr_array(X.get_tile_row(i), dtype=np.float64) - ref
+            diff = rows(i) - ref
             num += float(np.sum(diff.data ** 2))
             den += float(np.sum(ref.data ** 2))
         return math.sqrt(num / den) if den else 0.0
@@ -167,10 +193,13 @@ class Scene:
         return "\n".join(lines)
 
 
-def exact_inverse_rows(A, F, i: int, tile_size: int) -> sp.csr_array:
-    """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64 (from A's store)."""
+def exact_inverse_rows(A, F, i: int) -> sp.csr_array:
+    """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64.
+
+    A : BlockCSR (n, n), the scene's interreflection; F : (n,) first bounce, both in
+    matrix order."""
     n = A.shape[0]
-    r0, r1 = i * tile_size, min(n, (i + 1) * tile_size)
+    r0, r1 = A.tile_row_range(i)
     Arows = sp.csr_array(A.get_tile_row(i), dtype=np.float64)
     eye = sp.csr_array((np.ones(r1 - r0), np.arange(r0, r1), np.arange(r1 - r0 + 1)),
                        shape=(r1 - r0, n))
@@ -181,23 +210,29 @@ def exact_inverse_rows(A, F, i: int, tile_size: int) -> sp.csr_array:
 
 def _resolve_density(density, ff_cut, threshold, n):
     """(density label, form-factor cut, threshold) from a preset name or a cut, with
-    explicit overrides. No preset: "exact" when all n^2 pairs can be tested, else
-    "sparse"."""
+    explicit overrides. No preset: "exact" up to ``config.SCENE_EXACT_MAX_N`` pixels,
+    else "sparse"."""
     if density is None:
-        density = "exact" if n * n <= config.SCENE_MAX_ALL_PAIRS else "sparse"
+        density = "exact" if n <= config.SCENE_EXACT_MAX_N else "sparse"
     if isinstance(density, str):
         if density not in DENSITIES:
-            raise ValueError(f"density must be one of {tuple(DENSITIES)} or a number, got {density!r}")
+            raise BigTError(f"density must be one of {tuple(DENSITIES)} or a number, got {density!r}")
         cut, thr = DENSITIES[density]
     else:
         density = float(density)
         cut, thr = density, DENSITIES["sparse"][1]
+    if ff_cut is not None or threshold is not None:
+        density = "custom"
     cut = cut if ff_cut is None else float(ff_cut)
     thr = thr if threshold is None else float(threshold)
-    for name, v in (("ff_cut", cut), ("threshold", thr)):
-        if not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+    _check_nonnegative(ff_cut=cut, threshold=thr)
     return density, cut, thr
+
+
+def _check_nonnegative(**values):
+    for name, v in values.items():
+        if not (math.isfinite(float(v)) and float(v) >= 0):
+            raise BigTError(f"{name} must be a finite number >= 0, got {v}")
 
 
 def _albedo_vector(albedo, size, perm) -> tuple[np.ndarray, object]:
@@ -212,9 +247,10 @@ def _albedo_vector(albedo, size, perm) -> tuple[np.ndarray, object]:
     else:
         raise ShapeMismatchError(f"albedo must be a number or an (H, W) = {size} texture, "
                                  f"got shape {a.shape}")
-    if not np.isfinite(vec).all() or (vec < 0).any() or (vec >= 1).any():
-        raise InvalidMatrixError("albedo must lie in [0, 1) (a surface reflecting all light "
-                                 "makes the bounce series diverge)")
+    if not np.isfinite(vec).all() or (vec <= 0).any() or (vec >= 1).any():
+        raise InvalidMatrixError("albedo must lie in (0, 1): a black surface (0) sends no "
+                                 "light back and makes T singular, one reflecting all light "
+                                 "(1) makes the bounce series diverge")
     return vec, label
 
 
@@ -229,44 +265,18 @@ def _patches(name, size):
         return geometry.cornell_box(size)
     if name == "hemispheres":
         return geometry.hemisphere_field(size)
-    raise ValueError(f"unknown scene {name!r}; choose from {SCENE_NAMES}")
-
-
-def _tmp_sibling(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
-
-
-def _check_target(path: Path, overwrite: bool):
-    if path.exists():
-        if not overwrite:
-            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
-        try:
-            open_store(path, allow_incomplete=True)
-        except BigTError:
-            if path.is_dir() and not any(path.iterdir()):
-                return
-            raise StoreError("exists and is not a bigT store; refusing to overwrite it", path) from None
-
-
-def _move_into_place(tmp: Path, path: Path):
-    if path.exists():
-        trash = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.old")
-        os.replace(path, trash)
-        os.replace(tmp, path)
-        shutil.rmtree(trash, ignore_errors=True)
-    else:
-        os.replace(tmp, path)
+    raise BigTError(f"unknown scene {name!r}; choose from {SCENE_NAMES}")
 
 
 def _add_noise(rows: sp.csr_array, noise: float, floor: float, rng) -> sp.csr_array:
     """Camera noise on every stored entry, then the noise floor: entries below ``floor``
-    (including those the noise made negative) are dropped, as a thresholded capture."""
+    and those the noise made zero or negative are dropped, as in a thresholded capture
+    (T stays nonnegative, which the spectral radius estimate relies on)."""
     rows = rows.copy()
     if noise > 0:
         rows.data = rows.data + rng.normal(0.0, noise, rows.data.shape)
-    if floor > 0:
-        rows.data[rows.data < floor] = 0.0
-        rows.eliminate_zeros()
+    rows.data[rows.data < max(floor, np.finfo(np.float64).tiny)] = 0.0
+    rows.eliminate_zeros()
     return rows
 
 
@@ -345,8 +355,8 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         Lambertian albedo, one value or a texture (row-major image).
     density : {"exact", "sparse", "dense"} or float, optional
         Preset of (form-factor cut, threshold); a float is a form-factor cut (with the
-        sparse threshold). Default: "exact" when all n^2 pairs can be tested
-        (n^2 <= config.SCENE_MAX_ALL_PAIRS), else "sparse".
+        sparse threshold). Default: "exact" up to ``config.SCENE_EXACT_MAX_N`` pixels
+        (T is then dense: every bounce of every pair), else "sparse".
     ff_cut : float, optional
         Overrides the preset's form-factor cut: pairs with max(FF_ij, FF_ji) below it
         exchange no light (controls the nonzeros of A).
@@ -380,19 +390,19 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     Scene
     """
     t_start = time.perf_counter()
+    if name not in DEFAULT_SIZES:
+        raise BigTError(f"unknown scene {name!r}; choose from {tuple(DEFAULT_SIZES)} "
+                        "(dihedral4 through bigT.scenes.dihedral4 or make)")
     if path is None:
-        raise ValueError("path is required: the directory of the scene's T store")
+        raise BigTError("path is required: the directory of the scene's T store")
     path = Path(os.fspath(path))
-    size = tuple(int(s) for s in (DEFAULT_SIZES[name] if size is None and name in DEFAULT_SIZES
-                                  else size))
+    size = tuple(int(s) for s in (DEFAULT_SIZES[name] if size is None else size))
     if len(size) != 2 or min(size) < 1:
         raise ShapeMismatchError(f"size must be (H, W) with H, W >= 1, got {size}")
-    for label, v in (("noise", noise), ("blur", blur)):
-        if not (math.isfinite(float(v)) and float(v) >= 0):
-            raise ValueError(f"{label} must be a finite number >= 0, got {v}")
+    floor = 3.0 * float(noise) if noise_floor is None else float(noise_floor)
+    _check_nonnegative(noise=noise, noise_floor=floor, blur=blur)
     noise, blur = float(noise), float(blur)
-    floor = 3.0 * noise if noise_floor is None else float(noise_floor)
-    _check_target(path, overwrite)
+    check_replaceable(path, overwrite)
     H, W = size
     n = H * W
     po = PixelOrder(size, pixel_order)
@@ -414,7 +424,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     stop = thr if thr > 0 else config.SCENE_NEUMANN_TOL
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(path)
+    tmp = temporary_sibling(path)
     from tqdm.auto import tqdm
 
     try:
@@ -444,7 +454,8 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         white = np.ones(n)
         T1 = T @ white
         b0 = f * (G @ white if G is not None else white)
-        bounces = radiosity.bounce_images(A, b0, 30, config.SCENE_SHARE_TOL)
+        bounces = radiosity.bounce_images(A, b0, config.SCENE_SHARE_MAX_BOUNCES,
+                                          config.SCENE_SHARE_TOL)
         norm_T1 = float(np.linalg.norm(T1)) or 1.0
         shares = [float(np.linalg.norm(b)) / norm_T1 for b in bounces]
         seconds_stats = time.perf_counter() - t0
@@ -463,7 +474,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         _write_ground_truth(tmp, A, f, po, T.tile_size, summary)
         summary["seconds"] = time.perf_counter() - t_start
         _finish(tmp, summary)
-        _move_into_place(tmp, path)
+        move_into_place(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -481,18 +492,26 @@ def _finish(root: Path, summary: dict):
     open_store(root).update_metadata(scene=summary)
 
 
-def dihedral4(size=None, path=None, *, overwrite=False, dtype="float64", preview=True,
-              **_ignored) -> Scene:
+def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True,
+              **ignored) -> Scene:
     """The paper's 4x4 dihedral (§5.1, eq. 34) exactly, true first bounce F = 1.75 I.
 
     A = I - F T^-1 is stored as its ground truth, so that T = (I - A)^-1 F holds for
-    the printed (rounded) T. Other keyword arguments (size, albedo, ...) do not apply.
+    the printed (rounded) T. ``dtype`` defaults to float64. The scene is fixed: a
+    ``size`` other than (2, 2) or any other parameter (albedo, noise, ...) is refused.
     """
+    if size is not None and tuple(size) != (2, 2):
+        raise ShapeMismatchError(f"dihedral4 is the paper's fixed 4-patch scene (2x2), not {size}")
+    if any(v not in (None, 0, 0.0, False) for v in ignored.values()):
+        raise BigTError("dihedral4 is the paper's fixed scene (eq. 34); it takes no "
+                        + ", ".join(sorted(k for k, v in ignored.items()
+                                           if v not in (None, 0, 0.0, False))))
     t0 = time.perf_counter()
     if path is None:
-        raise ValueError("path is required: the directory of the scene's T store")
+        raise BigTError("path is required: the directory of the scene's T store")
     path = Path(os.fspath(path))
-    _check_target(path, overwrite)
+    check_replaceable(path, overwrite)
+    dtype = dtype or "float64"
     T = DIHEDRAL4_T
     F = np.full(4, DIHEDRAL4_F)
     A = np.eye(4) - np.diag(F) @ np.linalg.inv(T)
@@ -500,7 +519,8 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype="float64", preview
     M = np.eye(4) - T / d[None, :]
     po = PixelOrder((2, 2), "row-major")
     shares_T1 = T @ np.ones(4)
-    bounces = radiosity.bounce_images(sp.csr_array(A), F, 30, config.SCENE_SHARE_TOL)
+    bounces = radiosity.bounce_images(sp.csr_array(A), F, config.SCENE_SHARE_MAX_BOUNCES,
+                                      config.SCENE_SHARE_TOL)
     summary = {
         "name": "dihedral4", "image_shape": [2, 2], "n": 4, "pixel_order": po.order,
         "albedo": None, "ff_cut": 0.0, "threshold": 0.0, "noise": 0.0, "noise_floor": 0.0,
@@ -513,13 +533,13 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype="float64", preview
         "preview": str(preview_path(path)) if preview else None,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(path)
+    tmp = temporary_sibling(path)
     try:
         from_scipy(sp.csr_array(T), tmp, tile_size=2, dtype=dtype, image_shape=(2, 2))
         _write_ground_truth(tmp, sp.csr_array(A), F, po, 2, summary)
         summary["seconds"] = time.perf_counter() - t0
         _finish(tmp, summary)
-        _move_into_place(tmp, path)
+        move_into_place(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -529,21 +549,24 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype="float64", preview
 
 
 def load(path) -> Scene:
-    """Reopen a scene written by :func:`build` (its T store and ground truth)."""
+    """Reopen a scene written by :func:`build` (its T store and ground truth).
+
+    Raises StoreError (naming the path) when the store holds no readable ground truth.
+    """
     import zarr
 
     path = Path(os.fspath(path))
     T = open_store(path)
     gt = path / GROUND_TRUTH
     try:
-        attrs = zarr.open_group(str(gt), mode="r").attrs.asdict()
-        summary = attrs[SCENE_ATTR]
+        summary = zarr.open_group(str(gt), mode="r").attrs.asdict()[SCENE_ATTR]
         A = open_store(gt / "A")
         F = np.asarray(zarr.open_array(str(gt / "F"), mode="r")[:], np.float64)
-    except (FileNotFoundError, KeyError, zarr.errors.NodeNotFoundError if hasattr(
-            zarr.errors, "NodeNotFoundError") else FileNotFoundError) as exc:
-        raise StoreError(f"no scene ground truth here ({exc.__class__.__name__}: {exc}); "
-                         "was it written by bigT scene?", path) from None
+    except BigTError:
+        raise
+    except (OSError, KeyError, ValueError, zarr.errors.BaseZarrError) as exc:
+        raise StoreError(f"no readable scene ground truth ({exc.__class__.__name__}: {exc}); "
+                         "was it written by bigT scene?", gt) from None
     if F.shape != (T.shape[0],) or not np.isfinite(F).all():
         raise StoreError("ground-truth F is damaged (wrong length or missing chunks)", gt / "F")
     return Scene(path, T, A, F, T.pixel_order, summary)
@@ -555,7 +578,7 @@ def _named(name):
 
     make.__name__ = name
     make.__qualname__ = name
-    make.__doc__ = f"Build the ``{name}`` scene; parameters as :func:`bigT.scenes.build`."
+    make.__doc__ = f"Build the ``{name}`` scene; parameters as :func:`bigT.scenes.builder.build`."
     return make
 
 
@@ -570,8 +593,6 @@ def make(name: str, size=None, path=None, **kwargs) -> Scene:
     """Build scene ``name`` (one of :data:`SCENE_NAMES`)."""
     if name == "dihedral4":
         return dihedral4(size, path, **kwargs)
-    if name not in SCENE_NAMES:
-        raise ValueError(f"unknown scene {name!r}; choose from {SCENE_NAMES}")
     return build(name, size, path, **kwargs)
 
 
