@@ -51,8 +51,9 @@ def timed(func, repeat):
     return best, out
 
 
-def scipy_then_prune(M, threshold):
-    C = sp.csr_array(M @ M)
+def scipy_then_prune(M, threshold, product=None):
+    """scipy's M @ M (or a given ``product``), then entries below ``threshold`` dropped."""
+    C = sp.csr_array(M @ M if product is None else product)
     if threshold > 0:
         C.data[np.abs(C.data) < threshold] = 0
         C.eliminate_zeros()
@@ -156,6 +157,19 @@ def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False, ff_cu
         repeat,
     )
     rows.append((f"bigT spgemm rows ({n_threads} thr)", t, C))
+    if "bsr" in methods:
+        # DESIGN.md's micro-block variant: M is in image-tile-major order with 8x8 image
+        # tiles, so 8x8 blocks of M are pairs of image tiles. scipy's BSR product (1
+        # thread) + prune, to see whether a BSR inner format would pay.
+        for bs in (4, 8):
+            Mb = sp.bsr_array(M, blocksize=(bs, bs))
+            fill = M.nnz / max(Mb.data.size, 1)
+
+            def bsr_prod(Mb=Mb):
+                return scipy_then_prune(None, threshold, product=Mb @ Mb)
+
+            t, C = timed(bsr_prod, repeat)
+            rows.append((f"scipy BSR {bs}x{bs} ({100 * fill:.0f}% fill) + prune", t, C))
     if "topn" in methods:
         try:
             from sparse_dot_topn import sp_matmul_topn  # noqa: PLC0415
@@ -219,7 +233,8 @@ def main(argv=None):
     ap.add_argument("--threshold", type=float, default=1e-5)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--methods", default="topn,graphblas", help="rivals to run besides scipy")
+    ap.add_argument("--methods", default="topn,graphblas,bsr",
+                    help="rivals to run besides scipy (topn, graphblas, bsr)")
     ap.add_argument("--profile", action="store_true", help="CPU time of spgemm's phases")
     ap.add_argument("--ff-cut", type=float, default=2e-4, help="scene form-factor cut")
     ap.add_argument("--scene-threshold", type=float, default=1e-6, help="scene threshold on T")

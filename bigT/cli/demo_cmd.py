@@ -21,7 +21,7 @@ import numpy as np
 
 #: Defaults of the demo: a scene that builds, inverts and compensates in about a minute
 #: on a 2-core machine.
-DEMO_SIZE = (96, 128)
+DEMO_SIZE = (192, 256)
 DEMO_FF_CUT = 3e-4
 DEMO_THRESHOLD = 1e-6
 DEMO_TERMS = 4
