@@ -471,10 +471,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
             "seconds_stats": seconds_stats,
             "preview": str(preview_path(path)) if preview else None,
         }
-        _write_ground_truth(tmp, A, f, po, T.tile_size, summary)
-        summary["seconds"] = time.perf_counter() - t_start
-        _finish(tmp, summary)
-        move_into_place(tmp, path)
+        _commit(tmp, path, A, f, po, T.tile_size, summary, t_start)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -485,11 +482,15 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     return scene
 
 
-def _finish(root: Path, summary: dict):
-    """Record the final summary in the ground-truth group and in T's metadata (so
-    ``bigT info`` shows it)."""
-    atomic_write_json(root / GROUND_TRUTH / "zarr.json", group_json({SCENE_ATTR: summary}))
-    open_store(root).update_metadata(scene=summary)
+def _commit(tmp: Path, path: Path, A, F, po, tile_size: int, summary: dict, t_start: float):
+    """Add the ground truth to the complete T store built at ``tmp``, record the summary
+    (in the ground-truth group and in T's metadata, so ``bigT info`` shows it) and move
+    the scene into place at ``path``."""
+    _write_ground_truth(tmp, A, F, po, tile_size, summary)
+    summary["seconds"] = time.perf_counter() - t_start
+    atomic_write_json(tmp / GROUND_TRUTH / "zarr.json", group_json({SCENE_ATTR: summary}))
+    open_store(tmp).update_metadata(scene=summary)
+    move_into_place(tmp, path)
 
 
 def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True,
@@ -518,7 +519,7 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
     d = np.diag(T)
     M = np.eye(4) - T / d[None, :]
     po = PixelOrder((2, 2), "row-major")
-    shares_T1 = T @ np.ones(4)
+    T1 = T @ np.ones(4)
     bounces = radiosity.bounce_images(sp.csr_array(A), F, config.SCENE_SHARE_MAX_BOUNCES,
                                       config.SCENE_SHARE_TOL)
     summary = {
@@ -528,7 +529,7 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
         "nnz_A": int(np.count_nonzero(A)), "bounces": 0,
         "spectral_radius": float(max(abs(np.linalg.eigvals(M)))),
         "spectral_radius_A": float(max(abs(np.linalg.eigvals(A)))),
-        "bounce_shares": [float(np.linalg.norm(b) / np.linalg.norm(shares_T1)) for b in bounces],
+        "bounce_shares": [float(np.linalg.norm(b) / np.linalg.norm(T1)) for b in bounces],
         "exact": True, "seconds": 0.0,
         "preview": str(preview_path(path)) if preview else None,
     }
@@ -536,15 +537,12 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
     tmp = temporary_sibling(path)
     try:
         from_scipy(sp.csr_array(T), tmp, tile_size=2, dtype=dtype, image_shape=(2, 2))
-        _write_ground_truth(tmp, sp.csr_array(A), F, po, 2, summary)
-        summary["seconds"] = time.perf_counter() - t0
-        _finish(tmp, summary)
-        move_into_place(tmp, path)
+        _commit(tmp, path, sp.csr_array(A), F, po, 2, summary, t0)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     if preview:
-        _preview(preview_path(path), shares_T1.reshape(2, 2), "dihedral4 (paper eq. 34): T 1")
+        _preview(preview_path(path), T1.reshape(2, 2), "dihedral4 (paper eq. 34): T 1")
     return load(path)
 
 
