@@ -216,7 +216,8 @@ def _resolve_density(density, ff_cut, threshold, n):
         density = "exact" if n <= config.SCENE_EXACT_MAX_N else "sparse"
     if isinstance(density, str):
         if density not in DENSITIES:
-            raise BigTError(f"density must be one of {tuple(DENSITIES)} or a number, got {density!r}")
+            raise BigTError(f"density must be one of {tuple(DENSITIES)} or a number, "
+                            f"got {density!r}")
         cut, thr = DENSITIES[density]
     else:
         density = float(density)
@@ -351,7 +352,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         Image size; default ``DEFAULT_SIZES[name]``. n = H W.
     path : str or os.PathLike
         Directory of the T store (e.g. ``corner.zarr``); the preview PNG goes beside it.
-    albedo : float in [0, 1) or (H, W) ndarray
+    albedo : float in (0, 1) or (H, W) ndarray
         Lambertian albedo, one value or a texture (row-major image).
     density : {"exact", "sparse", "dense"} or float, optional
         Preset of (form-factor cut, threshold); a float is a form-factor cut (with the
@@ -462,8 +463,9 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
 
         summary = {
             "name": name, "image_shape": [H, W], "n": n, "pixel_order": po.order,
-            "albedo": albedo_label, "density": density, "ff_cut": cut, "threshold": thr, "noise": noise,
-            "noise_floor": floor, "blur": blur, "seed": int(seed), "dtype": str(T.dtype),
+            "albedo": albedo_label, "density": density, "ff_cut": cut, "threshold": thr,
+            "noise": noise, "noise_floor": floor, "blur": blur, "seed": int(seed),
+            "dtype": str(T.dtype),
             "nnz_T": int(T.nnz), "nnz_A": int(A.nnz), "bounces": int(max_bounces),
             "spectral_radius": float(rho_M), "spectral_radius_A": float(rho_A),
             "bounce_shares": shares, "exact": bool(exact),
