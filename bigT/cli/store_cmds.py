@@ -124,7 +124,33 @@ def info_cmd(args) -> int:
         lines.append("pixel order  none (the matrix maps no image)")
     if not info["complete"]:
         lines.append(f"INCOMPLETE   tile rows missing: {info['missing_tile_rows']}")
-    for key in sorted(info["metadata"]):
-        lines.append(f"metadata     {key} = {json.dumps(info['metadata'][key])}")
+    lines += _metadata_lines(info["metadata"])
     print("\n".join(lines))
     return 0
+
+
+def _short(value, width: int = 76) -> str:
+    """A metadata value on one line: floats to 4 significant digits, long JSON cut."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, str):
+        return value if len(value) <= width else value[:width - 3] + "..."
+    if isinstance(value, list) and all(isinstance(v, float) for v in value):
+        text = "[" + ", ".join(f"{v:.3g}" for v in value) + "]"
+    else:
+        text = json.dumps(value)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _metadata_lines(metadata: dict) -> list[str]:
+    """``metadata`` as the text of ``bigT info``: one line per key, the entries of a
+    dictionary (the inverse engine's record, a scene's summary) one per line below it."""
+    lines = []
+    for key in sorted(metadata):
+        value = metadata[key]
+        if isinstance(value, dict):
+            lines.append(f"metadata     {key}:")
+            lines += [f"  {k:<22} {_short(v)}" for k, v in value.items()]
+        else:
+            lines.append(f"metadata     {key} = {_short(value)}")
+    return lines

@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 import bigT
 from bigT.cli import main
@@ -20,6 +21,12 @@ def test_scene_cli_writes_store_ground_truth_and_preview(tmp_path, capsys):
     assert main(["info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["shape"] == [96, 96] and info["nnz"] == sc.T.nnz
+    # the text form lists the scene's summary one entry per line
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "metadata     scene:" in text
+    rho = next(line for line in text.splitlines() if line.strip().startswith("spectral_radius "))
+    assert float(rho.split()[1]) == pytest.approx(sc.spectral_radius, rel=1e-3)
 
 
 def test_scene_cli_refuses_to_overwrite(tmp_path, capsys):
