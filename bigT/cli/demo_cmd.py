@@ -184,8 +184,9 @@ def _write_report(out: Path, scene, log, total: float) -> Path:
         ("bounce separation of a white image", out / "bounces" / "bounces.png"),
     ]
     lines = ["# bigT demo report", "",
-             f"Finished in {total:.1f} s. Every step below is a `bigT` command; its output is "
-             "quoted as printed.", ""]
+             f"Finished in {total:.1f} s. Each step below but the error line is a `bigT` "
+             "command, its output quoted as printed; the error line is computed by "
+             "`bigT.scenes.Scene.inverse_error`.", ""]
     for title, cmd, text, seconds in log:
         lines += [f"## {title}", "", f"`{cmd}`" + (f" ({seconds:.1f} s)" if seconds else ""),
                   "", "```", text.rstrip(), "```", ""]
