@@ -8,16 +8,10 @@ import pytest
 import scipy.sparse as sp
 
 import bigT
+from bigT import scenes
 from bigT.compensation import compensate, fluctuation, relative_error, relight
 
 H, W = 16, 24
-
-
-def _corner():
-    scenes = pytest.importorskip("bigT.scenes")
-    if not hasattr(scenes, "corner"):
-        pytest.skip("bigT.scenes.corner not available yet")
-    return scenes.corner
 
 
 def eq13(T, terms):
@@ -42,7 +36,7 @@ def store_like(M, path, T):
 @pytest.fixture(scope="module")
 def corner(tmp_path_factory):
     d = tmp_path_factory.mktemp("corner")
-    scene = _corner()(size=(H, W), path=str(d / "T.zarr"))
+    scene = scenes.corner(size=(H, W), path=str(d / "T.zarr"))
     T = scene.T.to_scipy().toarray().astype(np.float64)
     A = scene.A.to_scipy().toarray().astype(np.float64)
     F = np.asarray(scene.F, dtype=np.float64)
@@ -94,16 +88,12 @@ def test_four_term_polynomial_beats_uncompensated(corner, capsys):
 
 def test_engine_inverse_matches_matrix_free(tmp_path):
     """Integration: bigT.stratified_inverse without pruning is eq. 13's polynomial."""
-    try:
-        from bigT.algorithms import stratified_inverse
-    except ImportError:
-        pytest.skip("engine not available")
     from comp_helpers import make_store, random_transport
 
     T, _, _, _ = random_transport(10, 12, seed=4)
     Ts = make_store(T, tmp_path / "T.zarr", image_shape=(10, 12), tile_size=48,
                     pixel_order="tile-major")
-    stratified_inverse(Ts, str(tmp_path / "X.zarr"), terms=3, prune=0.0, progress=False)
+    bigT.stratified_inverse(Ts, str(tmp_path / "X.zarr"), terms=3, prune=0.0, progress=False)
     X = bigT.open(tmp_path / "X.zarr")
     desired = np.random.default_rng(0).uniform(0.2, 0.6, (3, 10, 12))
     explicit = compensate(X, desired, clip=None)
