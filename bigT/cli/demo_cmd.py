@@ -91,22 +91,25 @@ def _step(title: str, argv: list[str], log: list) -> None:
 #: What a demo writes in its folder; a rerun replaces exactly these.
 DEMO_OUTPUTS = ("T.zarr", "X.zarr", "inputs", "compensated", "bounces", "report.md",
                 "T-preview.png", "invert.json")
+#: Written first into the demo folder, so that a rerun (even after an interrupted demo)
+#: knows the folder is the demo's.
+DEMO_MARKER = ".bigT-demo"
 
 
 def _clear_previous_demo(out: Path) -> None:
-    """Remove an earlier demo's outputs from ``out``; refuse a folder that holds anything
-    else unless it is an earlier demo's (its report.md), so no user file is deleted."""
+    """Remove an earlier demo's outputs from ``out`` and mark it as the demo's folder.
+
+    Refuses a non-empty folder without the demo's marker, and one holding anything
+    the demo does not write, so no user file is ever deleted."""
     from ..errors import BigTError
 
-    if not out.exists():
-        return
-    if not out.is_dir():
+    if out.exists() and not out.is_dir():
         raise BigTError("is not a folder", out)
-    entries = {p.name for p in out.iterdir()}
-    if entries and "report.md" not in entries:
-        raise BigTError("is not empty and holds no earlier demo (no report.md); choose an "
-                        "empty or new folder with --dir", out)
-    foreign = sorted(entries - set(DEMO_OUTPUTS))
+    entries = {p.name for p in out.iterdir()} if out.exists() else set()
+    if entries and DEMO_MARKER not in entries:
+        raise BigTError(f"is not empty and is not an earlier demo's folder (no {DEMO_MARKER}); "
+                        "choose an empty or new folder with --dir", out)
+    foreign = sorted(entries - set(DEMO_OUTPUTS) - {DEMO_MARKER})
     if foreign:
         raise BigTError("holds files the demo did not write (" + ", ".join(foreign[:3])
                         + "); choose another folder with --dir", out)
@@ -116,6 +119,9 @@ def _clear_previous_demo(out: Path) -> None:
             shutil.rmtree(p)
         elif p.exists():
             p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARKER).write_text("written by bigT demo; a rerun replaces this folder's "
+                                   "demo outputs\n")
 
 
 def demo_cmd(args) -> int:
@@ -127,7 +133,6 @@ def demo_cmd(args) -> int:
     H, W = _image_shape(args.size)
     out = Path(args.dir)
     _clear_previous_demo(out)
-    out.mkdir(parents=True, exist_ok=True)
     quiet = ["--no-progress"] if args.no_progress else []
     log: list = []
     t_start = time.perf_counter()

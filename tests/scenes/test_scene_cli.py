@@ -57,7 +57,7 @@ def test_demo_refuses_a_folder_it_did_not_write(tmp_path, capsys):
     (tmp_path / "inputs").mkdir()
     (tmp_path / "inputs" / "mine.png").write_bytes(b"not the demo's")
     assert main(["demo", "--dir", str(tmp_path), "--size", "8x12", "--no-progress"]) == 2
-    assert "no report.md" in capsys.readouterr().err
+    assert "not an earlier demo's folder" in capsys.readouterr().err
     assert (tmp_path / "inputs" / "mine.png").read_bytes() == b"not the demo's"
 
 
@@ -79,5 +79,8 @@ def test_demo_end_to_end(tmp_path, capsys):
     err = next(l for l in text.splitlines() if "exact inverse F^-1 (I - A):" in l)
     assert float(err.split(":")[1].split()[0]) < 1e-3
     np.testing.assert_equal(bigT.open(out / "X.zarr").metadata["inverse"]["term"], 4)
-    # a rerun into the same folder replaces the earlier demo
+    # a rerun into the same folder replaces the earlier demo, even one that was
+    # interrupted before its report
+    (out / "report.md").unlink()
     assert main(["demo", "--dir", str(out), "--size", "24x32", "--no-progress"]) == 0
+    assert (out / "report.md").exists()
