@@ -290,12 +290,14 @@ def _power_radius_T(T, d, iterations):
                                            iterations)
 
 
-def _write_ground_truth(root: Path, A: sp.csr_array, F: np.ndarray, po, tile_size, summary):
+def _write_ground_truth(root: Path, A: sp.csr_array, F: np.ndarray, po, tile_size):
+    """The ground-truth group of the scene at ``root``: A (bigT store) and F (array).
+    Its summary attribute is written by :func:`_commit`, once the timings are known."""
     import zarr
 
     gt = root / GROUND_TRUTH
     gt.mkdir()
-    atomic_write_json(gt / "zarr.json", group_json({SCENE_ATTR: summary}))
+    atomic_write_json(gt / "zarr.json", group_json({}))
     from_scipy(A, gt / "A", tile_size=tile_size, dtype="float64", image_shape=po.image_shape,
                pixel_order=po.order, image_tile=po.image_tile, input_order="matrix")
     arr = zarr.create_array(store=str(gt / "F"), shape=F.shape, dtype="float64",
@@ -488,7 +490,7 @@ def _commit(tmp: Path, path: Path, A, F, po, tile_size: int, summary: dict, t_st
     """Add the ground truth to the complete T store built at ``tmp``, record the summary
     (in the ground-truth group and in T's metadata, so ``bigT info`` shows it) and move
     the scene into place at ``path``."""
-    _write_ground_truth(tmp, A, F, po, tile_size, summary)
+    _write_ground_truth(tmp, A, F, po, tile_size)
     summary["seconds"] = time.perf_counter() - t_start
     atomic_write_json(tmp / GROUND_TRUTH / "zarr.json", group_json({SCENE_ATTR: summary}))
     open_store(tmp).update_metadata(scene=summary)
