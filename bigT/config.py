@@ -98,3 +98,14 @@ COMPENSATE_CACHE_BYTES = 1 << 30
 #: useful multiply-adds / (8 x multiply-adds over the union of their columns) is at
 #: least this (the other lanes multiply zeros); otherwise row by row.
 SPGEMM_GROUP_MIN_EFFICIENCY = 0.25
+
+# --- memory plan of a series run (bigT.schedule.memory) ---
+#: Kept free under a memory_limit for what is not budgeted: allocator fragmentation,
+#: zarr's encode buffers, dask's bookkeeping.
+MEMORY_HEADROOM_BYTES = 96 << 20
+#: The least a task may work in (a batch of the right factor and partial sums).
+MEMORY_MIN_WORK_BYTES = 24 << 20
+#: Of what is left after the baseline, headroom and fixed per-task parts: the tile
+#: cache's share and the shared right factor's share; the rest goes to the tasks.
+MEMORY_CACHE_SHARE = 0.35
+MEMORY_WHOLE_SHARE = 0.35

@@ -71,6 +71,7 @@ from .. import config
 from ..errors import DivergenceError, NotSquareError, StoreError
 from ..schedule import graph, tasks
 from ..schedule._backend import BlockCSRWriter, open_store, set_redirect
+from ..schedule.memory import MemoryPlan, plan_memory
 from ..schedule.operators import MOperand, StoreOperand, TileCache
 from .first_bounce import FirstBounce, resolve_first_bounce
 
@@ -118,6 +119,7 @@ class InverseReport:
     nnz_T: int
     history: list[TermRecord] = field(default_factory=list)
     seconds_spectral_radius: float = 0.0
+    memory: str = "no memory limit"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -136,6 +138,7 @@ class InverseReport:
         lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}, "
                      f"first bounce {self.first_bounce}), spectral radius of M {rho}, "
                      f"{self.excluded_pixels} pixels left out, stopped: {self.stopped}")
+        lines.append(self.memory)
         return "\n".join(lines)
 
 
@@ -274,26 +277,12 @@ def _fingerprint(T, fb: FirstBounce, prune: float, method: str) -> dict:
     }
 
 
-def _memory_plan(memory_limit, workers):
-    """(cache bytes, whole-operand bytes, max right-operand nnz per product batch).
-
-    The tile cache holds tile rows of M (reused by every term and mat-vec) and of the
-    right factor; a right factor (P_{k-1}, S, R) that fits ``whole`` bytes is read once
-    per term and shared by all tasks; otherwise each task multiplies batches of its
-    needed tile rows of at most ``max_nnz`` entries. Measured peak RSS is reported by
-    benchmarks/bench_inverse.py.
-    """
-    if memory_limit is None:
-        return 1 << 30, 1 << 30, None
-    # ~300 MB for the interpreter, numba, zarr buffers and the rows being written;
-    # of the rest 35 % for the cache, 35 % for a shared right factor, 30 % for the
-    # tasks in flight (left row + batch + output + kernel buffers, ~4x the batch).
-    avail = max(memory_limit - (300 << 20), 32 << 20)
-    cache = int(0.35 * avail)
-    whole = int(0.35 * avail)
-    per_task = int(0.3 * avail) // max(1, workers)
-    max_nnz = max(per_task // (4 * tasks.BYTES_PER_ENTRY), 10_000)
-    return cache, whole, max_nnz
+def _memory_plan(T, memory_limit, workers) -> MemoryPlan:
+    """The run's memory plan (:mod:`bigT.schedule.memory`) for T's largest tile row."""
+    indptr = np.asarray(T.tile_indptr)
+    tile_nnz = np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0)
+    row_nnz = np.add.reduceat(tile_nnz, indptr[:-1]) * (np.diff(indptr) > 0)
+    return plan_memory(memory_limit, workers, T.shape[1], int(row_nnz.max(initial=0)))
 
 
 class _Progress:
@@ -409,8 +398,11 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         Run the tasks on this client (an address string connects to a scheduler);
         default: dask's local threaded scheduler with ``workers`` threads.
     memory_limit : int or str, optional
-        Bytes ("2GiB"); bounds the tile cache and the batch of right-operand tile
-        rows each product task holds.
+        Bytes ("2GiB") for the resident memory of the whole process. What the process
+        already holds is measured, the rest is shared out by
+        :func:`bigT.schedule.memory.plan_memory` (tile cache, shared right factor,
+        per-task batches and partial sums); a limit too small for the fixed parts
+        raises ``MemoryLimitError`` before anything is written.
     progress : bool
         tqdm progress bars.
     force : bool
@@ -422,6 +414,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
 
     Raises
     ------
+    MemoryLimitError
+        ``memory_limit`` cannot hold what the run needs at the least.
     DivergenceError
         rho(M) >= 1 (and not ``force``).
     InvalidMatrixError
@@ -460,6 +454,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
 def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, progress,
          force, workers, seed, t_start):
     fb = resolve_first_bounce(T, first_bounce)
+    plan = _memory_plan(T, memory_limit, workers)
     params = _fingerprint(T, fb, prune, method)
     vs = _Versioned(out)
     inv = None
@@ -482,11 +477,10 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
         inv = {"params": params, "term": None, "dir": None, "history": []}
         _write_inverse(out, inv)
 
-    cache_bytes, whole_bytes, max_nnz = _memory_plan(memory_limit, workers)
     # dask runs tile rows on `workers` threads; with fewer tile rows than threads the
     # kernel splits each product over the threads instead.
     kernel_threads = 1 if T.grid[0] >= workers else workers
-    cache = TileCache(cache_bytes)
+    cache = TileCache(plan.cache_bytes)
     M = MOperand(T, fb.finv.astype(T.dtype), fb.active, fb.zero_diagonal, cache)
     held = inv.get("term")
     resumed_from = held
@@ -495,8 +489,12 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
     rho = inv.get("spectral_radius")
     t_rho = time.perf_counter()
     if rho is None:
+        # Nothing else is in memory yet: the power iterations may cache all of M they
+        # can (each iteration is one pass over M), the rest is given back after.
+        cache.resize(plan.cache_bytes + plan.whole_bytes + workers * plan.work_bytes_per_task // 2)
         rho = estimate_spectral_radius(M, fb.active, seed=seed, client=client,
                                        workers=workers)
+        cache.resize(plan.cache_bytes)
         inv["spectral_radius"] = rho
         _write_inverse(out, inv)
     if rho >= 1 and not force:
@@ -511,8 +509,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
                  "spectral_radius": rho, "excluded_pixels": fb.excluded}
     n = T.shape[0]
     common = dict(M=M, finv=fb.finv, f=fb.f, active=fb.active, threshold=prune,
-                  dtype=np.dtype(T.dtype), n=n, max_right_nnz=max_nnz,
-                  whole_bytes=whole_bytes)
+                  dtype=np.dtype(T.dtype), n=n, plan=plan)
     products = 0
     stopped = "terms reached"
 
@@ -633,7 +630,8 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
                                      {"X": vs.writer(k, "X", T, meta(k))}, k, S=S,
                                      R=StoreOperand(Rstore, cache=cache))
             stats = [{**s, "nnz_P": 0} for s in stats] + st1
-        cache.drop(Xprev.path)
+        # only M's tile rows serve the next term; the previous term's are stale
+        cache.drop_where(lambda path: path != T.path)
         finish_term(k, stores["X"], stats, t0)
         shutil.rmtree(os.path.join(out, _term_dir(prev)), ignore_errors=True)
         held = k
@@ -650,4 +648,4 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
         residual=None if last is None else last.residual, stopped=stopped,
         resumed_from=resumed_from, products=products,
         seconds=time.perf_counter() - t_start, n=T.shape[0], nnz_T=int(T.nnz),
-        history=history, seconds_spectral_radius=t_rho)
+        history=history, seconds_spectral_radius=t_rho, memory=plan.describe())

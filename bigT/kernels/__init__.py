@@ -14,6 +14,7 @@ from .csr import (
     spgemm,
     spmm_dense,
 )
+from ._csr_kernels import GROUP as SPGEMM_GROUP
 
 __all__ = [
     "spgemm",
@@ -24,4 +25,5 @@ __all__ = [
     "prune",
     "spmm_dense",
     "choose_index_dtype",
+    "SPGEMM_GROUP",
 ]

@@ -103,18 +103,14 @@ def assemble_rows(row_blocks: list[tuple[int, sp.csr_array]], n_rows: int, n_col
     return out
 
 
-def row_product(left_row: sp.csr_array, right, threshold: float,
+def row_product(left_row: sp.csr_array, right: sp.csr_array, threshold: float,
                 n_threads: int = 1) -> sp.csr_array:
     """L_i @ B with entries below ``threshold`` pruned inside the kernel's row loop.
 
     Parameters
     ----------
     left_row : csr_array, shape (r, n), global columns (a tile row of the left factor)
-    right : csr_array of shape (n, n), or a list of them
-        The right factor, whole, or in batches of its tile rows (each the full shape
-        with the other rows empty, see :func:`assemble_rows`): partial products are
-        then added unpruned and pruned once at the end (the same result up to
-        rounding as one product; the memory bound of ``memory_limit``).
+    right : csr_array, shape (n, n)
     n_threads : int
         Threads of the kernel (1 when dask already runs tile rows in parallel).
 
@@ -122,17 +118,65 @@ def row_product(left_row: sp.csr_array, right, threshold: float,
     -------
     csr_array, shape (r, n)
     """
-    if not isinstance(right, list):
-        return spgemm(left_row, right, threshold=threshold, n_threads=n_threads)
-    if not right:
-        return empty((left_row.shape[0], left_row.shape[1]), left_row.dtype)
-    if len(right) == 1:
-        return spgemm(left_row, right[0], threshold=threshold, n_threads=n_threads)
-    acc = None
-    for B in right:
-        part = spgemm(left_row, B, threshold=0.0, n_threads=n_threads)
-        acc = part if acc is None else sp.csr_array(acc + part)
-    return prune(acc, threshold=threshold)
+    return spgemm(left_row, right, threshold=threshold, n_threads=n_threads)
+
+
+def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
+                        work_per_row: np.ndarray, max_partial_entries: int,
+                        n_threads: int = 1) -> sp.csr_array:
+    """L_i @ B when B is at hand only in batches of its tile rows (the memory bound).
+
+    A product cannot be pruned before all of B has been seen (an entry's sum is only
+    known then), so partial products are added unpruned. To bound them, the rows of
+    L_i are taken in chunks whose unpruned partial sums hold at most
+    ``max_partial_entries`` entries, and every batch of B is fetched once per chunk
+    (from the tile cache when it holds it, else from disk): memory for re-reads.
+
+    Parameters
+    ----------
+    left_row : csr_array, shape (r, n), global columns
+    batches : list of callables
+        Each returns one batch: an (n, n) csr_array holding some of B's tile rows
+        (the others empty, see :func:`assemble_rows`); together they are B.
+    work_per_row : (r,) ndarray
+        Estimated multiply-adds of each row of L_i @ B (an estimate of the upper bound
+        of its unpruned entries; the chunks are sized from it, then from the ratio of
+        entries to multiply-adds seen in the chunks done).
+    max_partial_entries : int
+
+    Returns
+    -------
+    csr_array, shape (r, n), sorted indices; the same entries as one pruned product
+    (up to rounding: partial sums are added in the output dtype).
+    """
+    r, n = left_row.shape
+    if not batches:
+        return empty((r, n), left_row.dtype)
+    if len(batches) == 1:
+        return spgemm(left_row, batches[0](), threshold=threshold, n_threads=n_threads)
+    cum = np.concatenate([[0.0], np.cumsum(np.asarray(work_per_row, dtype=np.float64))])
+    ratio = 1.0
+    parts, start = [], 0
+    while start < r:
+        stop = int(np.searchsorted(cum, cum[start] + max_partial_entries / ratio,
+                                   side="right")) - 1
+        stop = min(max(stop, start + 1), r)
+        chunk = left_row[start:stop]
+        acc = None
+        for fetch in batches:
+            part = spgemm(chunk, fetch(), threshold=0.0, n_threads=n_threads)
+            acc = part if acc is None else sp.csr_array(acc + part)
+            del part
+        work = cum[stop] - cum[start]
+        if work > 0 and acc.nnz:
+            # the next chunk may fill in more than this one: keep a margin
+            ratio = max(ratio if parts else 0.0, 1.25 * acc.nnz / work)
+        parts.append(prune(acc, threshold=threshold))
+        del acc
+        start = stop
+    out = parts[0] if len(parts) == 1 else sp.csr_array(sp.vstack(parts, format="csr"))
+    out.has_sorted_indices = True
+    return out
 
 
 def add_scaled(A: sp.csr_array, d: np.ndarray, B: sp.csr_array) -> sp.csr_array:

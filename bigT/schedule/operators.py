@@ -4,13 +4,12 @@ tile from the stores through a byte-bounded cache shared by the worker threads."
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
-
 import numpy as np
 import scipy.sparse as sp
 
 from . import blocks
 from ._backend import scale_rows, spmm_dense
+from .memory import stored_bytes
 
 
 def nbytes(A) -> int:
@@ -20,43 +19,52 @@ def nbytes(A) -> int:
 
 
 class TileCache:
-    """Least-recently-used cache of tiles / tile rows, bounded in bytes.
+    """Tiles / tile rows kept in memory, bounded in bytes, thread safe.
 
-    Reading a tile row of P_{k-1} is needed by every output tile row whose M tiles
-    touch it; tiles of M are needed at every term. Both are kept while they fit.
-    ``budget`` 0 disables caching.
+    Entries are admitted while they fit and kept until dropped: the passes of a run
+    scan tile rows in the same order every time, and a least-recently-used policy
+    smaller than the scan would evict every row just before it is needed again (no
+    hit at all); keeping the first rows that fit gives hits on that share of every
+    scan. ``budget`` 0 disables caching.
     """
 
     def __init__(self, budget: int):
         self.budget = int(budget)
         self.used = 0
-        self._d: OrderedDict = OrderedDict()
+        self._d: dict = {}
         self._lock = threading.Lock()
         self.hits = self.misses = 0
 
     def get(self, key, compute):
         with self._lock:
             if key in self._d:
-                self._d.move_to_end(key)
                 self.hits += 1
                 return self._d[key]
             self.misses += 1
         value = compute()
         size = nbytes(value)
-        if size <= self.budget:
-            with self._lock:
-                if key not in self._d:
-                    self._d[key] = value
-                    self.used += size
-                    while self.used > self.budget and self._d:
-                        _, old = self._d.popitem(last=False)
-                        self.used -= nbytes(old)
+        with self._lock:
+            if key not in self._d and self.used + size <= self.budget:
+                self._d[key] = value
+                self.used += size
         return value
+
+    def resize(self, budget: int) -> None:
+        """Set the budget; entries admitted last are forgotten until it holds."""
+        with self._lock:
+            self.budget = int(budget)
+            while self.used > self.budget and self._d:
+                self.used -= nbytes(self._d.pop(next(reversed(self._d))))
 
     def drop(self, prefix):
         """Forget every entry whose key starts with ``prefix`` (a store path)."""
+        self.drop_where(lambda path: path == prefix)
+
+    def drop_where(self, predicate):
+        """Forget every entry whose key's first element (a store path) satisfies
+        ``predicate``."""
         with self._lock:
-            for k in [k for k in self._d if k[0] == prefix]:
+            for k in [k for k in self._d if predicate(k[0])]:
                 self.used -= nbytes(self._d.pop(k))
 
 
@@ -81,12 +89,34 @@ class StoreOperand:
         self.nonempty = np.diff(indptr) > 0
         self.nnz = int(store.nnz)
         self._whole = None
+        self._row_len = None
         self._lock = threading.Lock()
         self._row_nnz = np.add.reduceat(np.append(np.asarray(store.tile_nnz), 0),
                                         indptr[:-1]) * self.nonempty
 
     def row_nnz(self, j) -> int:
         return int(self._row_nnz[j])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the whole matrix in memory (CSR)."""
+        return stored_bytes(self.nnz, self.shape[0], self.dtype.itemsize)
+
+    def row_bytes(self, j) -> int:
+        a, b = self.store.tile_row_range(j)
+        return stored_bytes(self.row_nnz(j), b - a, self.dtype.itemsize)
+
+    def work_per_row(self, left: sp.csr_array) -> np.ndarray:
+        """Estimated multiply-adds of each row of ``left @ self``, shape (rows,): the
+        tile-row average row length stands for each row of this matrix."""
+        if self._row_len is None:
+            lens = np.zeros(self.shape[0], dtype=np.float64)
+            for j in np.flatnonzero(self.nonempty):
+                a, b = self.store.tile_row_range(j)
+                lens[a:b] = self._row_nnz[j] / (b - a)
+            self._row_len = lens
+        c = np.concatenate([[0.0], np.cumsum(self._row_len[left.indices])])
+        return c[left.indptr[1:]] - c[left.indptr[:-1]]
 
     def tile_columns(self, i) -> np.ndarray:
         return np.asarray(self.store.tile_columns(i), dtype=np.int64)
@@ -104,9 +134,11 @@ class StoreOperand:
             return self._read_row(j)
         return self.cache.get((self.store.path, "row", int(j)), lambda: self._read_row(j))
 
-    def assembled(self, js) -> sp.csr_array:
-        """The (n, n) matrix restricted to tile rows ``js`` (others empty)."""
-        blocks_ = [(self.store.tile_row_range(j)[0], self._read_row(j)) for j in js]
+    def assembled(self, js, cached: bool = True) -> sp.csr_array:
+        """The (n, n) matrix restricted to tile rows ``js`` (others empty); tile rows
+        come through the cache when there is one and ``cached``."""
+        read = self.row if cached else self._read_row
+        blocks_ = [(self.store.tile_row_range(j)[0], read(j)) for j in js]
         return blocks.assemble_rows(blocks_, self.shape[0], self.shape[1], self.dtype)
 
     def whole(self) -> sp.csr_array:
@@ -116,7 +148,7 @@ class StoreOperand:
         with self._lock:
             if self._whole is None:
                 js = [j for j in range(len(self.nonempty)) if self.nonempty[j]]
-                self._whole = self.assembled(js)
+                self._whole = self.assembled(js, cached=False)
             return self._whole
 
     def matvec_row(self, i, V) -> np.ndarray:

@@ -6,7 +6,7 @@ with X = F^-1 S stored. The context (``graph.Context``) carries:
 
 ``M`` (:class:`~.operators.MOperand`), ``finv``/``f``/``active`` ((n,) arrays),
 ``threshold``, ``dtype``, ``n``, ``writers`` (name -> writer), ``done`` (name -> set
-of complete tile rows), ``whole_bytes`` and ``max_right_nnz`` (memory plan),
+of complete tile rows), ``plan`` (:class:`~.memory.MemoryPlan`),
 ``kernel_threads`` and the
 method's operands (below).
 """
@@ -18,11 +18,7 @@ import scipy.sparse as sp
 
 from . import blocks
 from ._backend import prune, scale_rows
-
-#: Bytes one stored entry takes in memory (value, column index, share of the row
-#: pointers and of the product's temporaries), for the memory plan.
-BYTES_PER_ENTRY = 16
-
+from .memory import PARTIAL_BYTES_PER_ENTRY
 
 def _write(ctx, name, i, block):
     # Rows of one store are independent directories: writers need no lock.
@@ -34,9 +30,11 @@ def _product(ctx, left, right, i, js_left, threshold):
     """Tile row i of left @ right, pruned; only tile pairs with both factors nonzero
     count (and are read): right's empty tile rows are never read.
 
-    The right factor is used whole (read once per pass and shared through the cache)
-    when it fits ``ctx.whole_bytes``; otherwise in batches of its needed tile rows of
-    at most ``ctx.max_right_nnz`` entries (the memory bound).
+    The memory plan (``ctx.plan``, :class:`~.memory.MemoryPlan`) decides how the right
+    factor is read: whole, once per pass and shared by the tasks, when it fits the
+    plan's shared share; else the tile rows this product needs, in one batch when they
+    fit a third of the task's work share, or in several batches multiplied against
+    chunks of the output rows (:func:`~.blocks.row_product_batched`).
     """
     use = [int(j) for j in js_left if right.nonempty[j]]
     a, b = ctx.M.row_range(i)
@@ -44,18 +42,23 @@ def _product(ctx, left, right, i, js_left, threshold):
     if not use:
         return blocks.empty((b - a, ctx.n), ctx.dtype), 0, skipped
     L = left.row(i)
-    if right.nnz * BYTES_PER_ENTRY <= ctx.whole_bytes:
-        B = right.whole()
-    else:
-        B, cur, cur_nnz = [], [], 0
-        for j in use:
-            if cur and ctx.max_right_nnz and cur_nnz + right.row_nnz(j) > ctx.max_right_nnz:
-                B.append(right.assembled(cur))
-                cur, cur_nnz = [], 0
-            cur.append(j)
-            cur_nnz += right.row_nnz(j)
-        B.append(right.assembled(cur))
-    out = blocks.row_product(L, B, threshold, ctx.kernel_threads)
+    plan = ctx.plan
+    if right.nbytes <= plan.whole_bytes:
+        out = blocks.row_product(L, right.whole(), threshold, ctx.kernel_threads)
+        return out, len(use), skipped
+    batch_bytes = max(plan.work_bytes_per_task // 3, 1)
+    groups, cur, cur_bytes = [], [], 0
+    for j in use:
+        if cur and cur_bytes + right.row_bytes(j) > batch_bytes:
+            groups.append(cur)
+            cur, cur_bytes = [], 0
+        cur.append(j)
+        cur_bytes += right.row_bytes(j)
+    groups.append(cur)
+    batches = [lambda js=js: right.assembled(js) for js in groups]
+    partial = max((plan.work_bytes_per_task - batch_bytes) // PARTIAL_BYTES_PER_ENTRY, 1)
+    out = blocks.row_product_batched(L, batches, threshold, right.work_per_row(L), partial,
+                                     ctx.kernel_threads)
     return out, len(use), skipped
 
 

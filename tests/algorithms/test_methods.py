@@ -75,14 +75,18 @@ def test_residual_estimate_is_unbiased_scale(tmp_path, make_store):
 
 
 def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
-    """The memory-bounded path (right factor in batches of tile rows, partial sums
-    pruned once) gives the dense result too."""
+    """The memory-bounded path (right factor in batches of tile rows, output rows in
+    chunks, partial sums pruned once) gives the dense result too."""
     from bigT.algorithms import stratified
+    from bigT.schedule.memory import MemoryPlan
 
     A = random_dominant(80, seed=7, density=0.25)
     T = make_store(A, tile_size=16)
-    monkeypatch.setattr(stratified, "_memory_plan", lambda limit, workers: (1 << 20, 0, 300))
-    for method in ("power", "newton-schulz"):
+    # no shared factor, batches of ~2 tile rows, partial sums of a few rows per chunk
+    tiny = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=1 << 20,
+                      whole_bytes=0, work_bytes_per_task=3 * 600)
+    monkeypatch.setattr(stratified, "_memory_plan", lambda T, limit, workers: tiny)
+    for method in ("power", "horner", "newton-schulz"):
         rep = bigT.stratified_inverse(T, tmp_path / f"{method}.zarr", terms=3, prune=0,
                                       method=method, progress=False)
         np.testing.assert_allclose(dense(tmp_path / f"{method}.zarr"),
@@ -90,8 +94,20 @@ def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
 
 
 def test_memory_limit_argument(tmp_path, make_store):
+    """A limit the process can meet runs (and gives the dense result); one below what
+    the process already holds is refused before anything is written, naming sizes."""
+    from bigT.schedule.memory import resident_bytes
+
     A = random_dominant(64, seed=8)
     T = make_store(A, tile_size=16)
-    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=0, memory_limit="64MiB",
+    enough = resident_bytes() + (256 << 20)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=0, memory_limit=enough,
                             progress=False)
     np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense_stratified(A, 2), atol=1e-10)
+    with pytest.raises(bigT.MemoryLimitError, match=r"memory_limit 64 MiB is too small.*"
+                       r"already holds \d+ MiB.*give at least \d+ MiB"):
+        bigT.stratified_inverse(T, tmp_path / "Y.zarr", terms=2, memory_limit="64MiB",
+                                progress=False)
+    assert not (tmp_path / "Y.zarr").exists()
+
+

@@ -78,12 +78,27 @@ def test_zero_tile_pairs_are_never_read(tmp_path, monkeypatch):
     assert rep.history[-1].tiles_computed == 4
 
 
-def test_tile_cache_bounded():
+def test_tile_cache_bounded_and_scan_resistant():
+    """Admitted while they fit, kept until dropped: a second scan of the same rows hits
+    the first ones (an LRU smaller than the scan would hit none)."""
     c = TileCache(1000)
-    for k in range(20):
-        c.get(("p", "row", k), lambda: np.zeros(30))  # 240 bytes each
-    assert c.used <= 1000
-    assert c.get(("p", "row", 19), lambda: None) is not None  # most recent kept
+    for _ in range(2):
+        for k in range(20):
+            c.get(("p", "row", k), lambda: np.zeros(30))  # 240 bytes each
+    assert c.used == 4 * 240
+    assert (c.hits, c.misses) == (4, 36)
+    c.get(("q", "row", 0), lambda: np.zeros(1))
+    c.drop_where(lambda path: path != "q")
+    assert c.used == 8
+    misses = c.misses
+    for k in range(3):
+        c.get(("p", "row", k), lambda: np.zeros(30))
+    assert c.misses == misses + 3  # dropped entries are recomputed
+    c.resize(500)  # the last admitted go first
+    assert c.used == 8 + 2 * 240
+    c.get(("p", "row", 0), lambda: None)
+    c.get(("p", "row", 2), lambda: np.zeros(30))
+    assert c.misses == misses + 4
 
 
 def test_distributed_client_same_result(tmp_path):

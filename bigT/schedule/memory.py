@@ -1,0 +1,141 @@
+"""How a ``memory_limit`` is shared out among the parts of a series run.
+
+What a run holds, and why each part is budgeted the way it is:
+
+* the **baseline**: the interpreter, numpy/scipy/numba/dask/zarr and their compiled
+  code, T's index arrays. It is measured (the resident set when the plan is made),
+  not guessed: it is ~190 MB on Linux with every library imported.
+* per task in flight (``workers`` of them), a **fixed** part that no plan can shrink:
+  making one tile row of M from T's (``M_ROW_BYTES_PER_ENTRY`` per entry of T's
+  largest tile row) and the product kernel's dense accumulators ((GROUP + 1) float64
+  per column, see :mod:`bigT.kernels`).
+* the **tile cache**: tile rows of M, reused by every term and every mat-vec.
+* the **shared right factor**: P_{k-1} (or S, R) held whole and shared by the tasks
+  when it fits, read once per pass.
+* per task, a **work** share: when the right factor does not fit whole, each task
+  reads it in batches of tile rows and keeps unpruned partial sums of a chunk of its
+  output rows (:func:`bigT.schedule.blocks.row_product_batched`); the chunks are sized
+  to this share.
+
+The plan refuses (``MemoryLimitError``) a limit that cannot hold the baseline and the
+fixed parts with a minimum working share, and says how much would do.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+from dataclasses import dataclass
+
+from .. import config
+from ..errors import MemoryLimitError
+from ._backend import SPGEMM_GROUP
+
+#: Bytes per entry of T's tile row while it becomes M's (T's row, the scaled copy, the
+#: row and mask arrays of the diagonal surgery, the compacted result).
+M_ROW_BYTES_PER_ENTRY = 32
+
+#: Bytes per entry of an unpruned partial sum: the running sum, the new part and their
+#: scipy sum alive at once (float32 value + int32 index each), plus the kernel's
+#: output buffer.
+PARTIAL_BYTES_PER_ENTRY = 32
+
+
+def resident_bytes() -> int:
+    """The resident set size of this process now, in bytes (peak so far where the
+    current value is not available)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def stored_bytes(nnz: int, n_rows: int, itemsize: int) -> int:
+    """Bytes of a CSR matrix in memory: values, int32 column indices, row pointers."""
+    index = 4 if nnz < 2**31 else 8
+    return int(nnz) * (int(itemsize) + index) + (int(n_rows) + 1) * index
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """Byte budgets of one run (see the module docstring).
+
+    Attributes
+    ----------
+    limit : int or None
+        The limit asked for; None is the unlimited default plan.
+    baseline : int
+        Resident bytes measured when the plan was made.
+    fixed_per_task : int
+    cache_bytes : int
+    whole_bytes : int
+    work_bytes_per_task : int
+    """
+
+    limit: int | None
+    baseline: int
+    fixed_per_task: int
+    cache_bytes: int
+    whole_bytes: int
+    work_bytes_per_task: int
+
+    def describe(self) -> str:
+        mib = 1 << 20
+        if self.limit is None:
+            return "no memory limit"
+        return (f"memory limit {self.limit / mib:.0f} MiB: baseline {self.baseline / mib:.0f}, "
+                f"per task fixed {self.fixed_per_task / mib:.0f} + work "
+                f"{self.work_bytes_per_task / mib:.0f}, tile cache {self.cache_bytes / mib:.0f}, "
+                f"shared factor {self.whole_bytes / mib:.0f} MiB")
+
+
+def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: int,
+                baseline: int | None = None) -> MemoryPlan:
+    """Share ``limit`` bytes out among the parts of a run.
+
+    Parameters
+    ----------
+    limit : int or None
+        Bytes for the whole process; None gives a generous fixed plan.
+    workers : int
+        Tasks in flight at once.
+    n_cols : int
+        Columns of the products (n): the kernel's accumulators scale with it.
+    max_tile_row_nnz : int
+        Entries of T's largest tile row.
+    baseline : int, optional
+        Resident bytes already held; measured now when not given.
+
+    Raises
+    ------
+    MemoryLimitError
+        The limit cannot hold the baseline, the fixed parts and a minimum work share.
+    """
+    workers = max(1, int(workers))
+    fixed = (M_ROW_BYTES_PER_ENTRY * int(max_tile_row_nnz)
+             + (SPGEMM_GROUP + 1) * 8 * int(n_cols) + 16 * int(n_cols))
+    baseline = resident_bytes() if baseline is None else int(baseline)
+    if limit is None:
+        return MemoryPlan(None, baseline, fixed, 1 << 30, 1 << 30, 1 << 30)
+    headroom = config.MEMORY_HEADROOM_BYTES
+    rest = int(limit) - baseline - headroom - workers * fixed
+    minimum = workers * config.MEMORY_MIN_WORK_BYTES
+    if rest < minimum:
+        need = baseline + headroom + workers * (fixed + config.MEMORY_MIN_WORK_BYTES)
+        mib = 1 << 20
+        raise MemoryLimitError(
+            f"memory_limit {limit / mib:.0f} MiB is too small for this run: the process "
+            f"already holds {baseline / mib:.0f} MiB (interpreter and libraries), and each "
+            f"of {workers} tasks needs {fixed / mib:.0f} MiB that no plan can shrink (one "
+            f"tile row of M, {max_tile_row_nnz} entries, and the product's accumulators "
+            f"for {n_cols} columns) plus at least "
+            f"{config.MEMORY_MIN_WORK_BYTES / mib:.0f} MiB to work in; "
+            f"give at least {need / mib:.0f} MiB, fewer workers, or a store with a smaller "
+            "tile size")
+    # The cache of M's tile rows saves rebuilding them from T at every term and
+    # mat-vec; a shared right factor saves re-reading its tile rows per output chunk.
+    cache = int(config.MEMORY_CACHE_SHARE * rest)
+    whole = int(config.MEMORY_WHOLE_SHARE * rest)
+    work = (rest - cache - whole) // workers
+    return MemoryPlan(int(limit), baseline, fixed, cache, whole, work)

@@ -1,0 +1,96 @@
+"""The memory plan and the memory-bounded product (bigT.schedule.memory, blocks)."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from bigT.errors import MemoryLimitError
+from bigT.schedule import blocks
+from bigT.schedule.memory import (M_ROW_BYTES_PER_ENTRY, MemoryPlan, plan_memory,
+                                  resident_bytes, stored_bytes)
+
+MiB = 1 << 20
+
+
+def test_resident_bytes_is_this_process():
+    rss = resident_bytes()
+    big = np.ones(64 * MiB // 8)  # touched: 64 MiB resident
+    assert resident_bytes() >= rss + 48 * MiB
+    del big
+
+
+def test_plan_shares_what_is_left_after_baseline_and_fixed_parts():
+    plan = plan_memory(1024 * MiB, 2, n_cols=100_000, max_tile_row_nnz=1_000_000,
+                       baseline=200 * MiB)
+    fixed = M_ROW_BYTES_PER_ENTRY * 1_000_000 + 9 * 8 * 100_000 + 16 * 100_000
+    assert plan.fixed_per_task == fixed
+    total = (plan.baseline + 2 * (plan.fixed_per_task + plan.work_bytes_per_task)
+             + plan.cache_bytes + plan.whole_bytes)
+    assert 1024 * MiB - 100 * MiB <= total <= 1024 * MiB
+    assert plan.cache_bytes > 0 and plan.whole_bytes > 0 and plan.work_bytes_per_task > 0
+    assert "memory limit 1024 MiB" in plan.describe()
+
+
+def test_plan_refuses_a_limit_below_the_fixed_parts():
+    with pytest.raises(MemoryLimitError, match=r"memory_limit 300 MiB is too small.*already "
+                       r"holds 250 MiB.*2 tasks.*give at least (\d+) MiB") as e:
+        plan_memory(300 * MiB, 2, n_cols=10_000, max_tile_row_nnz=100_000,
+                    baseline=250 * MiB)
+    need = int(str(e.value).split("give at least ")[1].split()[0])
+    plan_memory(need * MiB + MiB, 2, n_cols=10_000, max_tile_row_nnz=100_000,
+                baseline=250 * MiB)  # what it asks for is enough
+
+
+def test_unlimited_plan():
+    plan = plan_memory(None, 2, 10, 10)
+    assert plan.limit is None and plan.describe() == "no memory limit"
+
+
+def test_stored_bytes():
+    A = sp.random(50, 40, density=0.1, format="csr", dtype=np.float32, random_state=0)
+    A.indices = A.indices.astype(np.int32)
+    A.indptr = A.indptr.astype(np.int32)
+    assert stored_bytes(A.nnz, 50, 4) == A.data.nbytes + A.indices.nbytes + A.indptr.nbytes
+
+
+def _batches(B, row_groups):
+    out = []
+    for rows in row_groups:
+        keep = np.zeros(B.shape[0])
+        keep[rows] = 1
+        part = sp.csr_array(sp.diags(keep) @ B)
+        out.append(lambda part=part: part)
+    return out
+
+
+@pytest.mark.parametrize("max_partial", [1, 7, 50, 10**9])
+def test_row_product_batched_equals_pruned_product(max_partial):
+    """Any chunking of the output rows (down to one row) and any batching of B give
+    scipy's product, pruned once; empty rows of L and of B included."""
+    rng = np.random.default_rng(3)
+    L = sp.random(30, 40, density=0.15, format="csr", random_state=1)
+    L = sp.csr_array(L.multiply(rng.random((30, 40)) > 0.0))
+    L = sp.csr_array(sp.diags(np.r_[np.ones(25), np.zeros(5)]) @ L)  # 5 empty rows
+    B = sp.random(40, 40, density=0.2, format="csr", random_state=2)
+    B = sp.csr_array(sp.diags(np.r_[np.zeros(10), np.ones(30)]) @ B)  # empty rows of B
+    ref = (L @ B).toarray()
+    ref[np.abs(ref) < 0.05] = 0
+    work = np.diff(L.indptr) * 8.0  # multiply-adds if every row of B held 8
+    got = blocks.row_product_batched(sp.csr_array(L), _batches(B, [range(0, 20), range(20, 40)]),
+                                     0.05, work, max_partial)
+    assert got.has_sorted_indices and got.shape == (30, 40)
+    np.testing.assert_allclose(got.toarray(), ref, atol=1e-12)
+
+
+def test_row_product_batched_edge_cases():
+    L = sp.csr_array((4, 6))
+    B = sp.csr_array(np.eye(6))
+    assert blocks.row_product_batched(L, [], 0.0, np.zeros(4), 10).nnz == 0
+    got = blocks.row_product_batched(L, _batches(B, [[0, 1], [2, 3, 4, 5]]), 0.0,
+                                     np.zeros(4), 10)
+    assert got.shape == (4, 6) and got.nnz == 0
+    # everything pruned
+    L = sp.csr_array(np.full((3, 6), 1e-3))
+    got = blocks.row_product_batched(L, _batches(B, [[0, 1], [2, 3, 4, 5]]), 1.0,
+                                     np.full(3, 6.0), 4)
+    assert got.shape == (3, 6) and got.nnz == 0
