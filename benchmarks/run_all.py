@@ -27,6 +27,7 @@ FULL = [
                         "--method", "power,horner"]),
     ("inverse-dense", ["bench_inverse.py", "--size", "384x512", "--density", "dense",
                        "--method", "power", "--memory-limit", "2GiB"]),
+    ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("compensate", ["bench_compensate.py"]),
 ]
 QUICK = [
@@ -34,6 +35,7 @@ QUICK = [
     ("kernels", ["bench_kernels.py", "--sizes", "48x64", "--repeat", "1"]),
     ("scenes", ["bench_scenes.py"]),
     ("inverse", ["bench_inverse.py", "--size", "96x128", "--method", "power,horner"]),
+    ("out-of-core", ["bench_out_of_core.py", "--n", "32768", "--memory-limit", "2GiB"]),
     ("compensate", ["bench_compensate.py", "--size", "96x128", "--scene-size", "32x48",
                     "--frames", "64", "--no-splu"]),
 ]

@@ -17,6 +17,7 @@ from .errors import (  # noqa: F401  (re-exported)
     IncompleteStoreError,
     InvalidMatrixError,
     MemoryLimitError,
+    MemoryLimitWarning,
     NotSquareError,
     ShapeMismatchError,
     StoreError,

@@ -102,7 +102,7 @@ SPGEMM_GROUP_MIN_EFFICIENCY = 0.25
 # --- memory plan of a series run (bigT.schedule.memory) ---
 #: Kept free under a memory_limit for what is not budgeted: allocator fragmentation,
 #: zarr's encode buffers, dask's bookkeeping.
-MEMORY_HEADROOM_BYTES = 96 << 20
+MEMORY_HEADROOM_BYTES = 128 << 20
 #: The least a task may work in (a batch of the right factor and partial sums).
 MEMORY_MIN_WORK_BYTES = 24 << 20
 #: Of what is left after the baseline, headroom and fixed per-task parts: the tile

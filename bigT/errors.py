@@ -67,3 +67,7 @@ class ImageError(BigTError):
 
 class DiskFullError(BigTError):
     """The disk filled while writing; what was complete before is kept."""
+
+
+class MemoryLimitWarning(UserWarning):
+    """A memory limit may be exceeded: something the plan cannot bound has grown."""

@@ -71,7 +71,7 @@ from .. import config
 from ..errors import DivergenceError, NotSquareError, StoreError
 from ..schedule import graph, tasks
 from ..schedule._backend import BlockCSRWriter, open_store, set_redirect
-from ..schedule.memory import MemoryPlan, plan_memory
+from ..schedule.memory import MemoryPlan, plan_memory, warn_if_rows_outgrow
 from ..schedule.operators import MOperand, StoreOperand, TileCache
 from .first_bounce import FirstBounce, resolve_first_bounce
 
@@ -283,6 +283,16 @@ def _memory_plan(T, memory_limit, workers) -> MemoryPlan:
     tile_nnz = np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0)
     row_nnz = np.add.reduceat(tile_nnz, indptr[:-1]) * (np.diff(indptr) > 0)
     return plan_memory(memory_limit, workers, T.shape[1], int(row_nnz.max(initial=0)))
+
+
+def _check_row_width(plan, Xprev, history, term, out):
+    """Warn before a term whose output tile rows may not fit the memory plan."""
+    Xop = StoreOperand(Xprev)
+    widest = max((Xop.row_bytes(j) for j in range(Xprev.grid[0])), default=0)
+    growth = 1.0
+    if len(history) >= 2 and history[-2].nnz_X:
+        growth = history[-1].nnz_X / history[-2].nnz_X
+    warn_if_rows_outgrow(plan, widest, growth, term, out)
 
 
 class _Progress:
@@ -584,6 +594,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
         prev = held
         Xprev = open_store(vs.sub(prev, "X"))
         computed_any = True
+        _check_row_width(plan, Xprev, history, prev + 1, out)
         if method == "power":
             k = prev + 1
             Pprev = None if prev == 0 else open_store(vs.sub(prev, "P"))

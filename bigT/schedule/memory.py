@@ -28,7 +28,9 @@ import resource
 from dataclasses import dataclass
 
 from .. import config
-from ..errors import MemoryLimitError
+import warnings
+
+from ..errors import MemoryLimitError, MemoryLimitWarning
 from ._backend import SPGEMM_GROUP
 
 #: Bytes per entry of T's tile row while it becomes M's (T's row, the scaled copy, the
@@ -139,3 +141,31 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     whole = int(config.MEMORY_WHOLE_SHARE * rest)
     work = (rest - cache - whole) // workers
     return MemoryPlan(int(limit), baseline, fixed, cache, whole, work)
+
+
+#: A task holds its output tile rows whole until they are written (the previous X's
+#: row, the new P's and the new X's): this many times the widest row of X.
+OUTPUT_ROWS_HELD = 3
+
+
+def warn_if_rows_outgrow(plan: MemoryPlan, widest_row_bytes: int, growth: float,
+                         term: int, path) -> bool:
+    """Warn (``MemoryLimitWarning``) when term ``term``'s output tile rows, predicted
+    as the widest tile row of X so far times the last term's growth of X, may not fit
+    a task's work share: a tile row is the unit the store writes, so its width (set by
+    ``prune``, not by n) is the one thing the plan cannot split. Returns whether it
+    warned."""
+    if plan.limit is None:
+        return False
+    need = OUTPUT_ROWS_HELD * widest_row_bytes * max(1.0, growth)
+    if need <= plan.work_bytes_per_task:
+        return False
+    mib = 1 << 20
+    warnings.warn(
+        f"{path}: term {term}'s tile rows may hold ~{need / mib:.0f} MiB per task "
+        f"(X's widest tile row {widest_row_bytes / mib:.0f} MiB, growing {growth:.1f}x a "
+        f"term), more than the {plan.work_bytes_per_task / mib:.0f} MiB each task has under "
+        f"memory_limit {plan.limit / mib:.0f} MiB: the limit may be exceeded. A higher "
+        "prune, a higher limit or a store with a smaller tile size keeps it",
+        MemoryLimitWarning, stacklevel=3)
+    return True
