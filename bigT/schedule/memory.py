@@ -43,6 +43,14 @@ M_ROW_BYTES_PER_ENTRY = 32
 PARTIAL_BYTES_PER_ENTRY = 32
 
 
+def human_bytes(n: float) -> str:
+    """``n`` bytes in KiB, MiB or GiB, whichever reads best."""
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if abs(n) >= size:
+            return f"{n / size:.0f} {unit}" if unit != "GiB" else f"{n / size:.2f} {unit}"
+    return f"{int(n)} B"
+
+
 def resident_bytes() -> int:
     """The resident set size of this process now, in bytes (peak so far where the
     current value is not available)."""
@@ -160,12 +168,11 @@ def warn_if_rows_outgrow(plan: MemoryPlan, widest_row_bytes: int, growth: float,
     need = OUTPUT_ROWS_HELD * widest_row_bytes * max(1.0, growth)
     if need <= plan.work_bytes_per_task:
         return False
-    mib = 1 << 20
     warnings.warn(
-        f"{path}: term {term}'s tile rows may hold ~{need / mib:.0f} MiB per task "
-        f"(X's widest tile row {widest_row_bytes / mib:.0f} MiB, growing {growth:.1f}x a "
-        f"term), more than the {plan.work_bytes_per_task / mib:.0f} MiB each task has under "
-        f"memory_limit {plan.limit / mib:.0f} MiB: the limit may be exceeded. A higher "
+        f"{path}: term {term}'s tile rows may hold ~{human_bytes(need)} per task "
+        f"(X's widest tile row {human_bytes(widest_row_bytes)}, growing {growth:.1f}x a "
+        f"term), more than the {human_bytes(plan.work_bytes_per_task)} each task has under "
+        f"memory_limit {human_bytes(plan.limit)}: the limit may be exceeded. A higher "
         "prune, a higher limit or a store with a smaller tile size keeps it",
         MemoryLimitWarning, stacklevel=3)
     return True

@@ -110,3 +110,10 @@ def test_warns_when_output_rows_may_outgrow_the_plan():
         assert warn_if_rows_outgrow(plan, 5 * MiB, 3.0, 3, "X.zarr")
     unlimited = plan_memory(None, 2, 10, 10)
     assert not warn_if_rows_outgrow(unlimited, 1 << 40, 10.0, 3, "X.zarr")
+
+
+def test_human_bytes():
+    from bigT.schedule.memory import human_bytes
+
+    assert [human_bytes(b) for b in (12, 3 << 10, 45 * MiB, 3 << 30)] == \
+        ["12 B", "3 KiB", "45 MiB", "3.00 GiB"]
