@@ -290,7 +290,8 @@ def _check_row_width(plan, Xprev, history, term, out):
     Xop = StoreOperand(Xprev)
     widest = max((Xop.row_bytes(j) for j in range(Xprev.grid[0])), default=0)
     growth = 1.0
-    if len(history) >= 2 and history[-2].nnz_X:
+    # X_0 = F^-1 is a diagonal: its growth to X_1 (T's width) predicts nothing
+    if len(history) >= 2 and history[-2].term >= 1 and history[-2].nnz_X:
         growth = history[-1].nnz_X / history[-2].nnz_X
     warn_if_rows_outgrow(plan, widest, growth, term, out)
 

@@ -33,9 +33,11 @@ import warnings
 from ..errors import MemoryLimitError, MemoryLimitWarning
 from ._backend import SPGEMM_GROUP
 
-#: Bytes per entry of T's tile row while it becomes M's (T's row, the scaled copy, the
-#: row and mask arrays of the diagonal surgery, the compacted result).
-M_ROW_BYTES_PER_ENTRY = 32
+#: Bytes per entry of T's tile row while it becomes M's: the decoded tiles and the
+#: assembled row (8 + 8), the scaled copy (8), the row and mask arrays of the diagonal
+#: surgery (6), the compacted result (8), allocator slack (measured: 32 let a 768 MiB
+#: run peak at 775 MiB).
+M_ROW_BYTES_PER_ENTRY = 48
 
 #: Bytes per entry of an unpruned partial sum: the running sum, the new part and their
 #: scipy sum alive at once (float32 value + int32 index each), plus the kernel's
