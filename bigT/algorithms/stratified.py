@@ -285,6 +285,21 @@ def _memory_plan(T, memory_limit, workers) -> MemoryPlan:
     return plan_memory(memory_limit, workers, T.shape[1], int(row_nnz.max(initial=0)))
 
 
+def _whole_limit(plan: MemoryPlan, cache: TileCache, right) -> int:
+    """Bytes the pass's right factor may take when held whole and shared.
+
+    Its own share, or, when it needs more, the tile cache's share too (the cache is
+    shrunk for the pass): a factor read in batches is re-read for every chunk of output
+    rows, which costs far more than rebuilding M's tile rows from T.
+    """
+    if right is None or right.nbytes <= plan.whole_bytes:
+        return plan.whole_bytes
+    if right.nbytes <= plan.whole_bytes + plan.cache_bytes:
+        cache.resize(plan.whole_bytes + plan.cache_bytes - right.nbytes)
+        return right.nbytes
+    return plan.whole_bytes
+
+
 def _check_row_width(plan, Xprev, history, term, out):
     """Warn before a term whose output tile rows may not fit the memory plan."""
     Xop = StoreOperand(Xprev)
@@ -524,13 +539,14 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
     products = 0
     stopped = "terms reached"
 
-    def run_pass(op, fn, writers, k, **extra):
+    def run_pass(op, fn, writers, k, right=None, **extra):
         nonlocal products
         done = {name: set(w.completed_tile_rows) for name, w in writers.items()}
         rows = [i for i in range(T.grid[0]) if any(i not in d for d in done.values())]
         bar = _Progress(progress, len(rows), f"term {k} {op}")
         ctx = graph.Context(writers=writers, done=done,
                             kernel_threads=kernel_threads,
+                            whole_limit=_whole_limit(plan, cache, right),
                             **common, **extra)
         ctx.progress = bar
         try:
@@ -539,6 +555,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
                                    client=client, workers=workers)
         finally:
             bar.close()
+            cache.resize(plan.cache_bytes)
         stores = {name: w.finalize() for name, w in writers.items()}
         products += sum(s["computed"] for s in stats)
         return stats, stores
@@ -609,18 +626,17 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
             vs.clean(keep={prev, k})
             t0 = time.perf_counter()
             writers = {"P": vs.writer(k, "P", T, meta(k)), "X": vs.writer(k, "X", T, meta(k))}
-            stats, stores = run_pass(
-                "power", tasks.power_row, writers, k,
-                P_prev=None if Pprev is None else StoreOperand(Pprev, cache=cache),
-                X_prev=StoreOperand(Xprev))
+            P_op = None if Pprev is None else StoreOperand(Pprev, cache=cache)
+            stats, stores = run_pass("power", tasks.power_row, writers, k, right=P_op,
+                                     P_prev=P_op, X_prev=StoreOperand(Xprev))
         elif method == "horner":
             k = prev + 1
             vs.clean(keep={prev, k})
             t0 = time.perf_counter()
+            S_op = StoreOperand(Xprev, row_scale=fb.f.astype(T.dtype), cache=cache)
             stats, stores = run_pass("horner", tasks.horner_row,
-                                     {"X": vs.writer(k, "X", T, meta(k))}, k,
-                                     S_prev=StoreOperand(Xprev, row_scale=fb.f.astype(T.dtype),
-                                                         cache=cache))
+                                     {"X": vs.writer(k, "X", T, meta(k))}, k, right=S_op,
+                                     S_prev=S_op)
         else:
             k = 2 * prev + 1
             vs.clean(keep={prev, k})
@@ -630,7 +646,7 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
             st1 = []
             if Rstore is None:
                 st1, st = run_pass("ns-residual", tasks.ns_residual_row,
-                                   {"R": vs.writer(k, "R", T, meta(k))}, k, S=S)
+                                   {"R": vs.writer(k, "R", T, meta(k))}, k, right=S, S=S)
                 Rstore = st["R"]
             if Rstore.nnz == 0:
                 stopped = f"series exhausted at term {prev} (I - T X pruned to 0)"
@@ -638,9 +654,10 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
                 _write_inverse(out, inv)
                 held = terms
                 break
+            R_op = StoreOperand(Rstore, cache=cache)
             stats, stores = run_pass("ns-update", tasks.ns_update_row,
-                                     {"X": vs.writer(k, "X", T, meta(k))}, k, S=S,
-                                     R=StoreOperand(Rstore, cache=cache))
+                                     {"X": vs.writer(k, "X", T, meta(k))}, k, right=R_op,
+                                     S=S, R=R_op)
             stats = [{**s, "nnz_P": 0} for s in stats] + st1
         # only M's tile rows serve the next term; the previous term's are stale
         cache.drop_where(lambda path: path != T.path)

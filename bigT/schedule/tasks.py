@@ -30,11 +30,11 @@ def _product(ctx, left, right, i, js_left, threshold):
     """Tile row i of left @ right, pruned; only tile pairs with both factors nonzero
     count (and are read): right's empty tile rows are never read.
 
-    The memory plan (``ctx.plan``, :class:`~.memory.MemoryPlan`) decides how the right
-    factor is read: whole, once per pass and shared by the tasks, when it fits the
-    plan's shared share; else the tile rows this product needs, in one batch when they
-    fit a third of the task's work share, or in several batches multiplied against
-    chunks of the output rows (:func:`~.blocks.row_product_batched`).
+    The memory plan decides how the right factor is read: whole, once per pass and
+    shared by the tasks, when it fits ``ctx.whole_limit`` (bytes, set per pass); else
+    the tile rows this product needs, in one batch when they fit a third of the task's
+    work share (``ctx.plan``, :class:`~.memory.MemoryPlan`), or in several batches
+    multiplied against chunks of the output rows (:func:`~.blocks.row_product_batched`).
     """
     use = [int(j) for j in js_left if right.nonempty[j]]
     a, b = ctx.M.row_range(i)
@@ -43,7 +43,7 @@ def _product(ctx, left, right, i, js_left, threshold):
         return blocks.empty((b - a, ctx.n), ctx.dtype), 0, skipped
     L = left.row(i)
     plan = ctx.plan
-    if right.nbytes <= plan.whole_bytes:
+    if right.nbytes <= ctx.whole_limit:
         out = blocks.row_product(L, right.whole(), threshold, ctx.kernel_threads)
         return out, len(use), skipped
     batch_bytes = max(plan.work_bytes_per_task // 3, 1)

@@ -83,7 +83,7 @@ def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
     A = random_dominant(80, seed=7, density=0.25)
     T = make_store(A, tile_size=16)
     # no shared factor, batches of ~2 tile rows, partial sums of a few rows per chunk
-    tiny = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=1 << 20,
+    tiny = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=0,
                       whole_bytes=0, work_bytes_per_task=3 * 600)
     monkeypatch.setattr(stratified, "_memory_plan", lambda T, limit, workers: tiny)
     for method in ("power", "horner", "newton-schulz"):
@@ -93,6 +93,30 @@ def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
                                           method=method, progress=False)
         np.testing.assert_allclose(dense(tmp_path / f"{method}.zarr"),
                                    dense_stratified(A, rep.terms), atol=1e-10)
+
+
+def test_whole_factor_may_borrow_the_cache_share():
+    """A right factor larger than its own share but within its and the cache's is held
+    whole, the cache shrunk for the pass; a larger one is read in batches."""
+    from bigT.algorithms.stratified import _whole_limit
+    from bigT.schedule.memory import MemoryPlan
+    from bigT.schedule.operators import TileCache
+
+    plan = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=1000,
+                      whole_bytes=1000, work_bytes_per_task=100)
+
+    class Factor:
+        def __init__(self, nbytes):
+            self.nbytes = nbytes
+
+    cache = TileCache(plan.cache_bytes)
+    for k in range(4):
+        cache.get(("T", "M", k), lambda: np.zeros(25))  # 200 bytes each
+    assert _whole_limit(plan, cache, None) == 1000
+    assert _whole_limit(plan, cache, Factor(900)) == 1000 and cache.budget == 1000
+    assert _whole_limit(plan, cache, Factor(1500)) == 1500
+    assert cache.budget == 500 and cache.used == 400
+    assert _whole_limit(plan, cache, Factor(2500)) == 1000
 
 
 def test_memory_limit_argument(tmp_path, make_store):
