@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
 import shutil
 import uuid
@@ -386,9 +387,15 @@ class BlockCSRWriter:
 
 
 def _write_tile(store, base: str, indptr, indices, data, level) -> None:
-    fmt.write_array(store, f"{base}/indptr", indptr, fmt.FILL_INT, level)
-    fmt.write_array(store, f"{base}/indices", indices, fmt.FILL_INT, level)
-    fmt.write_array(store, f"{base}/data", data, fmt.FILL_FLOAT, level)
+    """A tile's group and its three arrays, the files written directly
+    (:func:`~._format.write_array_files`; zarr's own path costs ~3 ms per array)."""
+    root = Path(store.root)
+    (root / base).mkdir(parents=True, exist_ok=True)
+    with open(root / base / "zarr.json", "w", encoding="utf-8") as f:
+        json.dump(group_json({}), f, indent=2)
+    fmt.write_array_files(root, f"{base}/indptr", indptr, fmt.FILL_INT, level)
+    fmt.write_array_files(root, f"{base}/indices", indices, fmt.FILL_INT, level)
+    fmt.write_array_files(root, f"{base}/data", data, fmt.FILL_FLOAT, level)
 
 
 def _as_checked_csr(A, path, require_square: bool) -> sp.csr_array:

@@ -1,0 +1,52 @@
+"""bigT writes tile arrays directly (storage._format.write_array_files); the files must
+be the ones zarr-python writes, and zarr must read them back."""
+
+import json
+
+import numpy as np
+import pytest
+import zarr
+from zarr.storage import LocalStore
+
+from bigT import config
+from bigT.storage import _format as fmt
+
+
+def _files(root):
+    return sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("values, fill", [
+    (np.arange(10, dtype=np.int64), fmt.FILL_INT),
+    (np.array([], dtype=np.int32), fmt.FILL_INT),
+    (np.linspace(-1, 1, 7, dtype=np.float32), fmt.FILL_FLOAT),
+    (np.random.default_rng(0).random(2500), fmt.FILL_FLOAT),  # three chunks, ragged edge
+])
+@pytest.mark.parametrize("level", [1, 3])
+def test_same_files_as_zarr(tmp_path, monkeypatch, values, fill, level):
+    monkeypatch.setattr(config, "CHUNK_ELEMENTS", 1000)
+    zroot, droot = tmp_path / "zarr", tmp_path / "direct"
+    fmt.write_array(LocalStore(zroot), "a/b", values, fill, level)
+    fmt.write_array_files(droot, "a/b", values, fill, level)
+    zfiles = _files(zroot / "a" / "b")
+    assert zfiles == _files(droot / "a" / "b")
+    assert (zroot / "a" / "b" / "c" / "0").exists() == bool(values.size)
+    for f in zfiles:
+        f = zroot.joinpath("a", "b", f).relative_to(zroot)
+        if f.name == "zarr.json":
+            assert json.loads((zroot / f).read_text()) == json.loads((droot / f).read_text())
+        else:
+            assert (zroot / f).read_bytes() == (droot / f).read_bytes(), f
+    back = zarr.open_array(LocalStore(droot), path="a/b", mode="r")[...]
+    np.testing.assert_array_equal(back, values)
+    assert back.dtype == values.dtype
+
+
+def test_checksum_is_checked_on_read(tmp_path):
+    fmt.write_array_files(tmp_path, "x", np.arange(100, dtype=np.int64), fmt.FILL_INT, 1)
+    chunk = tmp_path / "x" / "c" / "0"
+    raw = bytearray(chunk.read_bytes())
+    raw[3] ^= 0xFF
+    chunk.write_bytes(bytes(raw))
+    with pytest.raises(Exception):
+        zarr.open_array(LocalStore(tmp_path), path="x", mode="r")[...]
