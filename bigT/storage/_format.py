@@ -130,6 +130,55 @@ def write_array_files(root: Path, name: str, values: np.ndarray, fill_value,
             f.write(crc)
 
 
+def read_array_files(adir: Path) -> np.ndarray | None:
+    """The whole 1-D array in directory ``adir``, read from its files directly; None
+    when its zarr.json is not the layout :func:`write_array` produces (the caller
+    then reads it through zarr).
+
+    Same semantics as zarr's read: a missing chunk file reads as the fill value (the
+    tile checks catch that), a damaged one raises ``ValueError`` naming the checksum.
+    Why: zarr's per-array open and read cost ~2 ms, a tile row reads ~60 arrays.
+    """
+    from numcodecs import Zstd
+    import google_crc32c
+
+    with open(adir / "zarr.json", "rb") as f:
+        meta = json.load(f)
+    try:
+        (n,) = meta["shape"]
+        (chunk,) = meta["chunk_grid"]["configuration"]["chunk_shape"]
+        codecs_ = meta["codecs"]
+        ok = (meta["chunk_grid"]["name"] == "regular"
+              and meta["chunk_key_encoding"] == {"name": "default",
+                                                 "configuration": {"separator": "/"}}
+              and [c["name"] for c in codecs_] == ["bytes", "zstd", "crc32c"]
+              and codecs_[0]["configuration"]["endian"] == "little"
+              and not meta.get("storage_transformers"))
+        dtype = np.dtype(meta["data_type"]).newbyteorder("<")
+        fill = meta["fill_value"]
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not ok:
+        return None
+    fill = float("nan") if fill == "NaN" else fill
+    out = np.empty(n, dtype)
+    codec = Zstd()
+    for c, start in enumerate(range(0, n, chunk)):
+        stop = min(start + chunk, n)
+        try:
+            with open(adir / "c" / str(c), "rb") as f:
+                raw = f.read()
+        except FileNotFoundError:
+            out[start:stop] = fill
+            continue
+        frame, stored = raw[:-4], raw[-4:]
+        if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
+            raise ValueError(f"crc32c checksum mismatch in chunk file {adir.name}/c/{c}")
+        values = np.frombuffer(codec.decode(frame), dtype)
+        out[start:stop] = values[:stop - start]
+    return out.astype(dtype.newbyteorder("="), copy=False)
+
+
 def read_json(path: Path) -> dict:
     """Parse a zarr.json; StoreError naming the file when it is absent or not JSON."""
     try:

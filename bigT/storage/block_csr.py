@@ -313,8 +313,11 @@ class BlockCSR:
         rows, cols = self.tile_shape(i, j)
         nnz = int(self.tile_nnz[k])
         try:
-            a_ptr, a_ind, a_dat = self._tile_arrays(i, j)
-            indptr, indices, data = a_ptr[...], a_ind[...], a_dat[...]
+            base = self.path / fmt.tile_path(i, j)
+            direct = [fmt.read_array_files(base / name) for name in fmt.TILE_ARRAYS]
+            if any(a is None for a in direct):  # not bigT's own layout: zarr reads it
+                direct = [a[...] for a in self._tile_arrays(i, j)]
+            indptr, indices, data = direct
         except BigTError:
             raise
         except Exception as exc:

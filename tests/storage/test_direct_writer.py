@@ -50,3 +50,35 @@ def test_checksum_is_checked_on_read(tmp_path):
     chunk.write_bytes(bytes(raw))
     with pytest.raises(Exception):
         zarr.open_array(LocalStore(tmp_path), path="x", mode="r")[...]
+
+
+@pytest.mark.parametrize("values, fill", [
+    (np.arange(10, dtype=np.int64), fmt.FILL_INT),
+    (np.array([], dtype=np.int32), fmt.FILL_INT),
+    (np.random.default_rng(0).random(2500).astype(np.float32), fmt.FILL_FLOAT),
+])
+def test_direct_read_equals_zarr_read(tmp_path, monkeypatch, values, fill):
+    monkeypatch.setattr(config, "CHUNK_ELEMENTS", 1000)
+    fmt.write_array(LocalStore(tmp_path), "a", values, fill, 1)  # written by zarr
+    got = fmt.read_array_files(tmp_path / "a")
+    np.testing.assert_array_equal(got, values)
+    assert got.dtype == values.dtype
+    if values.size > 1000:
+        (tmp_path / "a" / "c" / "1").unlink()  # a missing chunk reads as the fill value
+        got = fmt.read_array_files(tmp_path / "a")
+        ref = zarr.open_array(LocalStore(tmp_path), path="a", mode="r")[...]
+        np.testing.assert_array_equal(got, ref)
+        assert np.isnan(got[1000:2000]).all()
+
+
+def test_direct_read_refuses_damage_and_defers_foreign_layouts(tmp_path):
+    fmt.write_array_files(tmp_path, "x", np.arange(100, dtype=np.int64), fmt.FILL_INT, 1)
+    chunk = tmp_path / "x" / "c" / "0"
+    raw = bytearray(chunk.read_bytes())
+    raw[3] ^= 0xFF
+    chunk.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="checksum mismatch in chunk file x/c/0"):
+        fmt.read_array_files(tmp_path / "x")
+    zarr.create_array(LocalStore(tmp_path), name="y", data=np.arange(5), chunks=(5,),
+                      compressors=None)  # no zstd, no crc32c: not bigT's layout
+    assert fmt.read_array_files(tmp_path / "y") is None
