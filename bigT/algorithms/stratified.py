@@ -31,6 +31,17 @@ and ||E_k||_inf <= sum_{l<=k} ||M||_inf^(k-l) r_l prune. Hence
 with r_l the number of candidate entries dropped per row at term l (at most n).
 ``tests/algorithms/test_pruning.py`` checks it.
 
+Power versus Horner under pruning: with D_k the entries dropped at term k, the power
+form's residual is I - T X_n = M P_n - sum_k D_k. Every term's pruning stays in it,
+and D_1, the small entries of M itself, is the largest. Horner's is
+-D_n + M (S_n - S_{n-1}), because each step re-applies I + M S and so corrects the
+earlier pruning. At the same prune, Horner is therefore more accurate. Its products
+multiply by S, which is as wide as P_1, while the power form's later products shrink
+with P_k. At four terms the first real product (M P_1, or M S_1) dominates both forms,
+so the power form's advantage is bounded by (c_1 + 3c) / (c_1 + c) < 3x. That holds
+even if the later products cost nothing. On the dense 384x512 corner, Horner wins at
+equal error (README, "Measured").
+
 Residual: after every term, ||I - T X||_F is estimated from p = config.RESIDUAL_PROBES
 Rademacher probes z (z_i = +-1 on the pixels kept): r = z - T (X z); since
 E[z z^T] = D, E||r||^2 = ||(I - T X) D||_F^2, so (1/p) sum ||r||^2 is an unbiased
