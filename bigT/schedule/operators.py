@@ -49,6 +49,19 @@ class TileCache:
                 self.used += size
         return value
 
+    def lookup(self, key):
+        """The entry under ``key``, or None (nothing is computed or admitted)."""
+        with self._lock:
+            value = self._d.get(key)
+            if value is not None:
+                self.hits += 1
+            return value
+
+    def has_room(self, size: int) -> bool:
+        """Whether an entry of ``size`` bytes would be admitted now."""
+        with self._lock:
+            return self.used + int(size) <= self.budget
+
     def resize(self, budget: int) -> None:
         """Set the budget; entries admitted last are forgotten until it holds."""
         with self._lock:
@@ -204,8 +217,30 @@ class MOperand:
         return self.cache.get(self._key + ("row", int(i)), lambda: self._make_row(int(i)))
 
     def matvec_row(self, i, V) -> np.ndarray:
-        """Rows of tile row i of M @ V, V of shape (n, k)."""
+        """Rows of tile row i of M @ V, V of shape (n, k).
+
+        When M's tile row is not cached and the cache has no room for it, T's tile row
+        is used as read, M V = D V - T F^-1 V (with M's zero diagonal restored when
+        F = diag T): building M's row costs more than the product and would not be
+        kept.
+        """
         a, b = self.T.tile_row_range(i)
         out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        spmm_dense(self.row(i), V, out=out, n_threads=1)
+        key = self._key + ("row", int(i))
+        M_row = self.cache.lookup(key)
+        if M_row is None and not self.cache.has_room(self._row_bytes(i)):
+            T_row = sp.csr_array(self.T.get_tile_row(i))
+            spmm_dense(T_row, -(self.finv[:, None] * V), out=out, n_threads=1)
+            if self.zero_diagonal:
+                out += (T_row.diagonal(k=a) * self.finv[a:b])[:, None] * V[a:b]
+            else:
+                out += self.active[a:b, None] * V[a:b]
+            return out
+        spmm_dense(self.row(i) if M_row is None else M_row, V, out=out, n_threads=1)
         return out
+
+    def _row_bytes(self, i) -> int:
+        a, b = self.T.tile_row_range(i)
+        lo, hi = self.T.tile_indptr[i], self.T.tile_indptr[i + 1]
+        nnz = int(np.asarray(self.T.tile_nnz[lo:hi]).sum())
+        return stored_bytes(nnz, b - a, self.dtype.itemsize)
