@@ -97,9 +97,16 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args._child:
         return child(args)
+    if args.workdir is None:
+        # T and a 1.7 GiB X: removed afterwards unless a --workdir keeps them
+        with tempfile.TemporaryDirectory(prefix="bench_ooc_") as tmp:
+            return run(args, tmp)
+    return run(args, args.workdir)
+
+
+def run(args, workdir):
     from bigT.algorithms.stratified import parse_bytes
 
-    workdir = args.workdir or tempfile.mkdtemp(prefix="bench_ooc_")
     tpath = os.path.join(workdir, f"T-banded-{args.n}-{args.per_row}-{args.band}.zarr")
     if not os.path.exists(tpath):
         t0 = time.perf_counter()

@@ -528,7 +528,9 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
     if rho is None:
         # Nothing else is in memory yet: the power iterations may cache all of M they
         # can (each iteration is one pass over M), the rest is given back after.
-        cache.resize(plan.cache_bytes + plan.whole_bytes + workers * plan.work_bytes_per_task // 2)
+        if plan.limit is not None:
+            cache.resize(plan.cache_bytes + plan.whole_bytes
+                         + workers * plan.work_bytes_per_task // 2)
         rho = estimate_spectral_radius(M, fb.active, seed=seed, client=client,
                                        workers=workers)
         cache.resize(plan.cache_bytes)
@@ -566,6 +568,8 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
                                    client=client, workers=workers)
         finally:
             bar.close()
+            if right is not None:
+                right.release()
             cache.resize(plan.cache_bytes)
         stores = {name: w.finalize() for name, w in writers.items()}
         products += sum(s["computed"] for s in stats)

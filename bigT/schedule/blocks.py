@@ -75,6 +75,10 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
         D = sp.csr_array((d[nz], (nz, nz + start)), shape=M.shape)
         M = sp.csr_array(M + D)
         M.sort_indices()
+        if M.nnz < 2**31 and M.shape[1] < 2**31:
+            # scipy's sum may widen the indices; the memory plan counts int32 ones
+            M.indices = M.indices.astype(np.int32, copy=False)
+            M.indptr = M.indptr.astype(np.int32, copy=False)
     return M
 
 

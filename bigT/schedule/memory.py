@@ -24,7 +24,7 @@ fixed parts with a minimum working share, and says how much would do.
 from __future__ import annotations
 
 import os
-import resource
+import sys
 from dataclasses import dataclass
 
 from .. import config
@@ -59,8 +59,14 @@ def resident_bytes() -> int:
     try:
         with open("/proc/self/statm") as fh:
             return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    except (OSError, ValueError, IndexError, AttributeError):
+        pass
+    try:
+        import resource
+    except ImportError:  # Windows: no measurement; the plan then assumes nothing held
+        return 0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak if sys.platform == "darwin" else peak * 1024)  # bytes on macOS
 
 
 def stored_bytes(nnz: int, n_rows: int, itemsize: int) -> int:
@@ -176,5 +182,5 @@ def warn_if_rows_outgrow(plan: MemoryPlan, widest_row_bytes: int, growth: float,
         f"term), more than the {human_bytes(plan.work_bytes_per_task)} each task has under "
         f"memory_limit {human_bytes(plan.limit)}: the limit may be exceeded. A higher "
         "prune, a higher limit or a store with a smaller tile size keeps it",
-        MemoryLimitWarning, stacklevel=3)
+        MemoryLimitWarning, stacklevel=5)  # the caller of stratified_inverse
     return True

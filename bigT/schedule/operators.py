@@ -156,13 +156,43 @@ class StoreOperand:
 
     def whole(self) -> sp.csr_array:
         """The whole matrix in memory, read once per pass by the first task that needs
-        it and shared by the others (held by this operand, outside the LRU cache, so
-        tile rows of M cannot evict it mid-pass)."""
+        it and shared by the others (held by this operand, outside the tile cache, so
+        tile rows of M cannot evict it mid-pass; :meth:`release` lets it go).
+
+        Its arrays are allocated once at their final size (the stored tile counts give
+        it) and filled tile row by tile row, so reading it never holds two copies."""
         with self._lock:
             if self._whole is None:
-                js = [j for j in range(len(self.nonempty)) if self.nonempty[j]]
-                self._whole = self.assembled(js, cached=False)
+                self._whole = self._read_whole()
             return self._whole
+
+    def release(self) -> None:
+        """Drop the whole matrix read by :meth:`whole` (end of a pass)."""
+        with self._lock:
+            self._whole = None
+
+    def _read_whole(self) -> sp.csr_array:
+        n_rows, n_cols = self.shape
+        nnz = int(self._row_nnz.sum())
+        idx = np.int32 if nnz < 2**31 and max(n_rows, n_cols) < 2**31 else np.int64
+        indptr = np.zeros(n_rows + 1, dtype=idx)
+        indices = np.empty(nnz, dtype=idx)
+        data = np.empty(nnz, dtype=self.dtype)
+        pos = 0
+        for j in np.flatnonzero(self.nonempty):
+            r = self._read_row(int(j))
+            a, b = self.store.tile_row_range(int(j))
+            indices[pos:pos + r.nnz] = r.indices
+            data[pos:pos + r.nnz] = r.data
+            indptr[a + 1:b + 1] = np.diff(r.indptr)
+            pos += r.nnz
+            del r
+        if pos != nnz:  # the tile index and the tiles were checked to agree on read
+            raise RuntimeError(f"{self.store.path}: read {pos} entries, index says {nnz}")
+        np.cumsum(indptr, out=indptr)
+        out = sp.csr_array((data, indices, indptr), shape=(n_rows, n_cols))
+        out.has_sorted_indices = True
+        return out
 
     def matvec_row(self, i, V) -> np.ndarray:
         a, b = self.store.tile_row_range(i)
@@ -197,6 +227,8 @@ class MOperand:
         self.grid = tuple(T.grid)
         self.row_range = T.tile_row_range
         self._key = (T.path, "M", bool(zero_diagonal), id(finv))
+        self._scaled = None
+        self._scaled_lock = threading.Lock()
 
     def tile_columns(self, i) -> np.ndarray:
         """Tile columns of M's (possibly) nonzero tiles in tile row i: T's, plus the
@@ -230,7 +262,7 @@ class MOperand:
         M_row = self.cache.lookup(key)
         if M_row is None and not self.cache.has_room(self._row_bytes(i)):
             T_row = sp.csr_array(self.T.get_tile_row(i))
-            spmm_dense(T_row, -(self.finv[:, None] * V), out=out, n_threads=1)
+            spmm_dense(T_row, self._minus_finv_times(V), out=out, n_threads=1)
             if self.zero_diagonal:
                 out += (T_row.diagonal(k=a) * self.finv[a:b])[:, None] * V[a:b]
             else:
@@ -238,6 +270,13 @@ class MOperand:
             return out
         spmm_dense(self.row(i) if M_row is None else M_row, V, out=out, n_threads=1)
         return out
+
+    def _minus_finv_times(self, V) -> np.ndarray:
+        """-F^-1 V, computed once per mat-vec (every tile row task of it shares V)."""
+        with self._scaled_lock:
+            if self._scaled is None or self._scaled[0] is not V:
+                self._scaled = (V, -(self.finv[:, None] * V))
+            return self._scaled[1]
 
     def _row_bytes(self, i) -> int:
         a, b = self.T.tile_row_range(i)

@@ -137,3 +137,30 @@ def test_memory_limit_argument(tmp_path, make_store):
     assert not (tmp_path / "Y.zarr").exists()
 
 
+
+
+def test_at_most_one_whole_right_factor_held(tmp_path, make_store, monkeypatch):
+    """Each pass lets its whole right factor go: Newton-Schulz's S (first product) is
+    not still held when R (second product) is read whole."""
+    import weakref
+
+    from bigT.schedule.operators import StoreOperand
+
+    A = random_dominant(48, seed=9)
+    T = make_store(A, tile_size=16)
+    seen = weakref.WeakSet()
+    most = []
+    original = StoreOperand.whole
+
+    def whole(self):
+        seen.add(self)
+        out = original(self)
+        most.append(sum(op._whole is not None for op in seen))
+        return out
+
+    monkeypatch.setattr(StoreOperand, "whole", whole)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=3, prune=0,
+                                  method="newton-schulz", progress=False)
+    assert most and max(most) == 1
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense_stratified(A, rep.terms),
+                               atol=1e-10)

@@ -18,11 +18,13 @@ def _T(n, seed):
     return A
 
 
+@pytest.mark.parametrize("dtype, atol", [("float64", 1e-12), ("float32", 1e-5)])
 @pytest.mark.parametrize("zero_diagonal", [True, False])
-def test_matvec_from_T_rows_equals_M_rows_and_dense(tmp_path, zero_diagonal):
+def test_matvec_from_T_rows_equals_M_rows_and_dense(tmp_path, zero_diagonal, dtype, atol):
     n = 40
     A = _T(n, 3)
-    T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype="float64")
+    T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype=dtype)
+    A = T.to_scipy().toarray().astype(np.float64)  # the reference sees the stored values
     active = np.ones(n, bool)
     active[5] = False
     f = np.diag(A).copy() if zero_diagonal else np.diag(A) * 1.3
@@ -31,11 +33,33 @@ def test_matvec_from_T_rows_equals_M_rows_and_dense(tmp_path, zero_diagonal):
     if zero_diagonal:
         np.fill_diagonal(M_dense, 0.0)
     V = np.random.default_rng(1).standard_normal((n, 3))
+    finv = finv.astype(dtype)
     via_rows = MOperand(T, finv, active, zero_diagonal, TileCache(1 << 30))
     via_T = MOperand(T, finv, active, zero_diagonal, TileCache(0))
     for i in range(T.grid[0]):
         a, b = T.tile_row_range(i)
         ref = M_dense[a:b] @ V
-        np.testing.assert_allclose(via_rows.matvec_row(i, V), ref, atol=1e-12)
-        np.testing.assert_allclose(via_T.matvec_row(i, V), ref, atol=1e-12)
+        np.testing.assert_allclose(via_rows.matvec_row(i, V), ref, atol=atol)
+        np.testing.assert_allclose(via_T.matvec_row(i, V), ref, atol=atol)
     assert via_T.cache.used == 0 and via_rows.cache.used > 0
+
+
+def test_m_row_size_estimate_is_what_is_cached(tmp_path):
+    """has_room is asked with the size M's row will take (int32 indices even when D is
+    added, F != diag T), so a row that fits is kept, not rebuilt every mat-vec."""
+    from bigT.schedule.operators import nbytes
+
+    A = _T(40, 4)
+    T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype="float32")
+    active = np.ones(40, bool)
+    active[5] = False  # the unlit pixel: no entry of T, none of D
+    finv = np.where(active, 1 / (np.diag(A) * 1.3 + ~active), 0).astype(np.float32)
+    M = MOperand(T, finv, active, False, TileCache(1 << 20))
+    for i in range(T.grid[0]):
+        assert nbytes(M.row(i)) == M._row_bytes(i)
+        assert M.row(i).indices.dtype == np.int32
+    V = np.ones((40, 1))
+    for _ in range(3):
+        for i in range(T.grid[0]):
+            M.matvec_row(i, V)
+    assert M.cache.misses == T.grid[0]  # built once, then hits

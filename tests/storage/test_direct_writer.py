@@ -1,8 +1,6 @@
 """bigT writes tile arrays directly (storage._format.write_array_files); the files must
 be the ones zarr-python writes, and zarr must read them back."""
 
-import json
-
 import numpy as np
 import pytest
 import zarr
@@ -31,12 +29,9 @@ def test_same_files_as_zarr(tmp_path, monkeypatch, values, fill, level):
     zfiles = _files(zroot / "a" / "b")
     assert zfiles == _files(droot / "a" / "b")
     assert (zroot / "a" / "b" / "c" / "0").exists() == bool(values.size)
-    for f in zfiles:
+    for f in zfiles:  # zarr.json included: the same bytes
         f = zroot.joinpath("a", "b", f).relative_to(zroot)
-        if f.name == "zarr.json":
-            assert json.loads((zroot / f).read_text()) == json.loads((droot / f).read_text())
-        else:
-            assert (zroot / f).read_bytes() == (droot / f).read_bytes(), f
+        assert (zroot / f).read_bytes() == (droot / f).read_bytes(), f
     back = zarr.open_array(LocalStore(droot), path="a/b", mode="r")[...]
     np.testing.assert_array_equal(back, values)
     assert back.dtype == values.dtype
@@ -48,7 +43,7 @@ def test_checksum_is_checked_on_read(tmp_path):
     raw = bytearray(chunk.read_bytes())
     raw[3] ^= 0xFF
     chunk.write_bytes(bytes(raw))
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="checksum"):  # zarr checks what bigT wrote
         zarr.open_array(LocalStore(tmp_path), path="x", mode="r")[...]
 
 
