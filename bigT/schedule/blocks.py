@@ -82,28 +82,37 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
     return M
 
 
-def assemble_rows(row_blocks: list[tuple[int, sp.csr_array]], n_rows: int, n_cols: int,
-                  dtype) -> sp.csr_array:
+def assemble_rows(row_blocks, n_rows: int, n_cols: int, dtype, nnz: int) -> sp.csr_array:
     """An (n_rows, n_cols) CSR holding the given row blocks at their starts and empty
-    rows elsewhere (the right operand of a product restricted to some tile rows).
+    rows elsewhere (a right operand restricted to some tile rows, or whole).
 
     Parameters
     ----------
-    row_blocks : list of (start, csr_array of shape (r, n_cols)), ascending starts
+    row_blocks : iterable of (start, csr_array of shape (r, n_cols))
+        Ascending starts, consumed one at a time: a generator that reads each block
+        lets it go once copied, so assembling never holds two copies.
+    nnz : int
+        Their total entries (the stores' tile counts give it): the arrays are
+        allocated once at their final size.
     """
-    counts = np.zeros(n_rows, dtype=np.int64)
+    idx = np.int32 if nnz < 2**31 and max(n_rows, n_cols) < 2**31 else np.int64
+    indptr = np.zeros(n_rows + 1, dtype=idx)
+    indices = np.empty(nnz, dtype=idx)
+    data = np.empty(nnz, dtype=dtype)
+    pos, is_sorted = 0, True
     for start, B in row_blocks:
-        counts[start:start + B.shape[0]] = np.diff(B.indptr)
-    indptr = np.zeros(n_rows + 1, dtype=np.int64)
-    np.cumsum(counts, out=indptr[1:])
-    nnz = int(indptr[-1])
-    idx_dtype = np.int32 if nnz < 2**31 and n_cols < 2**31 else np.int64
-    if not row_blocks:
-        return sp.csr_array((n_rows, n_cols), dtype=dtype)
-    indices = np.concatenate([B.indices for _, B in row_blocks]).astype(idx_dtype, copy=False)
-    data = np.concatenate([B.data for _, B in row_blocks]).astype(dtype, copy=False)
-    out = sp.csr_array((data, indices, indptr.astype(idx_dtype)), shape=(n_rows, n_cols))
-    out.has_sorted_indices = all(B.has_sorted_indices for _, B in row_blocks)
+        if pos + B.nnz > nnz:
+            raise ValueError(f"row blocks hold more than the {nnz} entries announced")
+        indices[pos:pos + B.nnz] = B.indices
+        data[pos:pos + B.nnz] = B.data
+        indptr[start + 1:start + 1 + B.shape[0]] = np.diff(B.indptr)
+        is_sorted &= bool(B.has_sorted_indices)
+        pos += B.nnz
+    if pos != nnz:
+        raise ValueError(f"row blocks hold {pos} entries, {nnz} announced")
+    np.cumsum(indptr, out=indptr)
+    out = sp.csr_array((data, indices, indptr), shape=(n_rows, n_cols))
+    out.has_sorted_indices = is_sorted
     return out
 
 

@@ -149,50 +149,27 @@ class StoreOperand:
 
     def assembled(self, js, cached: bool = True) -> sp.csr_array:
         """The (n, n) matrix restricted to tile rows ``js`` (others empty); tile rows
-        come through the cache when there is one and ``cached``."""
+        come through the cache when there is one and ``cached``, and are read one at
+        a time into arrays of the final size."""
         read = self.row if cached else self._read_row
-        blocks_ = [(self.store.tile_row_range(j)[0], read(j)) for j in js]
-        return blocks.assemble_rows(blocks_, self.shape[0], self.shape[1], self.dtype)
+        return blocks.assemble_rows(
+            ((self.store.tile_row_range(j)[0], read(j)) for j in js),
+            self.shape[0], self.shape[1], self.dtype,
+            nnz=int(sum(self._row_nnz[j] for j in js)))
 
     def whole(self) -> sp.csr_array:
         """The whole matrix in memory, read once per pass by the first task that needs
         it and shared by the others (held by this operand, outside the tile cache, so
-        tile rows of M cannot evict it mid-pass; :meth:`release` lets it go).
-
-        Its arrays are allocated once at their final size (the stored tile counts give
-        it) and filled tile row by tile row, so reading it never holds two copies."""
+        tile rows of M cannot evict it mid-pass; :meth:`release` lets it go)."""
         with self._lock:
             if self._whole is None:
-                self._whole = self._read_whole()
+                self._whole = self.assembled(np.flatnonzero(self.nonempty), cached=False)
             return self._whole
 
     def release(self) -> None:
         """Drop the whole matrix read by :meth:`whole` (end of a pass)."""
         with self._lock:
             self._whole = None
-
-    def _read_whole(self) -> sp.csr_array:
-        n_rows, n_cols = self.shape
-        nnz = int(self._row_nnz.sum())
-        idx = np.int32 if nnz < 2**31 and max(n_rows, n_cols) < 2**31 else np.int64
-        indptr = np.zeros(n_rows + 1, dtype=idx)
-        indices = np.empty(nnz, dtype=idx)
-        data = np.empty(nnz, dtype=self.dtype)
-        pos = 0
-        for j in np.flatnonzero(self.nonempty):
-            r = self._read_row(int(j))
-            a, b = self.store.tile_row_range(int(j))
-            indices[pos:pos + r.nnz] = r.indices
-            data[pos:pos + r.nnz] = r.data
-            indptr[a + 1:b + 1] = np.diff(r.indptr)
-            pos += r.nnz
-            del r
-        if pos != nnz:  # the tile index and the tiles were checked to agree on read
-            raise RuntimeError(f"{self.store.path}: read {pos} entries, index says {nnz}")
-        np.cumsum(indptr, out=indptr)
-        out = sp.csr_array((data, indices, indptr), shape=(n_rows, n_cols))
-        out.has_sorted_indices = True
-        return out
 
     def matvec_row(self, i, V) -> np.ndarray:
         a, b = self.store.tile_row_range(i)

@@ -10,8 +10,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-import zarr
-from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from .. import config
 from ..errors import StoreError
@@ -48,31 +46,8 @@ def tile_path(i: int, j: int) -> str:
     return f"{ROWS_GROUP}/{i}/{j}"
 
 
-def codecs(level: int | None = None) -> list:
-    """zstd then crc32c: the checksum covers the compressed bytes as stored."""
-    return [ZstdCodec(level=config.ZSTD_LEVEL if level is None else level), Crc32cCodec()]
-
-
-def write_array(store, name: str, values: np.ndarray, fill_value, level: int | None = None):
-    """Create the 1-D zarr array ``name`` holding ``values`` (written whole).
-
-    ``write_empty_chunks=True`` so every chunk exists on disk: a chunk file that is
-    later missing is then damage, never a legitimately "empty" chunk.
-    """
-    n = int(values.shape[0])
-    chunk = max(1, min(n, config.CHUNK_ELEMENTS))
-    arr = zarr.create_array(
-        store, name=name, shape=(n,), dtype=values.dtype, chunks=(chunk,),
-        fill_value=fill_value, compressors=codecs(level), filters=None,
-        config={"write_empty_chunks": True}, overwrite=True,
-    )
-    if n:
-        arr[...] = values
-    return arr
-
-
 def _array_json(n: int, chunk: int, dtype: np.dtype, fill_value, level: int) -> dict:
-    """The zarr.json zarr-python 3 writes for :func:`write_array`'s arrays."""
+    """The zarr.json zarr-python 3 writes for :func:`write_array_files`'s arrays."""
     if isinstance(fill_value, float) and np.isnan(fill_value):
         fill = "NaN"
     else:
@@ -97,7 +72,12 @@ def _array_json(n: int, chunk: int, dtype: np.dtype, fill_value, level: int) -> 
 
 def write_array_files(root: Path, name: str, values: np.ndarray, fill_value,
                       level: int | None = None) -> None:
-    """:func:`write_array` for a local store, writing the files directly.
+    """Create the 1-D zarr v3 array ``name`` under ``root`` holding ``values``, written
+    whole, as files.
+
+    Codecs bytes (little endian), zstd (``config.ZSTD_LEVEL``), crc32c; chunks of
+    ``min(len, config.CHUNK_ELEMENTS)``; every chunk written (zarr's
+    ``write_empty_chunks=True``), so a chunk file that is later missing is damage.
 
     Why: zarr-python spends ~3 ms per array in its event-loop round trips and
     metadata machinery, more than the encoding of a typical tile; a tile row of a
@@ -132,7 +112,7 @@ def write_array_files(root: Path, name: str, values: np.ndarray, fill_value,
 
 def read_array_files(adir: Path) -> np.ndarray | None:
     """The whole 1-D array in directory ``adir``, read from its files directly; None
-    when its zarr.json is not the layout :func:`write_array` produces (the caller
+    when its zarr.json is not the layout :func:`write_array_files` produces (the caller
     then reads it through zarr).
 
     Same semantics as zarr's read: a missing chunk file reads as the fill value (the

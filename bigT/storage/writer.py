@@ -368,7 +368,8 @@ class BlockCSRWriter:
                                 dtype=np.int64)
             try:
                 for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
-                    fmt.write_array(self._store, name, values, fmt.FILL_INT, self.zstd_level)
+                    fmt.write_array_files(self.path, name, values, fmt.FILL_INT,
+                                          self.zstd_level)
                 self._attrs["nnz"] = int(tile_nnz.sum())
                 self._attrs["complete"] = True
                 self._write_root()

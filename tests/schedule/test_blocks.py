@@ -1,0 +1,30 @@
+"""blocks.assemble_rows: row blocks placed at their starts, arrays of the final size."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from bigT.schedule.blocks import assemble_rows
+
+
+def test_assemble_rows_places_blocks_and_leaves_other_rows_empty():
+    A = sp.csr_array(sp.random(4, 9, density=0.4, random_state=1, dtype=np.float32))
+    B = sp.csr_array((3, 9), dtype=np.float32)  # an empty block
+    C = sp.csr_array(sp.random(2, 9, density=0.5, random_state=2, dtype=np.float32))
+    blocks_ = [(1, A), (5, B), (10, C)]
+    out = assemble_rows(iter(blocks_), 12, 9, np.float32, nnz=A.nnz + C.nnz)
+    ref = np.zeros((12, 9), np.float32)
+    ref[1:5] = A.toarray()
+    ref[10:12] = C.toarray()
+    np.testing.assert_array_equal(out.toarray(), ref)
+    assert out.indices.dtype == np.int32 and out.has_sorted_indices
+    empty = assemble_rows(iter([]), 6, 6, np.float64, nnz=0)
+    assert empty.shape == (6, 6) and empty.nnz == 0
+
+
+def test_assemble_rows_refuses_a_wrong_count():
+    A = sp.csr_array(np.eye(3, dtype=np.float32))
+    with pytest.raises(ValueError, match="3 entries, 4 announced"):
+        assemble_rows(iter([(0, A)]), 3, 3, np.float32, nnz=4)
+    with pytest.raises(ValueError, match="more than the 2 entries"):
+        assemble_rows(iter([(0, A)]), 3, 3, np.float32, nnz=2)
