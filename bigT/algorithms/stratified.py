@@ -541,7 +541,8 @@ def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, 
             f"the spectral radius of M = I - T F^-1 is about {rho:.4f} >= 1 "
             f"(first_bounce={fb.kind!r}): the series diverges. Try first_bounce='diag', "
             "a higher threshold on T's small entries (or denoising it), fixing "
-            "negative or zero diagonal entries, or force=True to run anyway", T.path)
+            "negative or zero diagonal entries, or force=True (bigT invert --force) to run "
+            "anyway", T.path)
     t_rho = time.perf_counter() - t_rho
 
     base_meta = {"method": method, "prune": prune, "first_bounce": fb.kind,

@@ -42,7 +42,10 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=2,
                    help="threads of the local scheduler (default %(default)s)")
     p.add_argument("--memory-limit", default=None, metavar="SIZE",
-                   help="bound the tile cache and product batches, e.g. 2GiB")
+                   help="bound the resident memory of the whole process, e.g. 2GiB: what "
+                        "the process already holds is measured and the rest shared out "
+                        "(tile cache, a shared right factor, per-task batches); a limit "
+                        "too small is refused with the sizes")
     p.add_argument("--json", default=None, metavar="FILE",
                    help="also write the report as JSON")
     p.add_argument("--force", action="store_true",

@@ -141,15 +141,14 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     minimum = workers * config.MEMORY_MIN_WORK_BYTES
     if rest < minimum:
         need = baseline + headroom + workers * (fixed + config.MEMORY_MIN_WORK_BYTES)
-        mib = 1 << 20
         raise MemoryLimitError(
-            f"memory_limit {limit / mib:.0f} MiB is too small for this run: the process "
-            f"already holds {baseline / mib:.0f} MiB (interpreter and libraries), and each "
-            f"of {workers} tasks needs {fixed / mib:.0f} MiB that no plan can shrink (one "
+            f"memory_limit {human_bytes(limit)} is too small for this run: the process "
+            f"already holds {human_bytes(baseline)} (interpreter and libraries), and each "
+            f"of {workers} tasks needs {human_bytes(fixed)} that no plan can shrink (one "
             f"tile row of M, {max_tile_row_nnz} entries, and the product's accumulators "
             f"for {n_cols} columns) plus at least "
-            f"{config.MEMORY_MIN_WORK_BYTES / mib:.0f} MiB to work in; "
-            f"give at least {need / mib:.0f} MiB, fewer workers, or a store with a smaller "
+            f"{human_bytes(config.MEMORY_MIN_WORK_BYTES)} to work in; "
+            f"give at least {human_bytes(need)}, fewer workers, or a store with a smaller "
             "tile size")
     # The cache of M's tile rows saves rebuilding them from T at every term and
     # mat-vec; a shared right factor saves re-reading its tile rows per output chunk.

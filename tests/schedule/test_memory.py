@@ -27,8 +27,8 @@ def test_plan_shares_what_is_left_after_baseline_and_fixed_parts():
     assert plan.fixed_per_task == fixed
     total = (plan.baseline + 2 * (plan.fixed_per_task + plan.work_bytes_per_task)
              + plan.cache_bytes + plan.whole_bytes)
-    assert total == 1024 * MiB - config.MEMORY_HEADROOM_BYTES or \
-        1024 * MiB - config.MEMORY_HEADROOM_BYTES - 2 <= total <= 1024 * MiB
+    # all of it, less the headroom (up to rounding of the integer shares)
+    assert 0 <= 1024 * MiB - config.MEMORY_HEADROOM_BYTES - total <= 2
     assert plan.cache_bytes > 0 and plan.whole_bytes > 0 and plan.work_bytes_per_task > 0
     assert "memory limit 1024 MiB" in plan.describe()
 

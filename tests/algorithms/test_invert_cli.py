@@ -1,0 +1,73 @@
+"""``bigT invert`` end to end: the per-term table, --json, resume, ``bigT info`` of the
+result, and one-line errors (exit 2) for a limit too small, a diverging series and a
+bad --first-bounce."""
+
+import json
+
+import numpy as np
+
+import bigT
+from bigT.cli import main
+
+from inverse_helpers import dense, dense_stratified, random_dominant
+
+
+def _lines(text):
+    return [line for line in text.strip().splitlines() if line.strip()]
+
+
+def test_invert_table_json_info_and_resume(tmp_path, make_store, capsys):
+    A = random_dominant(48, seed=11)
+    T = make_store(A, tile_size=16)
+    X, J = tmp_path / "X.zarr", tmp_path / "r.json"
+    args = ["invert", T.path.as_posix(), "-o", str(X), "--terms", "2", "--prune", "0",
+            "--no-progress"]
+    assert main(args + ["--json", str(J)]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split() for line in _lines(out) if line.split()[0] in ("0", "1", "2")]
+    assert [r[0] for r in rows] == ["0", "1", "2"]
+    assert "held term 2 (power, prune 0, first bounce diag)" in out
+    report = json.loads(J.read_text())
+    assert report["terms"] == 2 and len(report["history"]) == 3
+    assert [int(r[3]) for r in rows] == [h["nnz_X"] for h in report["history"]]
+    np.testing.assert_allclose(dense(X), dense_stratified(A, 2), atol=1e-10)
+
+    assert main(["info", str(X)]) == 0
+    info = capsys.readouterr().out
+    for key, value in (("term", "2"), ("prune", "0"), ("first_bounce", "diag")):
+        assert any(line.split()[:2] == [key, value] for line in _lines(info)), key
+    assert any(line.split()[0] == "residual" for line in _lines(info))
+
+    assert main(args) == 0  # the same command again: nothing left to do
+    assert "stopped: already held term 2" in capsys.readouterr().out
+
+
+def test_invert_errors_are_one_line(tmp_path, make_store, capsys):
+    A = random_dominant(32, seed=12)
+    T = make_store(A, tile_size=16)
+    cases = [
+        (["--memory-limit", "64MiB"], "memory_limit 64 MiB is too small", "Y1.zarr"),
+        (["--first-bounce", str(tmp_path / "nope.npy")], "neither diag, identity", "Y2.zarr"),
+    ]
+    for extra, message, name in cases:
+        assert main(["invert", T.path.as_posix(), "-o", str(tmp_path / name),
+                     "--no-progress"] + extra) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(_lines(err)) == 1, err
+        assert not (tmp_path / name).exists()
+
+
+def test_invert_diverging_series_stops_with_the_number(tmp_path, make_store, capsys):
+    n = 24
+    rng = np.random.default_rng(3)
+    # one bright mode (T 1 = 3 1): M = I - T has the eigenvalue about 1 - 3 = -2
+    A = np.diag(rng.uniform(0.05, 0.1, n)) + rng.uniform(2.5, 3.5, (n, n)) / n
+    T = make_store(A, tile_size=8)
+    assert main(["invert", T.path.as_posix(), "-o", str(tmp_path / "X.zarr"),
+                 "--first-bounce", "identity", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "diverges" in err and "--force" in err and len(_lines(err)) == 1
+    rho = float(err.split("is about ")[1].split()[0])
+    M = np.eye(n) - A
+    assert rho >= 1 and abs(rho - max(abs(np.linalg.eigvals(M)))) < 0.05 * rho
+    assert isinstance(bigT.DivergenceError("x"), bigT.BigTError)
