@@ -342,7 +342,7 @@ class _Progress:
 # --- the estimates -----------------------------------------------------------------------
 
 def _m_matvec(M: MOperand, V, client, workers, tag):
-    return graph.matvec(f"matvec-M-{tag}", M.matvec_row, M.grid[0], M.row_range, V,
+    return graph.matvec(f"matvec-M-{tag}", M.row_matvec(V), M.grid[0], M.row_range, V,
                         token_parts=(M.T.path,), client=client, workers=workers)
 
 

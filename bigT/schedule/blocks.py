@@ -99,8 +99,12 @@ def assemble_rows(row_blocks, n_rows: int, n_cols: int, dtype, nnz: int) -> sp.c
     indptr = np.zeros(n_rows + 1, dtype=idx)
     indices = np.empty(nnz, dtype=idx)
     data = np.empty(nnz, dtype=dtype)
-    pos, is_sorted = 0, True
+    pos, is_sorted, end = 0, True, 0
     for start, B in row_blocks:
+        if start < end or start + B.shape[0] > n_rows:
+            raise ValueError(f"row block at {start} ({B.shape[0]} rows) overlaps the one "
+                             f"before (ending at {end}) or passes row {n_rows}")
+        end = start + B.shape[0]
         if pos + B.nnz > nnz:
             raise ValueError(f"row blocks hold more than the {nnz} entries announced")
         indices[pos:pos + B.nnz] = B.indices

@@ -204,8 +204,6 @@ class MOperand:
         self.grid = tuple(T.grid)
         self.row_range = T.tile_row_range
         self._key = (T.path, "M", bool(zero_diagonal), id(finv))
-        self._scaled = None
-        self._scaled_lock = threading.Lock()
 
     def tile_columns(self, i) -> np.ndarray:
         """Tile columns of M's (possibly) nonzero tiles in tile row i: T's, plus the
@@ -225,13 +223,14 @@ class MOperand:
         """Tile row i of M, shape (rows_i, n), global columns."""
         return self.cache.get(self._key + ("row", int(i)), lambda: self._make_row(int(i)))
 
-    def matvec_row(self, i, V) -> np.ndarray:
+    def matvec_row(self, i, V, minus_finv_v=None) -> np.ndarray:
         """Rows of tile row i of M @ V, V of shape (n, k).
 
         When M's tile row is not cached and the cache has no room for it, T's tile row
         is used as read, M V = D V - T F^-1 V (with M's zero diagonal restored when
         F = diag T): building M's row costs more than the product and would not be
-        kept.
+        kept. ``minus_finv_v`` (a callable giving -F^-1 V) lets the tasks of one
+        mat-vec share that product (see :meth:`row_matvec`).
         """
         a, b = self.T.tile_row_range(i)
         out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
@@ -239,7 +238,8 @@ class MOperand:
         M_row = self.cache.lookup(key)
         if M_row is None and not self.cache.has_room(self._row_bytes(i)):
             T_row = sp.csr_array(self.T.get_tile_row(i))
-            spmm_dense(T_row, self._minus_finv_times(V), out=out, n_threads=1)
+            scaled = minus_finv_v() if minus_finv_v else -(self.finv[:, None] * V)
+            spmm_dense(T_row, scaled, out=out, n_threads=1)
             if self.zero_diagonal:
                 out += (T_row.diagonal(k=a) * self.finv[a:b])[:, None] * V[a:b]
             else:
@@ -248,12 +248,18 @@ class MOperand:
         spmm_dense(self.row(i) if M_row is None else M_row, V, out=out, n_threads=1)
         return out
 
-    def _minus_finv_times(self, V) -> np.ndarray:
-        """-F^-1 V, computed once per mat-vec (every tile row task of it shares V)."""
-        with self._scaled_lock:
-            if self._scaled is None or self._scaled[0] is not V:
-                self._scaled = (V, -(self.finv[:, None] * V))
-            return self._scaled[1]
+    def row_matvec(self, V):
+        """``matvec_row`` for the tile-row tasks of one mat-vec with V: -F^-1 V is
+        computed at most once, shared, and let go with the returned function."""
+        held, lock = [], threading.Lock()
+
+        def minus_finv_v():
+            with lock:
+                if not held:
+                    held.append(-(self.finv[:, None] * V))
+                return held[0]
+
+        return lambda i, V_: self.matvec_row(i, V_, minus_finv_v)
 
     def _row_bytes(self, i) -> int:
         a, b = self.T.tile_row_range(i)

@@ -28,3 +28,20 @@ def test_assemble_rows_refuses_a_wrong_count():
         assemble_rows(iter([(0, A)]), 3, 3, np.float32, nnz=4)
     with pytest.raises(ValueError, match="more than the 2 entries"):
         assemble_rows(iter([(0, A)]), 3, 3, np.float32, nnz=2)
+
+
+def test_assemble_rows_keeps_int32_and_reports_unsorted_blocks():
+    U = sp.csr_array((np.array([1.0, 2.0]), np.array([5, 1], dtype=np.int64),
+                      np.array([0, 2], dtype=np.int64)), shape=(1, 8))
+    U.has_sorted_indices = False
+    out = assemble_rows(iter([(2, U)]), 4, 8, np.float64, nnz=2)
+    assert out.indices.dtype == np.int32 and not out.has_sorted_indices
+    np.testing.assert_array_equal(out.toarray()[2], [0, 2, 0, 0, 0, 1, 0, 0])
+
+
+def test_assemble_rows_refuses_overlapping_or_out_of_range_blocks():
+    A = sp.csr_array(np.eye(2, dtype=np.float32))
+    with pytest.raises(ValueError, match="overlaps"):
+        assemble_rows(iter([(2, A), (3, A)]), 6, 2, np.float32, nnz=4)
+    with pytest.raises(ValueError, match="passes row 3"):
+        assemble_rows(iter([(2, A)]), 3, 2, np.float32, nnz=2)

@@ -41,6 +41,7 @@ def test_matvec_from_T_rows_equals_M_rows_and_dense(tmp_path, zero_diagonal, dty
         ref = M_dense[a:b] @ V
         np.testing.assert_allclose(via_rows.matvec_row(i, V), ref, atol=atol)
         np.testing.assert_allclose(via_T.matvec_row(i, V), ref, atol=atol)
+        np.testing.assert_allclose(via_T.row_matvec(V)(i, V), ref, atol=atol)
     assert via_T.cache.used == 0 and via_rows.cache.used > 0
 
 
