@@ -50,12 +50,17 @@ def test_same_files_as_zarr(tmp_path, monkeypatch, values, fill, level):
     assert back.dtype == values.dtype
 
 
-def test_checksum_is_checked_on_read(tmp_path):
-    fmt.write_array_files(tmp_path, "x", np.arange(100, dtype=np.int64), fmt.FILL_INT, 1)
-    chunk = tmp_path / "x" / "c" / "0"
+def _write_damaged(root, name):
+    """An int64 array written by bigT, one byte of its chunk flipped afterwards."""
+    fmt.write_array_files(root, name, np.arange(100, dtype=np.int64), fmt.FILL_INT, 1)
+    chunk = root / name / "c" / "0"
     raw = bytearray(chunk.read_bytes())
     raw[3] ^= 0xFF
     chunk.write_bytes(bytes(raw))
+
+
+def test_checksum_is_checked_on_read(tmp_path):
+    _write_damaged(tmp_path, "x")
     with pytest.raises(ValueError, match="checksum"):  # zarr checks what bigT wrote
         zarr.open_array(LocalStore(tmp_path), path="x", mode="r")[...]
 
@@ -80,11 +85,7 @@ def test_direct_read_equals_zarr_read(tmp_path, monkeypatch, values, fill):
 
 
 def test_direct_read_refuses_damage_and_defers_foreign_layouts(tmp_path):
-    fmt.write_array_files(tmp_path, "x", np.arange(100, dtype=np.int64), fmt.FILL_INT, 1)
-    chunk = tmp_path / "x" / "c" / "0"
-    raw = bytearray(chunk.read_bytes())
-    raw[3] ^= 0xFF
-    chunk.write_bytes(bytes(raw))
+    _write_damaged(tmp_path, "x")
     with pytest.raises(ValueError, match="checksum mismatch in chunk file x/c/0"):
         fmt.read_array_files(tmp_path / "x")
     zarr.create_array(LocalStore(tmp_path), name="y", data=np.arange(5), chunks=(5,),
