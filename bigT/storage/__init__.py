@@ -2,11 +2,27 @@
 
 Public API: :func:`open`, :func:`from_scipy`, :class:`BlockCSR`,
 :class:`BlockCSRWriter`, :func:`set_redirect` (for versioned stores) and
-:class:`PixelOrder`.
+:class:`PixelOrder`; for writers in other processes: :func:`create_store`,
+:func:`write_tile_row` (idempotent), :func:`finalize_store` (from the row markers);
+the versioned inverse store: :class:`InverseStore`.
 """
 
+from .attrs import StoreAttrs
 from .block_csr import BlockCSR, open, set_redirect  # noqa: A004
+from .inverse_store import InverseRecord, InverseStore, TermRecord
 from .pixel_order import PixelOrder
-from .writer import BlockCSRWriter, from_scipy
+from .writer import (
+    BlockCSRWriter,
+    clean_partial_rows,
+    create_store,
+    finalize_store,
+    from_scipy,
+    read_store_attrs,
+    write_tile_row,
+)
 
-__all__ = ["BlockCSR", "BlockCSRWriter", "PixelOrder", "from_scipy", "open", "set_redirect"]
+__all__ = [
+    "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "PixelOrder",
+    "StoreAttrs", "TermRecord", "clean_partial_rows", "create_store", "finalize_store",
+    "from_scipy", "open", "read_store_attrs", "set_redirect", "write_tile_row",
+]

@@ -26,7 +26,7 @@ from ..errors import (
     StoreError,
 )
 from . import _format as fmt
-from .pixel_order import PixelOrder
+from .attrs import StoreAttrs, read_raw_attrs
 
 
 # --- small helpers -----------------------------------------------------------------
@@ -57,23 +57,17 @@ def group_json(attributes: dict) -> dict:
     return {"zarr_format": 3, "node_type": "group", "attributes": attributes}
 
 
-def _read_bigt_attrs(path: Path) -> dict:
-    if not path.exists():
-        raise StoreError("no such store", path)
-    if not path.is_dir():
-        raise StoreError("not a bigT store (not a directory)", path)
-    meta = fmt.read_json(path / "zarr.json")
-    if meta.get("zarr_format") != 3 or meta.get("node_type") != "group":
-        raise StoreError("not a bigT store (zarr.json is not a zarr v3 group)", path)
-    attrs = (meta.get("attributes") or {}).get(fmt.ATTRS_KEY)
-    if not isinstance(attrs, dict) or attrs.get("format") != fmt.FORMAT_NAME:
-        raise StoreError(f"not a bigT store (zarr group without attrs['{fmt.ATTRS_KEY}'] "
-                         f"of format {fmt.FORMAT_NAME!r})", path)
-    version = attrs.get("version")
-    if not isinstance(version, int) or version > fmt.FORMAT_VERSION:
-        raise StoreError(f"unsupported {fmt.FORMAT_NAME} version {version!r} "
-                         f"(this bigT reads up to {fmt.FORMAT_VERSION})", path)
-    return attrs
+def write_root_attrs(path: Path, attrs: StoreAttrs) -> None:
+    """Set ``attributes["bigT"]`` of the root ``zarr.json`` of the store at ``path`` to
+    ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`)."""
+    meta_path = Path(path) / "zarr.json"
+    meta = fmt.read_json(meta_path) if meta_path.exists() else group_json({})
+    meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = attrs.to_dict()
+    atomic_write_json(meta_path, meta)
+
+
+#: Kept for the writer and the inverse store: the raw attributes after the checks.
+_read_bigt_attrs = read_raw_attrs
 
 
 def _check_redirect(target: str, root: Path) -> Path:
@@ -127,7 +121,8 @@ def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
         if "redirect" in attrs:
             raise StoreError("redirect points at another redirect (one level is followed)", root)
         root = target
-    return BlockCSR(root, attrs, allow_incomplete=allow_incomplete, redirected_from=redirected_from)
+    return BlockCSR(root, StoreAttrs.from_dict(attrs, root), allow_incomplete=allow_incomplete,
+                    redirected_from=redirected_from)
 
 
 class BlockCSR:
@@ -155,30 +150,19 @@ class BlockCSR:
     tile_nnz : (n_tiles_stored,) int64
     """
 
-    def __init__(self, path: Path, attrs: dict, *, allow_incomplete: bool = False,
+    def __init__(self, path: Path, attrs: StoreAttrs, *, allow_incomplete: bool = False,
                  redirected_from: Path | None = None):
         self.path = Path(path)
         self.redirected_from = redirected_from
-        self._attrs = attrs
-        try:
-            self.shape = tuple(int(s) for s in attrs["shape"])
-            self.tile_size = int(attrs["tile_size"])
-            self.dtype = np.dtype(attrs["dtype"])
-            self.inner_format = attrs.get("inner_format", "csr")
-            self.complete = bool(attrs.get("complete", False))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise CorruptStoreError(f"bad bigT attributes ({exc!r})", self.path) from None
-        if len(self.shape) != 2 or min(self.shape) < 0 or self.tile_size < 1:
-            raise CorruptStoreError(f"bad shape {self.shape} or tile_size {self.tile_size}", self.path)
-        if self.dtype.name not in fmt.DTYPES:
-            raise CorruptStoreError(f"unsupported dtype {self.dtype.name}", self.path)
-        if self.inner_format not in fmt.INNER_FORMATS:
-            raise StoreError(f"inner_format {self.inner_format!r} is not supported by this bigT "
-                             f"(supported: {', '.join(fmt.INNER_FORMATS)})", self.path)
-        ts = self.tile_size
-        self.grid = (-(-self.shape[0] // ts), -(-self.shape[1] // ts))
-        self.pixel_order = PixelOrder.from_attrs(attrs)
-        self.metadata = dict(attrs.get("metadata") or {})
+        self.attrs = attrs
+        self.shape = attrs.shape
+        self.tile_size = attrs.tile_size
+        self.dtype = attrs.dtype
+        self.inner_format = attrs.inner_format
+        self.complete = attrs.complete
+        self.grid = attrs.grid
+        self.pixel_order = attrs.pixel_order
+        self.metadata = dict(attrs.metadata)
         self._store = LocalStore(self.path, read_only=True)
         self._arrays: dict[tuple[int, int], tuple] = {}
         self.missing_tile_rows: list[int] = []
@@ -210,8 +194,8 @@ class BlockCSR:
             problem = "tile_indices out of range (a chunk file is missing or damaged)"
         elif nnz.size and nnz.min() < 1:
             problem = "tile_nnz holds non-positive counts (a chunk file is missing or damaged)"
-        elif int(nnz.sum()) != int(self._attrs.get("nnz", -1)):
-            problem = f"tile_nnz sums to {int(nnz.sum())}, attrs record nnz={self._attrs.get('nnz')}"
+        elif int(nnz.sum()) != (-1 if self.attrs.nnz is None else self.attrs.nnz):
+            problem = f"tile_nnz sums to {int(nnz.sum())}, attrs record nnz={self.attrs.nnz}"
         else:
             for i in range(n_rows):
                 if np.any(np.diff(indices[indptr[i]:indptr[i + 1]]) <= 0):
@@ -384,6 +368,29 @@ class BlockCSR:
         out.has_sorted_indices = True
         return out
 
+    def get_rows(self, start: int, stop: int) -> sp.csr_array:
+        """Rows ``start:stop`` as a csr_array of shape (stop - start, n_cols), global
+        columns; the range may lie inside one tile row or span several."""
+        start, stop = int(start), int(stop)
+        if not 0 <= start <= stop <= self.shape[0]:
+            raise ShapeMismatchError(f"rows {start}:{stop} out of range [0, {self.shape[0]}]",
+                                     self.path)
+        ts = self.tile_size
+        parts = []
+        for i in range(start // ts, -(-stop // ts)):
+            r0, r1 = self.tile_row_range(i)
+            row = self.get_tile_row(i)
+            parts.append(row if (r0, r1) == (max(r0, start), min(r1, stop))
+                         else row[max(r0, start) - r0:min(r1, stop) - r0])
+        if len(parts) == 1:
+            out = sp.csr_array(parts[0])
+        elif parts:
+            out = sp.csr_array(sp.vstack(parts, format="csr"))
+        else:
+            return sp.csr_array((0, self.shape[1]), dtype=self.dtype)
+        out.has_sorted_indices = True
+        return out
+
     def diagonal(self) -> np.ndarray:
         """(min(shape),) array of dtype: the main diagonal, reading diagonal tiles only."""
         n = min(self.shape)
@@ -469,18 +476,12 @@ class BlockCSR:
 
     def update_metadata(self, **items) -> None:
         """Merge ``items`` into the free metadata dict, atomically on disk."""
-        try:
-            json.dumps(items, allow_nan=False)
-        except (TypeError, ValueError) as exc:
-            raise BigTError(f"metadata is not JSON-serialisable ({exc})", self.path) from None
-        meta_path = self.path / "zarr.json"
-        meta = fmt.read_json(meta_path)
-        attrs = meta.setdefault("attributes", {}).setdefault(fmt.ATTRS_KEY, {})
-        merged = dict(attrs.get("metadata") or {})
-        merged.update(items)
-        attrs["metadata"] = merged
-        atomic_write_json(meta_path, meta)
-        self.metadata = merged
+        on_disk = StoreAttrs.from_dict(_read_bigt_attrs(self.path), self.path)
+        attrs = on_disk.replace(metadata={**on_disk.metadata, **items})
+        attrs.check_json(self.path)
+        write_root_attrs(self.path, attrs)
+        self.attrs = attrs
+        self.metadata = dict(attrs.metadata)
 
     def _missing_chunk_files(self, limit: int | None = None) -> list[str]:
         """Chunk files the stored tiles need but that are not on disk (stat only)."""
@@ -567,7 +568,7 @@ class BlockCSR:
             "path": str(self.path),
             "redirected_from": None if self.redirected_from is None else str(self.redirected_from),
             "format": fmt.FORMAT_NAME,
-            "version": int(self._attrs.get("version", fmt.FORMAT_VERSION)),
+            "version": self.attrs.version,
             "inner_format": self.inner_format,
             "complete": self.complete,
             "missing_tile_rows": list(self.missing_tile_rows),

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from zarr.storage import LocalStore
 
 from .. import config
 from ..errors import (
@@ -24,7 +23,15 @@ from ..errors import (
     StoreError,
 )
 from . import _format as fmt
-from .block_csr import BlockCSR, _read_bigt_attrs, _row_marker, atomic_write_json, group_json
+from .attrs import StoreAttrs
+from .block_csr import (
+    BlockCSR,
+    _read_bigt_attrs,
+    _row_marker,
+    atomic_write_json,
+    group_json,
+    write_root_attrs,
+)
 from .block_csr import open as open_store
 from .pixel_order import PIXEL_ORDERS, PixelOrder
 
@@ -130,6 +137,195 @@ def _split_tiles(indptr, indices, data, n_rows: int, ts: int):
         yield int(j), ptr, local, np.ascontiguousarray(data[sel])
 
 
+def _validate_block(path: Path, attrs: StoreAttrs, i: int, block) -> sp.csr_array:
+    """Tile row ``i``'s block as a CSR of the store's dtype, checked (shape, CSR
+    structure, finite values that fit the dtype), duplicates summed, zeros dropped."""
+    r0, r1 = attrs.tile_row_range(i)
+    want = (r1 - r0, attrs.shape[1])
+    where = f"tile row {i}"
+    if sp.issparse(block):
+        if block.shape != want:
+            raise ShapeMismatchError(f"{where}: block of shape {block.shape}, expected {want}", path)
+        if not np.issubdtype(block.dtype, np.number) or np.issubdtype(block.dtype, np.complexfloating):
+            raise InvalidMatrixError(f"{where}: values of dtype {block.dtype} are not real numbers", path)
+        if block.format != "csr":
+            block = block.tocsr()
+        indptr, indices = np.asarray(block.indptr), np.asarray(block.indices)
+        if (indptr.shape != (want[0] + 1,) or (indptr.size and indptr[0] != 0)
+                or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size
+                or np.asarray(block.data).size != indices.size):
+            raise InvalidMatrixError(f"{where}: malformed CSR index pointer", path)
+        if indices.size and (indices.min() < 0 or indices.max() >= want[1]):
+            raise InvalidMatrixError(f"{where}: column indices out of range [0, {want[1]})", path)
+        data = np.asarray(block.data)
+        if not np.isfinite(data).all():
+            bad = int(np.count_nonzero(~np.isfinite(data)))
+            raise InvalidMatrixError(f"{where}: {bad} NaN/Inf values", path)
+        with np.errstate(over="ignore"):
+            cast = data.astype(attrs.dtype)
+        if not np.isfinite(cast).all():
+            raise InvalidMatrixError(f"{where}: values overflow {attrs.dtype.name}", path)
+        out = sp.csr_array((cast, indices.copy(), indptr.copy()), shape=want)
+    else:
+        arr = np.asarray(block)
+        if arr.shape != want:
+            raise ShapeMismatchError(f"{where}: block of shape {arr.shape}, expected {want}", path)
+        if not np.isfinite(arr).all():
+            raise InvalidMatrixError(f"{where}: NaN/Inf values", path)
+        out = sp.csr_array(arr.astype(attrs.dtype))
+    out.sum_duplicates()
+    out.eliminate_zeros()
+    return out
+
+
+def create_store(path, attrs: StoreAttrs) -> None:
+    """Write the header of an empty store at ``path`` (root and ``rows`` groups):
+    what :func:`write_tile_row` and :func:`finalize_store` need to find."""
+    path = Path(path)
+    attrs.check_json(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
+        atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", group_json({}))
+        write_root_attrs(path, attrs)
+    except OSError as exc:
+        raise (_wrap_oserror(exc, path, "the store header") or exc) from exc
+
+
+def read_store_attrs(path) -> StoreAttrs:
+    """The attributes of the (non-redirect) store at ``path``."""
+    path = Path(path)
+    raw = _read_bigt_attrs(path)
+    if "redirect" in raw:
+        raise StoreError("is a redirect (versioned) store root, not a store to write", path)
+    return StoreAttrs.from_dict(raw, path)
+
+
+def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> bool:
+    """Write tile row ``i`` of the store at ``path`` whole, idempotently.
+
+    The row is built in a hidden sibling directory (``rows/.{i}.<hex>.partial``), its
+    completion marker written last, and the directory then renamed to ``rows/{i}``: a
+    row is on disk complete or not at all. A row already complete is left alone, so a
+    task run twice (a scheduler's retry after a worker loss, or two processes at once)
+    writes it once; the loser of a race deletes its own copy.
+
+    Parameters
+    ----------
+    path : str or os.PathLike, a store created by :func:`create_store`
+    attrs : StoreAttrs, the store's (shape, tile size, dtype)
+    i : int, ``0 <= i < attrs.grid[0]``
+    block : sparse matrix/array or ndarray, shape (rows_i, n_cols), global columns
+
+    Returns
+    -------
+    bool
+        False when the row was already complete (nothing written).
+    """
+    path, i = Path(path), int(i)
+    if not 0 <= i < attrs.grid[0]:
+        raise ShapeMismatchError(f"tile row {i} out of range [0, {attrs.grid[0]})", path)
+    if _row_marker(path, i) is not None:
+        return False
+    block = _validate_block(path, attrs, i, block)
+    tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
+    try:
+        tmp.mkdir()
+        cols, counts = [], []
+        for j, ptr, ind, dat in _split_tiles(block.indptr, block.indices, block.data,
+                                             block.shape[0], attrs.tile_size):
+            _write_tile(tmp / str(j), ptr, ind, dat, zstd_level)
+            cols.append(j)
+            counts.append(int(ind.size))
+        atomic_write_json(tmp / "zarr.json", group_json(
+            {fmt.ROW_ATTRS_KEY: {"complete": True, "tile_columns": cols, "tile_nnz": counts}}))
+        return _move_row_into_place(tmp, path, i)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        wrapped = _wrap_oserror(exc, path, f"tile row {i}")
+        if wrapped is not None:
+            raise wrapped from exc
+        raise
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
+    """Rename the complete row ``tmp`` to ``rows/{i}``; False (and ``tmp`` deleted)
+    when another writer got there first."""
+    try:
+        os.rename(tmp, path / fmt.row_path(i))  # replaces an empty directory only
+        return True
+    except OSError as exc:
+        if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or _row_marker(path, i) is None:
+            raise
+    shutil.rmtree(tmp, ignore_errors=True)
+    return False
+
+
+def completed_rows(path, n_rows: int) -> dict[int, tuple[list[int], list[int]]]:
+    """``{i: (tile_columns, tile_nnz)}`` of the tile rows marked complete on disk."""
+    out = {}
+    for i in range(n_rows):
+        rec = _row_marker(Path(path), i)
+        if rec is not None:
+            out[i] = (list(rec["tile_columns"]), list(rec["tile_nnz"]))
+    return out
+
+
+def clean_partial_rows(path, n_rows: int) -> int:
+    """Delete what interrupted writers left in ``rows/``: hidden ``.partial`` rows and
+    row directories without a completion marker (bigT before 0.2 wrote rows in
+    place). Run by the one process that owns the store, before writers start, never
+    while they write. Returns the number of directories deleted."""
+    rows = Path(path) / fmt.ROWS_GROUP
+    gone = 0
+    if not rows.is_dir():
+        return 0
+    for entry in rows.iterdir():
+        stale = entry.name.endswith(".partial") or (
+            entry.name.isdigit() and int(entry.name) < n_rows
+            and _row_marker(Path(path), int(entry.name)) is None)
+        if stale and entry.is_dir():
+            shutil.rmtree(entry, ignore_errors=True)
+            gone += 1
+    return gone
+
+
+def finalize_store(path, zstd_level=None) -> BlockCSR:
+    """Write the tile index from the row markers on disk, mark the store complete and
+    open it: whoever wrote the rows (threads, other processes), only the markers count.
+
+    Raises
+    ------
+    IncompleteStoreError
+        Naming the tile rows not yet written.
+    """
+    path = Path(path)
+    attrs = read_store_attrs(path)
+    if attrs.complete:
+        return open_store(path)
+    n_rows = attrs.grid[0]
+    rows = completed_rows(path, n_rows)
+    missing = [i for i in range(n_rows) if i not in rows]
+    if missing:
+        first = ", ".join(str(i) for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        raise IncompleteStoreError(f"cannot finalize: {len(missing)} of {n_rows} tile rows "
+                                   f"not written (rows {first})", path)
+    tile_indptr = np.zeros(n_rows + 1, dtype=np.int64)
+    np.cumsum([len(rows[i][0]) for i in range(n_rows)], out=tile_indptr[1:])
+    tile_indices = np.array([j for i in range(n_rows) for j in rows[i][0]], dtype=np.int64)
+    tile_nnz = np.array([c for i in range(n_rows) for c in rows[i][1]], dtype=np.int64)
+    try:
+        for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
+            fmt.write_array_files(path, name, values, fmt.FILL_INT, zstd_level)
+        write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
+    except OSError as exc:
+        raise (_wrap_oserror(exc, path, "the tile index") or exc) from exc
+    return open_store(path)
+
+
 class BlockCSRWriter:
     """Write a block-CSR store tile row by tile row.
 
@@ -147,7 +343,7 @@ class BlockCSRWriter:
         Free JSON metadata.
     resume : bool
         Continue an interrupted store at ``path``: complete tile rows are kept and
-        ``write_tile_row`` skips them; a half-written row is discarded.
+        ``write_tile_row`` skips them; what interrupted writers left is deleted.
     overwrite : bool
         Replace an existing bigT store at ``path`` (never anything else).
     zstd_level : int, optional
@@ -155,9 +351,9 @@ class BlockCSRWriter:
 
     Notes
     -----
-    Each tile row is written whole (all its tile arrays) and only then marked complete
-    by an atomic rewrite of its group's zarr.json; :meth:`finalize` writes the tile
-    index and sets ``complete`` on the root.
+    Rows go through :func:`write_tile_row` (whole, idempotent, any order, any number
+    of threads or processes); :meth:`finalize` is :func:`finalize_store`, which reads
+    the row markers on disk.
     """
 
     def __init__(self, path, shape, *, tile_size: int | None = None, dtype="float32",
@@ -170,76 +366,44 @@ class BlockCSRWriter:
             raise ShapeMismatchError(f"shape must be (n_rows, n_cols), got {shape!r}", self.path) from None
         if len(shape) != 2 or min(shape) < 0:
             raise ShapeMismatchError(f"shape must be (n_rows, n_cols) >= 0, got {shape}", self.path)
-        self.shape = shape
-        self.tile_size = int(config.DEFAULT_TILE_SIZE if tile_size is None else tile_size)
-        if self.tile_size < 1:
+        tile_size = int(config.DEFAULT_TILE_SIZE if tile_size is None else tile_size)
+        if tile_size < 1:
             raise ShapeMismatchError(f"tile_size must be >= 1, got {tile_size}", self.path)
-        self.dtype = _check_dtype(dtype, self.path)
+        dt = _check_dtype(dtype, self.path)
         if pixel_order is not None:
             if not isinstance(pixel_order, PixelOrder):
                 raise TypeError("pixel_order must be a PixelOrder or None")
             if shape != (pixel_order.n, pixel_order.n):
                 raise ShapeMismatchError(f"image shape {pixel_order.image_shape} has {pixel_order.n} "
                                          f"pixels, the matrix is {shape}", self.path)
-        self.pixel_order = pixel_order
         self.zstd_level = zstd_level
-        self.grid = (-(-shape[0] // self.tile_size), -(-shape[1] // self.tile_size))
-        self._rows: dict[int, tuple[list[int], list[int]]] = {}
-        self._finalized = False
-
-        attrs = {
-            "format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
-            "inner_format": "csr", "shape": list(shape), "tile_size": self.tile_size,
-            "dtype": self.dtype.name, "nnz": None, "complete": False,
-            "metadata": dict(metadata or {}),
-        }
-        if pixel_order is not None:
-            attrs.update(pixel_order.to_attrs())
+        attrs = StoreAttrs(shape, tile_size, dt, metadata=metadata or {},
+                           pixel_order=pixel_order)
         if resume and self.path.exists() and not (self.path.is_dir() and not any(self.path.iterdir())):
-            self._attrs = self._resume(attrs)
+            self.attrs = self._resume(attrs)
         else:
             _remove_existing(self.path, overwrite)
-            self._attrs = attrs
-            try:
-                self.path.mkdir(parents=True, exist_ok=True)
-                (self.path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
-                atomic_write_json(self.path / fmt.ROWS_GROUP / "zarr.json", group_json({}))
-                self._write_root()
-            except OSError as exc:
-                raise (_wrap_oserror(exc, self.path, "the store header") or exc) from exc
-        self._store = LocalStore(self.path)
+            create_store(self.path, attrs)
+            self.attrs = attrs
+        self.shape, self.tile_size, self.dtype = shape, tile_size, dt
+        self.pixel_order = pixel_order
+        self.grid = attrs.grid
+        self._rows = set(completed_rows(self.path, self.grid[0]))
 
-    def _write_root(self):
-        import json
-        try:
-            json.dumps(self._attrs, allow_nan=False)
-        except (TypeError, ValueError) as exc:
-            raise BigTError(f"metadata is not JSON-serialisable ({exc})", self.path) from None
-        atomic_write_json(self.path / "zarr.json", group_json({fmt.ATTRS_KEY: self._attrs}))
-
-    def _resume(self, attrs: dict) -> dict:
-        old = _read_bigt_attrs(self.path)
-        if "redirect" in old:
-            raise StoreError("cannot resume into a redirect (versioned) store root", self.path)
+    def _resume(self, attrs: StoreAttrs) -> StoreAttrs:
+        old = read_store_attrs(self.path)
         for key in ("shape", "tile_size", "dtype", "inner_format"):
-            if old.get(key) != attrs[key]:
-                raise ShapeMismatchError(f"cannot resume: store has {key}={old.get(key)!r}, "
-                                         f"writer asks {attrs[key]!r}", self.path)
-        old_po = PixelOrder.from_attrs(old)
-        if old_po != self.pixel_order:
-            raise ShapeMismatchError(f"cannot resume: store has pixel order {old_po}, writer asks "
-                                     f"{self.pixel_order}", self.path)
-        for i in range(self.grid[0]):
-            rec = _row_marker(self.path, i)
-            if rec is not None:
-                self._rows[i] = (list(rec["tile_columns"]), list(rec["tile_nnz"]))
-            elif (self.path / fmt.row_path(i)).exists():
-                shutil.rmtree(self.path / fmt.row_path(i))  # half-written: discard
-        if attrs["metadata"]:
-            merged = dict(old.get("metadata") or {})
-            merged.update(attrs["metadata"])
-            old["metadata"] = merged
-        self._finalized = bool(old.get("complete"))
+            if getattr(old, key) != getattr(attrs, key):
+                raise ShapeMismatchError(f"cannot resume: store has {key}={getattr(old, key)!r}, "
+                                         f"writer asks {getattr(attrs, key)!r}", self.path)
+        if old.pixel_order != attrs.pixel_order:
+            raise ShapeMismatchError(f"cannot resume: store has pixel order {old.pixel_order}, "
+                                     f"writer asks {attrs.pixel_order}", self.path)
+        clean_partial_rows(self.path, old.grid[0])
+        if attrs.metadata and not old.complete:
+            old = old.replace(metadata={**old.metadata, **attrs.metadata})
+            old.check_json(self.path)
+            write_root_attrs(self.path, old)
         return old
 
     # --- writing -------------------------------------------------------------------
@@ -254,48 +418,10 @@ class BlockCSRWriter:
         return [i for i in range(self.grid[0]) if i not in self._rows]
 
     def tile_row_range(self, i: int) -> tuple[int, int]:
-        return i * self.tile_size, min((i + 1) * self.tile_size, self.shape[0])
-
-    def _validate_block(self, i: int, block) -> sp.csr_array:
-        r0, r1 = self.tile_row_range(i)
-        want = (r1 - r0, self.shape[1])
-        where = f"tile row {i}"
-        if sp.issparse(block):
-            if block.shape != want:
-                raise ShapeMismatchError(f"{where}: block of shape {block.shape}, expected {want}", self.path)
-            if not np.issubdtype(block.dtype, np.number) or np.issubdtype(block.dtype, np.complexfloating):
-                raise InvalidMatrixError(f"{where}: values of dtype {block.dtype} are not real numbers", self.path)
-            if block.format != "csr":
-                block = block.tocsr()
-            indptr, indices = np.asarray(block.indptr), np.asarray(block.indices)
-            if (indptr.shape != (want[0] + 1,) or (indptr.size and indptr[0] != 0)
-                    or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size
-                    or np.asarray(block.data).size != indices.size):
-                raise InvalidMatrixError(f"{where}: malformed CSR index pointer", self.path)
-            if indices.size and (indices.min() < 0 or indices.max() >= want[1]):
-                raise InvalidMatrixError(f"{where}: column indices out of range [0, {want[1]})", self.path)
-            data = np.asarray(block.data)
-            if not np.isfinite(data).all():
-                bad = int(np.count_nonzero(~np.isfinite(data)))
-                raise InvalidMatrixError(f"{where}: {bad} NaN/Inf values", self.path)
-            with np.errstate(over="ignore"):
-                cast = data.astype(self.dtype)
-            if not np.isfinite(cast).all():
-                raise InvalidMatrixError(f"{where}: values overflow {self.dtype.name}", self.path)
-            out = sp.csr_array((cast, indices.copy(), indptr.copy()), shape=want)
-        else:
-            arr = np.asarray(block)
-            if arr.shape != want:
-                raise ShapeMismatchError(f"{where}: block of shape {arr.shape}, expected {want}", self.path)
-            if not np.isfinite(arr).all():
-                raise InvalidMatrixError(f"{where}: NaN/Inf values", self.path)
-            out = sp.csr_array(arr.astype(self.dtype))
-        out.sum_duplicates()
-        out.eliminate_zeros()
-        return out
+        return self.attrs.tile_row_range(i)
 
     def write_tile_row(self, i: int, block) -> bool:
-        """Write tile row ``i`` whole, then mark it complete.
+        """Write tile row ``i`` whole, then mark it complete (:func:`write_tile_row`).
 
         Parameters
         ----------
@@ -311,92 +437,41 @@ class BlockCSRWriter:
             False when the row was already complete (a resumed writer skips it).
         """
         i = int(i)
-        if self._finalized and i in self._rows:
+        if i in self._rows and 0 <= i < self.grid[0]:
             return False
-        if not 0 <= i < self.grid[0]:
-            raise ShapeMismatchError(f"tile row {i} out of range [0, {self.grid[0]})", self.path)
-        if i in self._rows:
-            return False
-        block = self._validate_block(i, block)
-        row_dir = self.path / fmt.row_path(i)
-        cols, counts = [], []
-        try:
-            if row_dir.exists():
-                shutil.rmtree(row_dir)
-            row_dir.mkdir(parents=True)
-            atomic_write_json(row_dir / "zarr.json",
-                              group_json({fmt.ROW_ATTRS_KEY: {"complete": False}}))
-            for j, ptr, ind, dat in _split_tiles(block.indptr, block.indices, block.data,
-                                                 block.shape[0], self.tile_size):
-                base = fmt.tile_path(i, j)
-                _write_tile(self._store, base, ptr, ind, dat, self.zstd_level)
-                cols.append(j)
-                counts.append(int(ind.size))
-            # The marker is written last: a crash before this line leaves the row
-            # incomplete, never a half-written row that looks valid.
-            atomic_write_json(row_dir / "zarr.json", group_json(
-                {fmt.ROW_ATTRS_KEY: {"complete": True, "tile_columns": cols, "tile_nnz": counts}}))
-        except OSError as exc:
-            wrapped = _wrap_oserror(exc, self.path, f"tile row {i}")
-            shutil.rmtree(row_dir, ignore_errors=True)
-            if wrapped is not None:
-                raise wrapped from exc
-            raise
-        self._rows[i] = (cols, counts)
-        return True
+        written = write_tile_row(self.path, self.attrs, i, block, self.zstd_level)
+        self._rows.add(i)
+        return written
 
     def finalize(self) -> BlockCSR:
-        """Write the tile index, mark the store complete and open it for reading.
+        """Write the tile index from the row markers, mark the store complete and open
+        it for reading (:func:`finalize_store`).
 
         Raises
         ------
         IncompleteStoreError
             Naming the tile rows not yet written.
         """
-        missing = self.missing_tile_rows
-        if missing:
-            first = ", ".join(str(i) for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
-            raise IncompleteStoreError(f"cannot finalize: {len(missing)} of {self.grid[0]} tile rows "
-                                       f"not written (rows {first})", self.path)
-        if not self._finalized:
-            lengths = [len(self._rows[i][0]) for i in range(self.grid[0])]
-            tile_indptr = np.zeros(self.grid[0] + 1, dtype=np.int64)
-            np.cumsum(lengths, out=tile_indptr[1:])
-            tile_indices = np.array([j for i in range(self.grid[0]) for j in self._rows[i][0]],
-                                    dtype=np.int64)
-            tile_nnz = np.array([c for i in range(self.grid[0]) for c in self._rows[i][1]],
-                                dtype=np.int64)
-            try:
-                for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
-                    fmt.write_array_files(self.path, name, values, fmt.FILL_INT,
-                                          self.zstd_level)
-                self._attrs["nnz"] = int(tile_nnz.sum())
-                self._attrs["complete"] = True
-                self._write_root()
-            except OSError as exc:
-                raise (_wrap_oserror(exc, self.path, "the tile index") or exc) from exc
-            self._finalized = True
-        return open_store(self.path)
+        return finalize_store(self.path, self.zstd_level)
 
     def __enter__(self):
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        if exc_type is None and not self._finalized:
+        if exc_type is None:
             self.finalize()
         return False
 
 
-def _write_tile(store, base: str, indptr, indices, data, level) -> None:
+def _write_tile(tdir: Path, indptr, indices, data, level) -> None:
     """A tile's group and its three arrays, the files written directly
     (:func:`~._format.write_array_files`; zarr's own path costs ~3 ms per array)."""
-    root = Path(store.root)
-    (root / base).mkdir(parents=True, exist_ok=True)
-    with open(root / base / "zarr.json", "w", encoding="utf-8") as f:
+    tdir.mkdir(parents=True, exist_ok=True)
+    with open(tdir / "zarr.json", "w", encoding="utf-8") as f:
         json.dump(group_json({}), f, indent=2)
-    fmt.write_array_files(root, f"{base}/indptr", indptr, fmt.FILL_INT, level)
-    fmt.write_array_files(root, f"{base}/indices", indices, fmt.FILL_INT, level)
-    fmt.write_array_files(root, f"{base}/data", data, fmt.FILL_FLOAT, level)
+    fmt.write_array_files(tdir, "indptr", indptr, fmt.FILL_INT, level)
+    fmt.write_array_files(tdir, "indices", indices, fmt.FILL_INT, level)
+    fmt.write_array_files(tdir, "data", data, fmt.FILL_FLOAT, level)
 
 
 def _as_checked_csr(A, path, require_square: bool) -> sp.csr_array:

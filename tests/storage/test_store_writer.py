@@ -78,11 +78,16 @@ def test_raise_mid_row_leaves_half_written_row_incomplete(tmp_path, A, monkeypat
     with pytest.raises(KeyboardInterrupt):
         _write_rows(w, A, [2])
     monkeypatch.setattr(writer_mod, "_write_tile", real)
-    assert (path / "rows" / "2" / "0" / "data").exists()   # half of the row is on disk
+    # the half row was built aside and never became rows/2
+    assert not (path / "rows" / "2").exists()
+    # what a SIGKILL would leave: a hidden partial row; resume deletes it
+    leftover = path / "rows" / ".2.dead.partial"
+    (leftover / "0").mkdir(parents=True)
     with pytest.raises(IncompleteStoreError, match="3 of 5"):
         open_store(path)
     w2 = BlockCSRWriter(path, SHAPE, tile_size=TS, dtype="float64", resume=True)
     assert w2.completed_tile_rows == [0, 1]
+    assert not leftover.exists()
     _write_rows(w2, A, range(5))
     _same(w2.finalize(), A)
 

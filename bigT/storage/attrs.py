@@ -1,0 +1,160 @@
+"""A store's attributes as one frozen, validated record (as zarr-python's
+``ArrayV3Metadata`` is): :meth:`StoreAttrs.from_dict` parses and checks the
+``attributes["bigT"]`` of a root ``zarr.json`` once, :meth:`StoreAttrs.to_dict` is the
+only way back, and a change is a new record (:meth:`StoreAttrs.replace`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..errors import BigTError, CorruptStoreError, StoreError
+from . import _format as fmt
+from .pixel_order import PixelOrder
+
+
+def _frozen(mapping) -> Mapping[str, Any]:
+    return MappingProxyType(dict(mapping or {}))
+
+
+def _plain(value):
+    """JSON-ready copy of ``value`` (read-only mappings become dicts)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class StoreAttrs:
+    """``attributes["bigT"]`` of a block-CSR store's root group (docs/FORMAT.md).
+
+    Attributes
+    ----------
+    shape : (int, int)
+    tile_size : int >= 1
+    dtype : numpy.dtype, float32 or float64
+    inner_format : str, "csr"
+    nnz : int or None, None until the store is finalized
+    complete : bool
+    metadata : read-only mapping, free JSON
+    pixel_order : PixelOrder or None
+    version : int, the format version written
+    """
+
+    shape: tuple[int, int]
+    tile_size: int
+    dtype: np.dtype
+    inner_format: str = "csr"
+    nnz: int | None = None
+    complete: bool = False
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+    pixel_order: PixelOrder | None = None
+    version: int = fmt.FORMAT_VERSION
+
+    def __post_init__(self):
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "tile_size", int(self.tile_size))
+        object.__setattr__(self, "dtype", np.dtype(self.dtype))
+        object.__setattr__(self, "metadata", _frozen(self.metadata))
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """(n_tile_rows, n_tile_cols)."""
+        ts = self.tile_size
+        return -(-self.shape[0] // ts), -(-self.shape[1] // ts)
+
+    def tile_row_range(self, i: int) -> tuple[int, int]:
+        """(start, stop) matrix rows of tile row ``i``."""
+        return i * self.tile_size, min((i + 1) * self.tile_size, self.shape[0])
+
+    def replace(self, **changes) -> "StoreAttrs":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """The JSON object stored under ``attributes["bigT"]``."""
+        out = {
+            "format": fmt.FORMAT_NAME, "version": self.version,
+            "inner_format": self.inner_format, "shape": list(self.shape),
+            "tile_size": self.tile_size, "dtype": self.dtype.name, "nnz": self.nnz,
+            "complete": self.complete, "metadata": _plain(self.metadata),
+        }
+        if self.pixel_order is not None:
+            out.update(self.pixel_order.to_attrs())
+        return out
+
+    def check_json(self, path) -> None:
+        """BigTError naming ``path`` when the metadata is not JSON-serialisable."""
+        try:
+            json.dumps(self.to_dict(), allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise BigTError(f"metadata is not JSON-serialisable ({exc})", path) from None
+
+    @classmethod
+    def from_dict(cls, attrs: Mapping, path) -> "StoreAttrs":
+        """Parse ``attributes["bigT"]`` of a (non-redirect) store.
+
+        Raises
+        ------
+        CorruptStoreError
+            A field is missing or out of range.
+        StoreError
+            An inner format this bigT does not read.
+        """
+        try:
+            shape = tuple(int(s) for s in attrs["shape"])
+            tile_size = int(attrs["tile_size"])
+            dtype = np.dtype(attrs["dtype"])
+            nnz = attrs.get("nnz")
+            nnz = None if nnz is None else int(nnz)
+            metadata = attrs.get("metadata") or {}
+            if not isinstance(metadata, Mapping):
+                raise TypeError("metadata is not an object")
+            pixel_order = PixelOrder.from_attrs(dict(attrs))
+        except (KeyError, TypeError, ValueError, BigTError) as exc:
+            raise CorruptStoreError(f"bad bigT attributes ({exc!r})", path) from None
+        if len(shape) != 2 or min(shape) < 0 or tile_size < 1:
+            raise CorruptStoreError(f"bad shape {shape} or tile_size {tile_size}", path)
+        if dtype.name not in fmt.DTYPES:
+            raise CorruptStoreError(f"unsupported dtype {dtype.name}", path)
+        inner = attrs.get("inner_format", "csr")
+        if inner not in fmt.INNER_FORMATS:
+            raise StoreError(f"inner_format {inner!r} is not supported by this bigT "
+                             f"(supported: {', '.join(fmt.INNER_FORMATS)})", path)
+        return cls(shape, tile_size, dtype, inner, nnz, bool(attrs.get("complete", False)),
+                   metadata, pixel_order, int(attrs.get("version", fmt.FORMAT_VERSION)))
+
+
+def read_raw_attrs(path: Path) -> dict:
+    """``attributes["bigT"]`` of the group at ``path`` as stored (a store's, or a
+    redirect's), after the checks every reader makes.
+
+    Raises
+    ------
+    StoreError
+        No such directory, no zarr v3 group, no bigT attributes, a newer version.
+    """
+    if not path.exists():
+        raise StoreError("no such store", path)
+    if not path.is_dir():
+        raise StoreError("not a bigT store (not a directory)", path)
+    meta = fmt.read_json(path / "zarr.json")
+    if meta.get("zarr_format") != 3 or meta.get("node_type") != "group":
+        raise StoreError("not a bigT store (zarr.json is not a zarr v3 group)", path)
+    attrs = (meta.get("attributes") or {}).get(fmt.ATTRS_KEY)
+    if not isinstance(attrs, dict) or attrs.get("format") != fmt.FORMAT_NAME:
+        raise StoreError(f"not a bigT store (zarr group without attrs['{fmt.ATTRS_KEY}'] "
+                         f"of format {fmt.FORMAT_NAME!r})", path)
+    version = attrs.get("version")
+    if not isinstance(version, int) or version > fmt.FORMAT_VERSION:
+        raise StoreError(f"unsupported {fmt.FORMAT_NAME} version {version!r} "
+                         f"(this bigT reads up to {fmt.FORMAT_VERSION})", path)
+    return attrs

@@ -1,0 +1,263 @@
+"""The versioned inverse store: a root group whose record says which term it holds,
+one subgroup per term (``tKKKK/X``, ``tKKKK/P``, ...), and a redirect to the current
+X (docs/FORMAT.md, "The inverse store").
+
+:class:`InverseStore` is the only code that writes the root's ``zarr.json``; the
+engine hands it frozen records (:class:`InverseRecord`, :class:`TermRecord`).
+Publishing a term is: the X store records its own term, the root's redirect flips to
+it (one atomic rename), then the root's record is replaced (another). A crash between
+the two renames is repaired on the next open (:meth:`InverseStore.reconcile`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..errors import StoreError
+from .attrs import StoreAttrs
+from .block_csr import BlockCSR, atomic_write_json, group_json, set_redirect
+from .block_csr import open as open_store
+from .writer import clean_partial_rows, create_store, finalize_store, read_store_attrs
+
+#: Attribute of the root group holding the engine's record (beside the storage
+#: layer's ``bigT`` attribute, which holds the redirect).
+INVERSE_ATTR = "bigT_inverse"
+_TERM_DIR = re.compile(r"t(\d{4})")
+
+
+def jsonable(obj):
+    """A JSON-ready copy of ``obj``: numpy scalars as Python numbers, NaN/Inf as None."""
+    if isinstance(obj, Mapping):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+@dataclass(frozen=True)
+class TermRecord:
+    """One row of the report: the state after term ``term``."""
+
+    term: int
+    seconds: float
+    nnz_P: int
+    nnz_X: int
+    tiles_computed: int
+    tiles_skipped: int
+    rows_skipped: int
+    residual: float | None
+    residual_abs: float | None
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "TermRecord":
+        names = [f.name for f in dataclasses.fields(cls)]
+        return cls(**{k: d.get(k) for k in names})
+
+    def to_dict(self) -> dict:
+        return jsonable(dataclasses.asdict(self))
+
+
+@dataclass(frozen=True)
+class InverseRecord:
+    """The root's ``bigT_inverse`` attribute.
+
+    Attributes
+    ----------
+    params : mapping
+        What the inverse depends on (T's identity, prune, method, first bounce); a
+        run with other parameters is refused.
+    term : int or None
+        T_term^-1 is held (None before term 0 is complete).
+    dir : int or None
+        Term directory the redirect points at (``term`` once the series is exhausted
+        may be beyond it: every later term equals it).
+    history : tuple of TermRecord
+    spectral_radius : float or None
+    exhausted_at : int or None
+    tile_size : int or None
+        Tile size of the term stores (T's, or a divisor of it for more tasks).
+    excluded_pixels : int or None
+    residual : float or None, the last term's relative residual estimate
+    """
+
+    params: Mapping[str, Any]
+    term: int | None = None
+    dir: int | None = None
+    history: tuple[TermRecord, ...] = ()
+    spectral_radius: float | None = None
+    exhausted_at: int | None = None
+    tile_size: int | None = None
+    excluded_pixels: int | None = None
+    residual: float | None = None
+
+    def replace(self, **changes) -> "InverseRecord":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["history"] = [h.to_dict() for h in self.history]
+        return jsonable(d)
+
+    @classmethod
+    def from_dict(cls, d: Mapping, path) -> "InverseRecord":
+        try:
+            if not isinstance(d.get("params"), Mapping):
+                raise TypeError("no params")
+            history = tuple(TermRecord.from_dict(h) for h in d.get("history") or ())
+            opt_int = (lambda v: None if v is None else int(v))
+            return cls(dict(d["params"]), opt_int(d.get("term")), opt_int(d.get("dir")),
+                       history, d.get("spectral_radius"), opt_int(d.get("exhausted_at")),
+                       opt_int(d.get("tile_size")), opt_int(d.get("excluded_pixels")),
+                       d.get("residual"))
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise StoreError(f"damaged inverse record ({exc}); delete the store to start "
+                             "over", path) from None
+
+
+def term_dir(k: int) -> str:
+    return f"t{k:04d}"
+
+
+class InverseStore:
+    """The inverse store at ``path`` (a directory).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    """
+
+    def __init__(self, path):
+        self.path = Path(os.fspath(path))
+
+    # --- the record --------------------------------------------------------------
+
+    def _root(self) -> dict | None:
+        try:
+            with open(self.path / "zarr.json") as f:
+                return json.load(f)
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError) as exc:
+            raise StoreError(f"unreadable zarr.json ({exc})", self.path) from None
+
+    def read_record(self) -> InverseRecord | None:
+        root = self._root()
+        raw = None if root is None else (root.get("attributes") or {}).get(INVERSE_ATTR)
+        return None if raw is None else InverseRecord.from_dict(raw, self.path)
+
+    def save(self, record: InverseRecord) -> None:
+        """Replace the record in the root's attributes (one atomic rename)."""
+        root = self._root() or group_json({})
+        root.setdefault("attributes", {})[INVERSE_ATTR] = record.to_dict()
+        atomic_write_json(self.path / "zarr.json", root)
+
+    def open_or_create(self, params: Mapping) -> InverseRecord:
+        """The record of the inverse at ``path``: a new one (the directory created), or
+        the one held when it was made with the same ``params`` (reconciled).
+
+        Raises
+        ------
+        StoreError
+            ``path`` holds something else, or an inverse with other parameters.
+        """
+        params = jsonable(params)
+        if not self.path.exists():
+            self.path.mkdir(parents=True)
+            record = InverseRecord(params)
+            self.save(record)
+            return record
+        record = self.read_record()
+        if record is None:
+            raise StoreError("exists and is not a bigT inverse store; choose another path "
+                             "or delete it", self.path)
+        if record.params != params:
+            diff = [k for k in params if record.params.get(k) != params[k]]
+            held = ", ".join(f"{k}={record.params.get(k)}" for k in diff)
+            raise StoreError("holds an inverse with different " + ", ".join(diff) + " than "
+                             f"asked (it holds {held}); rerun with the same parameters to "
+                             "resume, or choose another path", self.path)
+        return self.reconcile(record)
+
+    def reconcile(self, record: InverseRecord) -> InverseRecord:
+        """Adopt the term the redirect points at when the record lags behind it (a
+        crash between the flip and the record)."""
+        try:
+            current = open_store(self.path)
+        except StoreError:
+            return record
+        meta = current.metadata.get("inverse") or {}
+        d = meta.get("dir")
+        if d is None or (record.dir is not None and d <= record.dir):
+            return record
+        history = record.history
+        if meta.get("record"):
+            history = history + (TermRecord.from_dict(meta["record"]),)
+        record = record.replace(term=d, dir=d, residual=meta.get("residual"), history=history)
+        self.save(record)
+        return record
+
+    # --- term stores -------------------------------------------------------------
+
+    def term_path(self, k: int, name: str) -> Path:
+        return self.path / term_dir(k) / name
+
+    def complete_term_store(self, k: int, name: str) -> BlockCSR | None:
+        """The finished store ``name`` of term ``k``, or None."""
+        path = self.term_path(k, name)
+        if not path.exists():
+            return None
+        try:
+            return open_store(path)
+        except StoreError:
+            return None
+
+    def prepare_term_store(self, k: int, name: str, attrs: StoreAttrs) -> Path:
+        """Create the store ``name`` of term ``k`` with ``attrs``, or keep the one an
+        interrupted run left (its complete rows; what its writers left half done is
+        deleted now, before any writer starts). Returns its path."""
+        path = self.term_path(k, name)
+        if path.exists():
+            old = read_store_attrs(path)
+            if (old.shape, old.tile_size, old.dtype) == (attrs.shape, attrs.tile_size,
+                                                          attrs.dtype):
+                clean_partial_rows(path, old.grid[0])
+                return path
+            shutil.rmtree(path)
+        create_store(path, attrs)
+        return path
+
+    def finalize_term_store(self, k: int, name: str) -> BlockCSR:
+        return finalize_store(self.term_path(k, name))
+
+    def publish(self, record: InverseRecord, X: BlockCSR, term_metadata: Mapping) -> None:
+        """Make term ``record.dir`` the one readers see: X records its own term first
+        (so :meth:`reconcile` can repair a crash after the flip), then the redirect
+        flips to it, then the record is replaced."""
+        X.update_metadata(inverse=jsonable(term_metadata))
+        set_redirect(self.path, f"{term_dir(record.dir)}/X")
+        self.save(record)
+
+    def clean(self, keep: set[int]) -> None:
+        """Delete term directories other than ``keep`` (left by a crash after a flip)."""
+        for entry in self.path.iterdir():
+            m = _TERM_DIR.fullmatch(entry.name)
+            if m and int(m.group(1)) not in keep:
+                shutil.rmtree(entry, ignore_errors=True)
+
+    def drop_term(self, k: int) -> None:
+        shutil.rmtree(self.path / term_dir(k), ignore_errors=True)
+
