@@ -163,7 +163,7 @@ def throughput(args, out):
           f"X: {res['X']} ({X.nnz / n:.0f}/row)")
     X = bigT.open(X.path)  # from disk, nothing cached in the object
     from bigT.compensation import stream_matmul
-    from bigT.compensation._stream import TileCache
+    from bigT.schedule.worker import STATE
 
     rng = np.random.default_rng(0)
     frames = rng.uniform(0.2, 0.8, (args.frames, *size)).astype(np.float64)
@@ -177,12 +177,13 @@ def throughput(args, out):
     stream_matmul(X, V64[:, :1])  # compile the kernel, warm the page cache
     for K in (1, 64):
         V = np.ascontiguousarray(V64[:, :K])
-        wall, cpu = timed(lambda: stream_matmul(X, V))
+        wall, cpu = timed(lambda: stream_matmul(X, V, cache_bytes=0))
         res[f"pass_cold_K{K}_seconds"], res[f"pass_cold_K{K}_cpu_seconds"] = wall, cpu
-        cache = TileCache(args.cache_mb << 20)
-        stream_matmul(X, V, cache=cache)
+        cache = STATE.cache  # the process's tile cache
+        cache.drop_where(lambda path: True)
+        stream_matmul(X, V, cache_bytes=args.cache_mb << 20)
         h0, m0 = cache.hits, cache.misses
-        wall_w, cpu_w = timed(lambda: stream_matmul(X, V, cache=cache))
+        wall_w, cpu_w = timed(lambda: stream_matmul(X, V, cache_bytes=args.cache_mb << 20))
         res[f"pass_warm_K{K}_seconds"], res[f"pass_warm_K{K}_cpu_seconds"] = wall_w, cpu_w
         res[f"cache_fraction_K{K}"] = (cache.hits - h0) / max(cache.hits - h0 + cache.misses - m0, 1)
         print(f"  one pass over X, batch {K:>2}: read from disk {wall:.2f} s "

@@ -32,6 +32,14 @@ SPECTRAL_RADIUS_ITERATIONS = 30
 SPECTRAL_RADIUS_MIN_ITERATIONS = 10
 SPECTRAL_RADIUS_RTOL = 1e-3
 
+#: A pass has at least this many row blocks (tasks) per thread of the scheduler: the
+#: term stores' tile size is T's, halved until it gives that many (a cluster's threads
+#: all get work, and a slow block does not leave the others idle at the end)...
+TASKS_PER_THREAD = 4
+#: ...but a row block keeps at least this many rows: below it the per-task overhead
+#: (opening stores, reading T's tiles, writing tile files) outweighs the product.
+MIN_BLOCK_ROWS = 1024
+
 # --- compensation -------------------------------------------------------------------
 #: Frames streamed against each row tile of X at once.
 DEFAULT_BATCH = 64

@@ -69,5 +69,15 @@ class DiskFullError(BigTError):
     """The disk filled while writing; what was complete before is kept."""
 
 
+class TaskError(BigTError):
+    """A task of a pass failed for a reason outside bigT's own checks (a bug, a lost
+    file, a dead worker); the message names the pass, the rows and the cause."""
+
+
+class SchedulerError(BigTError):
+    """A scheduler that cannot be used: unreachable, or workers that cannot reach the
+    stores."""
+
+
 class MemoryLimitWarning(UserWarning):
     """A memory limit may be exceeded: something the plan cannot bound has grown."""

@@ -50,15 +50,22 @@ the issue). The report gives the relative value ||I - T X||_F / sqrt(n_kept) (th
 of the columns of I - T X), which ``tol`` is compared with, and the absolute one.
 T (X z) is computed as u - M u with u = F X z, the same T on the kept pixels.
 
-Out of core and resumable: the inverse store ``out`` is a versioned bigT store. Term k
-is written to a new subgroup ``tKKKK`` (X and, for the power form, P) with
-``BlockCSRWriter``; only when it is complete (and its residual estimated and recorded
-in its own metadata) does ``bigT.storage.set_redirect`` point the root at it (one atomic
-rename), and then the previous subgroup is deleted. A crash or Ctrl-C leaves the
-previous term readable; rerunning the same call resumes at the first incomplete tile
-row of the next term (the writers' resume). The root's attribute ``bigT_inverse``
-records the parameters (refused if they differ), the term held, the spectral radius
-and the per-term history; ``bigT info`` shows the X store's ``metadata["inverse"]``.
+Out of core and resumable: the inverse store ``out`` is a versioned bigT store
+(:class:`bigT.storage.InverseStore`). Term k is written to a new subgroup ``tKKKK``
+(X and, for the power form, P) by the tasks of its passes, each task writing its own
+tile rows; only when the term is complete (and its residual estimated and recorded in
+its own metadata) does the root's redirect flip to it (one atomic rename), and then
+the previous subgroup is deleted. A crash or Ctrl-C leaves the previous term readable;
+rerunning the same call resumes at the first incomplete row block of the next term.
+The root's attribute ``bigT_inverse`` records the parameters (refused if they differ),
+the term held, the spectral radius and the per-term history; ``bigT info`` shows the X
+store's ``metadata["inverse"]``.
+
+Where the tasks run: :mod:`bigT.schedule.runner` (local threads, or the workers of a
+dask cluster). The term stores take T's tile size, halved while that gives fewer than
+``config.TASKS_PER_THREAD`` row blocks per thread (down to ``config.MIN_BLOCK_ROWS``
+rows), so every thread of a cluster has work; the tile size is recorded and kept on
+resume.
 
 Paper §5.1 note: the printed eqs. 35-41 are not consistent with the printed T of eq. 34
 (eq. 37's diagonal is not the inverse of eq. 36's; eq. 38 is not symmetric where T is).
@@ -67,45 +74,35 @@ The tests compare with values computed independently (dense numpy) from eq. 34.
 
 from __future__ import annotations
 
-import json
+import hashlib
 import math
 import os
 import re
-import shutil
-import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from .. import config
-from ..errors import DivergenceError, NotSquareError, StoreError
-from ..schedule import graph, tasks
-from ..schedule._backend import BlockCSRWriter, open_store, set_redirect
-from ..schedule.memory import MemoryPlan, plan_memory, warn_if_rows_outgrow
-from ..schedule.operators import MOperand, StoreOperand, TileCache
+from ..errors import BigTError, DivergenceError, NotSquareError
+from ..schedule.matvec import matvec, matvec_spec
+from ..schedule.memory import warn_if_rows_outgrow
+from ..schedule.operators import StoreOperand
+from ..schedule.runner import local_path, new_pass_id, open_runner
+from ..schedule.spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
+from ..storage import InverseStore, StoreAttrs, TermRecord
+from ..storage import open as open_store
+from ..storage.inverse_store import term_dir
+from ..storage.writer import completed_rows
 from .first_bounce import FirstBounce, resolve_first_bounce
+from .methods import METHODS as SERIES_METHODS
+from .methods import TERM_ZERO, Pass, SeriesMethod
 
-METHODS = ("power", "horner", "newton-schulz")
+METHODS = tuple(SERIES_METHODS)
 _FORMAT = 1
 
 
-@dataclass
-class TermRecord:
-    """One row of the report: the state after term ``term``."""
-
-    term: int
-    seconds: float
-    nnz_P: int
-    nnz_X: int
-    tiles_computed: int
-    tiles_skipped: int
-    rows_skipped: int
-    residual: float | None
-    residual_abs: float | None
-
-
-@dataclass
+@dataclass(frozen=True)
 class InverseReport:
     """What :func:`stratified_inverse` did.
 
@@ -128,9 +125,11 @@ class InverseReport:
     seconds: float
     n: int
     nnz_T: int
-    history: list[TermRecord] = field(default_factory=list)
+    history: tuple[TermRecord, ...] = ()
     seconds_spectral_radius: float = 0.0
     memory: str = "no memory limit"
+    scheduler: str = "local threads"
+    tile_size: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -149,108 +148,9 @@ class InverseReport:
         lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}, "
                      f"first bounce {self.first_bounce}), spectral radius of M {rho}, "
                      f"{self.excluded_pixels} pixels left out, stopped: {self.stopped}")
+        lines.append(f"ran on {self.scheduler}, row blocks of {self.tile_size} rows")
         lines.append(self.memory)
         return "\n".join(lines)
-
-
-# --- the versioned inverse store -------------------------------------------------------
-
-#: Attribute of the root group of ``out`` holding the engine's record (next to the
-#: storage layer's ``bigT`` attribute, which holds the redirect).
-INVERSE_ATTR = "bigT_inverse"
-
-
-def _root_json(out):
-    return os.path.join(out, "zarr.json")
-
-
-def _read_root(out) -> dict | None:
-    try:
-        with open(_root_json(out)) as f:
-            return json.load(f)
-    except FileNotFoundError:
-        return None
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
-
-
-def _write_json_atomic(path, obj):
-    tmp = f"{path}.tmp-{os.getpid()}-{threading.get_ident()}"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, allow_nan=False)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _write_inverse(out, inverse):
-    """Replace the engine's record in the root's attributes (one atomic rename)."""
-    root = _read_root(out) or {"zarr_format": 3, "node_type": "group", "attributes": {}}
-    root.setdefault("attributes", {})[INVERSE_ATTR] = _jsonable(inverse)
-    _write_json_atomic(_root_json(out), root)
-
-
-def _reconcile(out, inv):
-    """Adopt the term the redirect points at when the root's record lags behind it
-    (a crash between the flip and the record)."""
-    try:
-        cur = open_store(out)
-    except StoreError:
-        return
-    rec = (cur.metadata or {}).get("inverse") or {}
-    d = rec.get("dir")
-    if d is not None and (inv.get("dir") is None or d > inv["dir"]):
-        inv.update(term=d, dir=d, residual=rec.get("residual"))
-        if rec.get("record"):
-            inv.setdefault("history", []).append(rec["record"])
-        _write_inverse(out, inv)
-
-
-def _term_dir(k: int) -> str:
-    return f"t{k:04d}"
-
-
-class _Versioned:
-    """The inverse store ``out``: its root attributes and term subgroups."""
-
-    def __init__(self, out: str):
-        self.out = os.fspath(out)
-
-    def sub(self, k: int, name: str) -> str:
-        return os.path.join(self.out, _term_dir(k), name)
-
-    def store_if_complete(self, k, name):
-        path = self.sub(k, name)
-        if not os.path.exists(path):
-            return None
-        try:
-            return open_store(path)
-        except StoreError:
-            return None
-
-    def writer(self, k, name, T, metadata):
-        path = self.sub(k, name)
-        resume = os.path.exists(path)
-        return BlockCSRWriter(path, T.shape, tile_size=T.tile_size, dtype=np.dtype(T.dtype).name,
-                              pixel_order=getattr(T, "pixel_order", None),
-                              metadata=_jsonable(metadata), resume=resume)
-
-    def clean(self, keep: set[int]):
-        """Delete term subgroups other than ``keep`` (left by a crash after a flip)."""
-        for name in os.listdir(self.out):
-            m = re.fullmatch(r"t(\d{4})", name)
-            if m and int(m.group(1)) not in keep:
-                shutil.rmtree(os.path.join(self.out, name), ignore_errors=True)
 
 
 # --- helpers ------------------------------------------------------------------------------
@@ -271,8 +171,7 @@ def parse_bytes(value) -> int | None:
 
 
 def _fingerprint(T, fb: FirstBounce, prune: float, method: str) -> dict:
-    import hashlib
-
+    """What the inverse depends on: a run whose fingerprint differs is refused."""
     h = hashlib.sha1()
     h.update(np.asarray(T.tile_indptr, dtype=np.int64).tobytes())
     h.update(np.asarray(T.tile_indices, dtype=np.int64).tobytes())
@@ -288,85 +187,47 @@ def _fingerprint(T, fb: FirstBounce, prune: float, method: str) -> dict:
     }
 
 
-def _memory_plan(T, memory_limit, workers) -> MemoryPlan:
-    """The run's memory plan (:mod:`bigT.schedule.memory`) for T's largest tile row."""
+def _max_row_nnz(T) -> int:
+    """Entries of T's widest tile row."""
     indptr = np.asarray(T.tile_indptr)
     tile_nnz = np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0)
     row_nnz = np.add.reduceat(tile_nnz, indptr[:-1]) * (np.diff(indptr) > 0)
-    return plan_memory(memory_limit, workers, T.shape[1], int(row_nnz.max(initial=0)))
+    return int(row_nnz.max(initial=0))
 
 
-def _whole_limit(plan: MemoryPlan, cache: TileCache, right) -> int:
-    """Bytes the pass's right factor may take when held whole and shared.
-
-    Its own share, or, when it needs more, the tile cache's share too (the cache is
-    shrunk for the pass): a factor read in batches is re-read for every chunk of output
-    rows, which costs far more than rebuilding M's tile rows from T.
-    """
-    if right is None or right.nbytes <= plan.whole_bytes:
-        return plan.whole_bytes
-    if right.nbytes <= plan.whole_bytes + plan.cache_bytes:
-        cache.resize(plan.whole_bytes + plan.cache_bytes - right.nbytes)
-        return right.nbytes
-    return plan.whole_bytes
-
-
-def _check_row_width(plan, Xprev, history, term, out):
-    """Warn before a term whose output tile rows may not fit the memory plan."""
-    Xop = StoreOperand(Xprev)
-    widest = max((Xop.row_bytes(j) for j in range(Xprev.grid[0])), default=0)
-    growth = 1.0
-    # X_0 = F^-1 is a diagonal: its growth to X_1 (T's width) predicts nothing
-    if len(history) >= 2 and history[-2].term >= 1 and history[-2].nnz_X:
-        growth = history[-1].nnz_X / history[-2].nnz_X
-    warn_if_rows_outgrow(plan, widest, growth, term, out)
-
-
-class _Progress:
-    def __init__(self, enabled, total, desc):
-        self.bar = None
-        if enabled and total:
-            from tqdm.auto import tqdm
-
-            self.bar = tqdm(total=total, desc=desc, unit="tile row", leave=False)
-
-    def __call__(self, k):
-        if self.bar is not None:
-            self.bar.update(k)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()
+def choose_tile_size(n: int, tile_size: int, threads: int) -> int:
+    """T's tile size, halved while it gives fewer than ``config.TASKS_PER_THREAD`` row
+    blocks per thread, halving adds blocks, and blocks keep at least
+    ``config.MIN_BLOCK_ROWS`` rows."""
+    ts = int(tile_size)
+    while (-(-n // ts) < config.TASKS_PER_THREAD * threads and ts // 2 >= config.MIN_BLOCK_ROWS
+           and -(-n // (ts // 2)) > -(-n // ts)):
+        ts //= 2
+    return ts
 
 
 # --- the estimates -----------------------------------------------------------------------
 
-def _m_matvec(M: MOperand, V, client, workers, tag):
-    return graph.matvec(f"matvec-M-{tag}", M.row_matvec(V), M.grid[0], M.row_range, V,
-                        token_parts=(M.T.path,), client=client, workers=workers)
-
-
-def estimate_spectral_radius(M: MOperand, active, iterations=None, seed=0, client=None,
-                             workers=2) -> float:
-    """rho(M) by power iteration (at most ``config.SPECTRAL_RADIUS_ITERATIONS`` mat-vecs,
-    each streaming the tiles of M): the geometric mean of the growth ||M v|| / ||v|| over
-    the second half of the iterations (robust to a two-cycle from a +-rho pair).
+def estimate_spectral_radius(apply_M, active, iterations=None, seed=0) -> float:
+    """rho(M) by power iteration (at most ``config.SPECTRAL_RADIUS_ITERATIONS``
+    mat-vecs ``apply_M(V)`` with V of shape (n, 1), each streaming the tiles of M): the
+    geometric mean of the growth ||M v|| / ||v|| over the second half of the
+    iterations (robust to a two-cycle from a +-rho pair).
 
     Stops early, after at least ``config.SPECTRAL_RADIUS_MIN_ITERATIONS``, once two
     estimates two iterations apart (both over an even window, so a two-cycle averages
-    out) agree to ``config.SPECTRAL_RADIUS_RTOL``: each mat-vec re-reads T from disk when
-    the tile cache cannot hold it."""
+    out) agree to ``config.SPECTRAL_RADIUS_RTOL``: each mat-vec re-reads T from disk
+    when the tile cache cannot hold it."""
     iterations = iterations or config.SPECTRAL_RADIUS_ITERATIONS
     rng = np.random.default_rng(seed)
-    v = rng.standard_normal((M.shape[0], 1)) * active[:, None]
+    v = rng.standard_normal((len(active), 1)) * active[:, None]
     nv = np.linalg.norm(v)
     if nv == 0:
         return 0.0
     v /= nv
-    logs = []
-    previous = None
-    for it in range(iterations):
-        w = _m_matvec(M, v, client, workers, f"rho{it}")
+    logs, previous = [], None
+    for _ in range(iterations):
+        w = apply_M(v)
         nw = float(np.linalg.norm(w))
         if nw == 0 or not np.isfinite(nw):
             return 0.0 if nw == 0 else float("inf")
@@ -378,35 +239,54 @@ def estimate_spectral_radius(M: MOperand, active, iterations=None, seed=0, clien
                     config.SPECTRAL_RADIUS_RTOL * estimate:
                 return float(estimate)
             previous = estimate
-    h = len(logs) // 2
-    return float(math.exp(np.mean(logs[h:])))
+    return float(math.exp(np.mean(logs[len(logs) // 2:])))
 
 
-def estimate_residual(M: MOperand, X, fb: FirstBounce, probes=None, seed=0, client=None,
-                      workers=2) -> tuple[float, float]:
+def estimate_residual(apply_M, apply_X, fb: FirstBounce, probes=None,
+                      seed=0) -> tuple[float, float]:
     """(relative, absolute) estimate of ||I - T X||_F from Rademacher probes (module
-    docstring). Relative is absolute / sqrt(number of kept pixels)."""
+    docstring); ``apply_M``/``apply_X`` multiply (n, p) blocks. Relative is absolute /
+    sqrt(number of kept pixels)."""
     p = probes or config.RESIDUAL_PROBES
     n_act = int(fb.active.sum())
     if n_act == 0:
         return 0.0, 0.0
     rng = np.random.default_rng(seed + 7919)
-    Z = rng.choice(np.array([-1.0, 1.0]), size=(X.shape[0], p)) * fb.active[:, None]
-    Xz = graph.matvec("matvec-X", StoreOperand(X).matvec_row, X.grid[0],
-                      X.tile_row_range, Z, token_parts=(X.path,), client=client,
-                      workers=workers)
-    U = Xz * fb.f[:, None]
-    TU = U - _m_matvec(M, U, client, workers, "res")
-    R = Z - TU
+    Z = rng.choice(np.array([-1.0, 1.0]), size=(len(fb.active), p)) * fb.active[:, None]
+    U = apply_X(Z) * fb.f[:, None]
+    R = Z - (U - apply_M(U))  # T (X z) = u - M u with u = F X z, on the kept pixels
     abs_ = math.sqrt(float(np.sum(R * R)) / p)
     return abs_ / math.sqrt(n_act), abs_
 
 
 # --- the engine ---------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class _Options:
+    terms: int
+    prune: float
+    tol: float | None
+    progress: bool
+    force: bool
+    seed: int
+
+
+def _check_arguments(method, terms, prune, tol) -> SeriesMethod:
+    if method not in SERIES_METHODS:
+        raise BigTError(f"method must be one of {', '.join(SERIES_METHODS)}, got {method!r}")
+    if isinstance(terms, bool) or int(terms) != terms or terms < 0:
+        raise BigTError(f"terms must be an integer >= 0, got {terms!r}")
+    if not prune >= 0:
+        raise BigTError(f"prune must be >= 0, got {prune!r}")
+    if tol is not None and not tol >= 0:
+        raise BigTError(f"tol must be >= 0, got {tol!r}")
+    return SERIES_METHODS[method]
+
+
 def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        first_bounce="diag", method="power", client=None, memory_limit=None,
-                       progress=True, force=False, *, workers=2, seed=0) -> InverseReport:
+                       progress=True, force=False, *, workers=2, seed=0,
+                       scheduler=None) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -430,18 +310,22 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     first_bounce : "diag", "identity", (n,) array or path of a .npy
         F: diag(T) (Jacobi, paper §4.4), I (the naive choice, often divergent), or a
         known F, e.g. from :func:`recover_first_bounce`.
-    method : "power", "horner" or "newton-schulz" (module docstring)
+    method : "power", "horner" or "newton-schulz" (:mod:`bigT.algorithms.methods`)
+    scheduler : None, "local:N", an address or a distributed.Client
+        Where the tasks run (:func:`bigT.schedule.runner.open_runner`): dask's local
+        threaded scheduler with ``workers`` threads by default; ``local:N`` starts N
+        worker processes for the run; an address ("tcp://host:port") or a Client uses
+        that cluster, whose workers must see ``T`` and ``out`` at the same paths.
     client : distributed.Client or str, optional
-        Run the tasks on this client (an address string connects to a scheduler);
-        default: dask's local threaded scheduler with ``workers`` threads.
+        The same as ``scheduler`` (kept for callers of bigT 0.1).
     memory_limit : int or str, optional
-        Bytes ("2GiB") for the resident memory of the whole process. What the process
-        already holds is measured, the rest is shared out by
-        :func:`bigT.schedule.memory.plan_memory` (tile cache, shared right factor,
-        per-task batches and partial sums); a limit too small for the fixed parts
-        raises ``MemoryLimitError`` before anything is written.
+        Bytes ("2GiB") for the resident memory of the process running the tasks (with
+        ``local:N``, of the N workers together; on a cluster each worker also keeps
+        its own limit). Each process measures what it holds and shares out the rest
+        (:func:`bigT.schedule.memory.plan_memory`); a limit too small for the fixed
+        parts raises ``MemoryLimitError`` before anything is written.
     progress : bool
-        tqdm progress bars.
+        Progress bars (shown only when stderr is a terminal).
     force : bool
         Go on although the estimated spectral radius of M is >= 1.
 
@@ -459,238 +343,244 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         Negative or zero diagonal on lit pixels with ``first_bounce="diag"``.
     StoreError
         ``out`` exists and holds something else.
+    SchedulerError
+        The scheduler cannot be reached, or its workers cannot see the stores.
     """
     t_start = time.perf_counter()
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if int(terms) != terms or terms < 0:
-        raise ValueError(f"terms must be an integer >= 0, got {terms!r}")
-    terms = int(terms)
-    if not prune >= 0:
-        raise ValueError(f"prune must be >= 0, got {prune!r}")
+    series = _check_arguments(method, terms, prune, tol)
+    scheduler = client if scheduler is None else scheduler
     if isinstance(T, (str, os.PathLike)):
-        T = open_store(T)
+        T = open_store(local_path(T, "transport T"))
     if T.shape[0] != T.shape[1]:
         raise NotSquareError(f"T is {T.shape[0]} x {T.shape[1]}; the inverse needs a square "
                              "T (apply the pixel correspondence first)", T.path)
-    out = os.fspath(out)
+    out = local_path(out, "inverse store")
+    opts = _Options(int(terms), float(prune), tol, progress, force, seed)
     memory_limit = parse_bytes(memory_limit)
-    own_client = None
-    if isinstance(client, str):
-        from distributed import Client
-
-        client = own_client = Client(client)
+    runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
     try:
-        return _run(T, out, terms, float(prune), tol, first_bounce, method, client,
-                    memory_limit, progress, force, workers, seed, t_start)
+        engine = _Engine(T, out, series, runner, opts, first_bounce, memory_limit)
+        return engine.run(t_start)
     finally:
-        if own_client is not None:
-            own_client.close()
+        runner.close()
 
 
-def _run(T, out, terms, prune, tol, first_bounce, method, client, memory_limit, progress,
-         force, workers, seed, t_start):
-    fb = resolve_first_bounce(T, first_bounce)
-    plan = _memory_plan(T, memory_limit, workers)
-    params = _fingerprint(T, fb, prune, method)
-    vs = _Versioned(out)
-    inv = None
-    if os.path.exists(out):
-        root = _read_root(out)
-        inv = None if root is None else root.get("attributes", {}).get(INVERSE_ATTR)
-        if inv is None or "params" not in inv:
-            raise StoreError("exists and is not a bigT inverse store; choose another path "
-                             "or delete it", out)
-        if inv["params"] != params:
-            diff = [k for k in params if inv["params"].get(k) != params[k]]
-            held_desc = ", ".join(f"{k}={inv['params'].get(k)}" for k in diff)
-            raise StoreError(
-                "holds an inverse with different " + ", ".join(diff) + " than asked "
-                f"(it holds {held_desc}); "
-                "rerun with the same parameters to resume, or choose another path", out)
-        _reconcile(out, inv)
-    else:
-        os.makedirs(out)
-        inv = {"params": params, "term": None, "dir": None, "history": []}
-        _write_inverse(out, inv)
+class _Engine:
+    """One run of :func:`stratified_inverse`: the loop over terms, each term's passes
+    handed to the runner, each finished term published in the inverse store."""
 
-    # dask runs tile rows on `workers` threads; with fewer tile rows than threads the
-    # kernel splits each product over the threads instead.
-    kernel_threads = 1 if T.grid[0] >= workers else workers
-    cache = TileCache(plan.cache_bytes)
-    M = MOperand(T, fb.finv.astype(T.dtype), fb.active, fb.zero_diagonal, cache)
-    held = inv.get("term")
-    resumed_from = held
-    history = [TermRecord(**h) for h in inv.get("history", [])]
+    def __init__(self, T, out, series: SeriesMethod, runner, opts: _Options, first_bounce,
+                 memory_limit):
+        self.T, self.series, self.runner, self.opts = T, series, runner, opts
+        runner.check_paths([T.path])
+        self.fb = resolve_first_bounce(T, first_bounce)
+        self.policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], _max_row_nnz(T))
+        self.plans = runner.plans(self.policy)
+        self.store = InverseStore(out)
+        self.record = self.store.open_or_create(
+            _fingerprint(T, self.fb, opts.prune, series.name))
+        runner.check_paths([out])
+        if self.record.tile_size is None:
+            ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads)
+            self._save(self.record.replace(tile_size=ts, excluded_pixels=self.fb.excluded))
+        self.tile_size = self.record.tile_size
+        n_blocks = -(-T.shape[0] // self.tile_size)
+        self.kernel_threads = 1 if n_blocks >= runner.threads else runner.idle_kernel_threads
+        self.shared = {"finv": self.fb.finv, "f": self.fb.f, "active": self.fb.active}
+        self.products = 0
 
-    rho = inv.get("spectral_radius")
-    t_rho = time.perf_counter()
-    if rho is None:
-        # Nothing else is in memory yet: the power iterations may cache all of M they
-        # can (each iteration is one pass over M), the rest is given back after.
-        if plan.limit is not None:
-            cache.resize(plan.cache_bytes + plan.whole_bytes
-                         + workers * plan.work_bytes_per_task // 2)
-        rho = estimate_spectral_radius(M, fb.active, seed=seed, client=client,
-                                       workers=workers)
-        cache.resize(plan.cache_bytes)
-        inv["spectral_radius"] = rho
-        _write_inverse(out, inv)
-    if rho >= 1 and not force:
-        raise DivergenceError(
-            f"the spectral radius of M = I - T F^-1 is about {rho:.4f} >= 1 "
-            f"(first_bounce={fb.kind!r}): the series diverges. Try first_bounce='diag', "
-            "a higher threshold on T's small entries (or denoising it), fixing "
-            "negative or zero diagonal entries, or force=True (bigT invert --force) to run "
-            "anyway", T.path)
-    t_rho = time.perf_counter() - t_rho
+    def _save(self, record) -> None:
+        self.store.save(record)
+        self.record = record
 
-    base_meta = {"method": method, "prune": prune, "first_bounce": fb.kind,
-                 "spectral_radius": rho, "excluded_pixels": fb.excluded}
-    n = T.shape[0]
-    common = dict(M=M, finv=fb.finv, f=fb.f, active=fb.active, threshold=prune,
-                  dtype=np.dtype(T.dtype), n=n, plan=plan)
-    products = 0
-    stopped = "terms reached"
+    # --- the run --------------------------------------------------------------------
 
-    def run_pass(op, fn, writers, k, right=None, **extra):
-        nonlocal products
-        done = {name: set(w.completed_tile_rows) for name, w in writers.items()}
-        rows = [i for i in range(T.grid[0]) if any(i not in d for d in done.values())]
-        bar = _Progress(progress, len(rows), f"term {k} {op}")
-        ctx = graph.Context(writers=writers, done=done,
-                            kernel_threads=kernel_threads,
-                            whole_limit=_whole_limit(plan, cache, right),
-                            **common, **extra)
-        ctx.progress = bar
-        try:
-            stats = graph.run_rows(op, fn, rows, ctx,
-                                   token_parts=(out, k, prune, method, fb.digest),
-                                   client=client, workers=workers)
-        finally:
-            bar.close()
-            if right is not None:
-                right.release()
-            cache.resize(plan.cache_bytes)
-        stores = {name: w.finalize() for name, w in writers.items()}
-        products += sum(s["computed"] for s in stats)
-        return stats, stores
+    def run(self, t_start: float) -> InverseReport:
+        resumed_from = self.record.term
+        t_rho = time.perf_counter()
+        rho = self._spectral_radius()
+        t_rho = time.perf_counter() - t_rho
+        if self.record.term is None:
+            self._term_zero()
+        stopped = self._extend(resumed_from)
+        return self._report(stopped, resumed_from, t_rho, time.perf_counter() - t_start, rho)
 
-    def finish_term(k, X, stats, t0):
-        res_rel, res_abs = estimate_residual(M, X, fb, seed=seed + k, client=client,
-                                             workers=workers)
+    def _spectral_radius(self) -> float:
+        rho = self.record.spectral_radius
+        if rho is None:
+            rho = estimate_spectral_radius(self._apply_M, self.fb.active, seed=self.opts.seed)
+            self._save(self.record.replace(spectral_radius=rho))
+        if rho >= 1 and not self.opts.force:
+            raise DivergenceError(
+                f"the spectral radius of M = I - T F^-1 is about {rho:.4f} >= 1 "
+                f"(first_bounce={self.fb.kind!r}): the series diverges. Try "
+                "first_bounce='diag', a higher threshold on T's small entries (or denoising "
+                "it), fixing negative or zero diagonal entries, or force=True (bigT invert "
+                "--force) to run anyway", self.T.path)
+        return rho
+
+    def _extend(self, resumed_from) -> str:
+        """Compute terms until ``terms`` is held, ``tol`` is reached or the series is
+        exhausted; returns why it stopped."""
+        terms, rec = self.opts.terms, self.record
+        if rec.exhausted_at is not None and rec.term < terms:
+            self._save(rec.replace(term=terms))
+            return f"series exhausted at term {rec.exhausted_at}"
+        computed = False
+        while self.record.term < terms:
+            if self._tol_reached():
+                return f"tol {self.opts.tol:g} reached"
+            computed = True
+            reason = self._next_term()
+            if reason:
+                return reason
+        if self._tol_reached():
+            return f"tol {self.opts.tol:g} reached"
+        if resumed_from is not None and not computed:
+            return f"already held term {self.record.term}"
+        return "terms reached"
+
+    def _tol_reached(self) -> bool:
+        h = self.record.history
+        return (self.opts.tol is not None and bool(h) and h[-1].residual is not None
+                and h[-1].residual <= self.opts.tol)
+
+    def _term_zero(self) -> None:
+        self.store.clean(keep={0})
+        t0 = time.perf_counter()
+        stats = self._run_pass(TERM_ZERO, 0)
+        self._finish_term(0, stats, t0)
+
+    def _next_term(self) -> str | None:
+        """Compute the term after the one held and publish it; a reason when the series
+        turns out exhausted instead."""
+        held = self.record.term
+        k = self.series.next_term(held)
+        self._warn_row_width(held, k)
+        self.store.clean(keep={held, k})
+        t0 = time.perf_counter()
+        stats = []
+        for p in self.series.passes(held, k):
+            reason = self._exhausted(p, held)
+            if reason:
+                self._save(self.record.replace(term=self.opts.terms, exhausted_at=held))
+                return reason
+            stats += self._run_pass(p, k)
+        self._finish_term(k, stats, t0)
+        self.store.drop_term(held)
+        self.runner.end_pass(forget=(str(self.store.path / term_dir(held)),))
+        return None
+
+    def _exhausted(self, p: Pass, held: int) -> str | None:
+        for _alias, name, term in p.inputs:
+            reason = self.series.exhausted(held, name, open_store(self.store.term_path(term, name)))
+            if reason:
+                return reason
+        return None
+
+    # --- passes ---------------------------------------------------------------------
+
+    def _run_pass(self, p: Pass, k: int) -> list[BlockStats]:
+        """Create (or resume) the pass's output stores, run a task per row block not yet
+        complete in all of them, finalize them from their row markers."""
+        paths = {name: self.store.prepare_term_store(k, name, self._term_attrs(k))
+                 for name in p.outputs}
+        n_blocks = -(-self.T.shape[0] // self.tile_size)
+        done = [set(completed_rows(path, n_blocks)) for path in paths.values()]
+        todo = [i for i in range(n_blocks) if any(i not in d for d in done)]
+        stats = []
+        if todo:
+            stats = self.runner.map(self._spec(p, k, paths),
+                                    row_blocks(self.T.shape[0], self.tile_size, todo),
+                                    self.shared, progress=self.opts.progress,
+                                    desc=f"term {k} {p.op}")
+            self.runner.end_pass()
+        for name in p.outputs:
+            self.store.finalize_term_store(k, name)
+        self.products += sum(s.computed for s in stats)
+        return stats
+
+    def _spec(self, p: Pass, k: int, paths: dict) -> PassSpec:
+        inputs = tuple((alias, str(self.store.term_path(term, name)))
+                       for alias, name, term in p.inputs)
+        return PassSpec(
+            op=p.op, term=k, task=p.task, T=str(self.T.path), first_bounce=self.fb.digest,
+            zero_diagonal=self.fb.zero_diagonal, n=self.T.shape[0],
+            block_rows=self.tile_size, dtype=np.dtype(self.T.dtype).name, memory=self.policy,
+            inputs=inputs, scaled=p.scaled,
+            outputs=tuple((name, str(path)) for name, path in paths.items()),
+            right=p.right, threshold=self.opts.prune, kernel_threads=self.kernel_threads,
+            pass_id=new_pass_id())
+
+    def _term_attrs(self, k: int) -> StoreAttrs:
+        meta = {"inverse": {**self._term_metadata(), "term": k, "complete": False}}
+        return StoreAttrs(self.T.shape, self.tile_size, self.T.dtype, metadata=meta,
+                          pixel_order=self.T.pixel_order)
+
+    def _term_metadata(self) -> dict:
+        return {"method": self.series.name, "prune": self.opts.prune,
+                "first_bounce": self.fb.kind, "spectral_radius": self.record.spectral_radius,
+                "excluded_pixels": self.fb.excluded}
+
+    def _finish_term(self, k: int, stats: list[BlockStats], t0: float) -> None:
+        """Estimate term k's residual, then publish it (redirect and record)."""
+        X = open_store(self.store.term_path(k, "X"))
+        res_rel, res_abs = estimate_residual(self._apply_M, lambda V: self._apply_X(X, V),
+                                             self.fb, seed=self.opts.seed + k)
         rec = TermRecord(
             term=k, seconds=time.perf_counter() - t0,
-            nnz_P=int(sum(s["nnz_P"] for s in stats)),
-            nnz_X=int(X.nnz),
-            tiles_computed=int(sum(s["computed"] for s in stats)),
-            tiles_skipped=int(sum(s["skipped"] for s in stats)),
-            rows_skipped=int(sum(1 for s in stats if s.get("row_skipped"))),
+            nnz_P=int(sum(s.nnz_P for s in stats)), nnz_X=int(X.nnz),
+            tiles_computed=int(sum(s.computed for s in stats)),
+            tiles_skipped=int(sum(s.skipped for s in stats)),
+            rows_skipped=int(sum(1 for s in stats if s.row_skipped)),
             residual=res_rel, residual_abs=res_abs)
-        # The X store records its own term first, so a crash between the flip and the
-        # root's record is repaired on resume (_reconcile).
-        X.update_metadata(inverse=_jsonable({**base_meta, "term": k, "dir": k,
-                                             "residual": res_rel, "residual_abs": res_abs,
-                                             "record": asdict(rec)}))
-        set_redirect(out, f"{_term_dir(k)}/X")  # the atomic flip
-        history.append(rec)
-        inv.update(term=k, dir=k, residual=res_rel, history=[asdict(h) for h in history],
-                   **base_meta)
-        _write_inverse(out, inv)
-        return rec
+        record = self.record.replace(term=k, dir=k, residual=res_rel,
+                                     history=self.record.history + (rec,))
+        meta = {**self._term_metadata(), "term": k, "dir": k, "residual": res_rel,
+                "residual_abs": res_abs, "record": rec.to_dict()}
+        self.store.publish(record, X, meta)
+        self.record = record
 
-    def meta(k):
-        return {"inverse": {**base_meta, "term": k, "complete": False}}
+    # --- mat-vecs -------------------------------------------------------------------
 
-    # term 0: X_0 = F^-1
-    if held is None:
-        vs.clean(keep={0})
-        t0 = time.perf_counter()
-        stats, stores = run_pass("diag", tasks.diag_row, {"X": vs.writer(0, "X", T, meta(0))}, 0)
-        finish_term(0, stores["X"], stats, t0)
-        held = 0
+    def _apply_M(self, V: np.ndarray) -> np.ndarray:
+        spec = matvec_spec("matvec-M", str(self.T.path), self.T.shape[0], self.tile_size,
+                           self.T.dtype, memory=self.policy, T=str(self.T.path),
+                           first_bounce=self.fb.digest, zero_diagonal=self.fb.zero_diagonal)
+        return matvec(self.runner, spec, V, self.shared)
 
-    def check_tol():
-        return tol is not None and history and history[-1].residual is not None \
-            and history[-1].residual <= tol
+    def _apply_X(self, X, V: np.ndarray) -> np.ndarray:
+        spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,
+                           memory=self.policy)
+        return matvec(self.runner, spec, V)
 
-    if inv.get("exhausted_at") is not None and held < terms:
-        # every term after the exhausted one is exactly zero: nothing to compute
-        inv.update(term=terms)
-        _write_inverse(out, inv)
-        held = terms
-        stopped = f"series exhausted at term {inv['exhausted_at']}"
-    computed_any = False
-    while held < terms:
-        if check_tol():
-            stopped = f"tol {tol:g} reached"
-            break
-        prev = held
-        Xprev = open_store(vs.sub(prev, "X"))
-        computed_any = True
-        _check_row_width(plan, Xprev, history, prev + 1, out)
-        if method == "power":
-            k = prev + 1
-            Pprev = None if prev == 0 else open_store(vs.sub(prev, "P"))
-            if Pprev is not None and Pprev.nnz == 0:
-                # P_prev = 0 (M^prev pruned to nothing): every later term is exactly 0.
-                stopped = f"series exhausted at term {prev} (P_{prev} = 0)"
-                inv.update(term=terms, exhausted_at=prev)
-                _write_inverse(out, inv)
-                held = terms
-                break
-            vs.clean(keep={prev, k})
-            t0 = time.perf_counter()
-            writers = {"P": vs.writer(k, "P", T, meta(k)), "X": vs.writer(k, "X", T, meta(k))}
-            P_op = None if Pprev is None else StoreOperand(Pprev, cache=cache)
-            stats, stores = run_pass("power", tasks.power_row, writers, k, right=P_op,
-                                     P_prev=P_op, X_prev=StoreOperand(Xprev))
-        elif method == "horner":
-            k = prev + 1
-            vs.clean(keep={prev, k})
-            t0 = time.perf_counter()
-            S_op = StoreOperand(Xprev, row_scale=fb.f.astype(T.dtype), cache=cache)
-            stats, stores = run_pass("horner", tasks.horner_row,
-                                     {"X": vs.writer(k, "X", T, meta(k))}, k, right=S_op,
-                                     S_prev=S_op)
-        else:
-            k = 2 * prev + 1
-            vs.clean(keep={prev, k})
-            t0 = time.perf_counter()
-            S = StoreOperand(Xprev, row_scale=fb.f.astype(T.dtype), cache=cache)
-            Rstore = vs.store_if_complete(k, "R")
-            st1 = []
-            if Rstore is None:
-                st1, st = run_pass("ns-residual", tasks.ns_residual_row,
-                                   {"R": vs.writer(k, "R", T, meta(k))}, k, right=S, S=S)
-                Rstore = st["R"]
-            if Rstore.nnz == 0:
-                stopped = f"series exhausted at term {prev} (I - T X pruned to 0)"
-                inv.update(term=terms, exhausted_at=prev)
-                _write_inverse(out, inv)
-                held = terms
-                break
-            R_op = StoreOperand(Rstore, cache=cache)
-            stats, stores = run_pass("ns-update", tasks.ns_update_row,
-                                     {"X": vs.writer(k, "X", T, meta(k))}, k, right=R_op,
-                                     S=S, R=R_op)
-            stats = [{**s, "nnz_P": 0} for s in stats] + st1
-        # only M's tile rows serve the next term; the previous term's are stale
-        cache.drop_where(lambda path: path != T.path)
-        finish_term(k, stores["X"], stats, t0)
-        shutil.rmtree(os.path.join(out, _term_dir(prev)), ignore_errors=True)
-        held = k
-    else:
-        if check_tol():
-            stopped = f"tol {tol:g} reached"
+    # --- reporting ------------------------------------------------------------------
 
-    if resumed_from is not None and not computed_any and stopped == "terms reached":
-        stopped = f"already held term {held}"
-    last = history[-1] if history else None
-    return InverseReport(
-        path=out, terms=held, requested_terms=terms, method=method, prune=prune,
-        first_bounce=fb.kind, spectral_radius=rho, excluded_pixels=fb.excluded,
-        residual=None if last is None else last.residual, stopped=stopped,
-        resumed_from=resumed_from, products=products,
-        seconds=time.perf_counter() - t_start, n=T.shape[0], nnz_T=int(T.nnz),
-        history=history, seconds_spectral_radius=t_rho, memory=plan.describe())
+    def _warn_row_width(self, held: int, k: int) -> None:
+        """Warn before a term whose output tile rows may not fit the memory plan."""
+        X = StoreOperand(open_store(self.store.term_path(held, "X")))
+        widest = max((X.row_bytes(j) for j in range(X.grid[0])), default=0)
+        h = self.record.history
+        growth = 1.0
+        # X_0 = F^-1 is a diagonal: its growth to X_1 (T's width) predicts nothing
+        if len(h) >= 2 and h[-2].term >= 1 and h[-2].nnz_X:
+            growth = h[-1].nnz_X / h[-2].nnz_X
+        tightest = min(self.plans.values(), key=lambda p: p.work_bytes_per_task)
+        warn_if_rows_outgrow(tightest, widest, growth, k, self.store.path)
+
+    def _memory_text(self) -> str:
+        if len(self.plans) == 1:
+            return next(iter(self.plans.values())).describe()
+        return "; ".join(f"{addr}: {plan.describe()}" for addr, plan in sorted(self.plans.items()))
+
+    def _report(self, stopped, resumed_from, t_rho, seconds, rho) -> InverseReport:
+        rec = self.record
+        return InverseReport(
+            path=str(self.store.path), terms=rec.term, requested_terms=self.opts.terms,
+            method=self.series.name, prune=self.opts.prune, first_bounce=self.fb.kind,
+            spectral_radius=rho, excluded_pixels=self.fb.excluded, residual=rec.residual,
+            stopped=stopped, resumed_from=resumed_from, products=self.products,
+            seconds=seconds, n=self.T.shape[0], nnz_T=int(self.T.nnz), history=rec.history,
+            seconds_spectral_radius=t_rho, memory=self._memory_text(),
+            scheduler=self.runner.describe(), tile_size=self.tile_size)
+

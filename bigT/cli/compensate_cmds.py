@@ -46,6 +46,9 @@ def register(sub) -> None:
     p.add_argument("--cache-mb", dest="cache_mb", type=int, default=None,
                    help="MiB of decoded matrix tiles kept between batches (default "
                    f"{config.COMPENSATE_CACHE_BYTES >> 20}; 0: re-read every pass)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
+                   help="run the passes on a dask cluster: a scheduler address, or local:N "
+                   "for N worker processes started for this command (default: local threads)")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     p.set_defaults(func=run_compensate)
 
@@ -56,6 +59,9 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="output image file or folder")
     p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH)
     p.add_argument("--bits", type=int, choices=(8, 16), default=None)
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
+                   help="run the passes on a dask cluster: a scheduler address, or local:N "
+                   "for N worker processes started for this command (default: local threads)")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     p.set_defaults(func=run_relight)
 
@@ -108,7 +114,8 @@ def _describe(store, name):
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
-    from ..compensation._stream import TileCache, as_store, compute_dtype, stream_matmul
+    from ..compensation._stream import (as_store, cache_budget, compute_dtype,
+                                        scheduler_runner, stream_matmul)
     from ..compensation.core import (CompensationReport, choose_path, compensate_frames,
                                      fluctuation, pixel_order_of, relative_error, scan_line,
                                      to_frames, to_vectors)
@@ -144,7 +151,7 @@ def run_compensate(args) -> int:
                                       else "") + f" -- {choice.reason}")
 
     report = CompensationReport(choice)
-    cache = TileCache(args.cache_mb * (1 << 20) if args.cache_mb is not None else None)
+    cache_bytes = cache_budget(None if args.cache_mb is None else args.cache_mb << 20)
     sums = dict(err=0.0, err0=0.0, ref=0.0)
     flat = []  # (image fl. without, with, scan line without, with) for constant targets
     first = None
@@ -153,11 +160,15 @@ def run_compensate(args) -> int:
     t_comp = 0.0
     t0 = time.perf_counter()
     with tqdm(total=len(source), desc="compensate", unit="frame",
-              disable=not args.progress) as bar:
+              disable=None if args.progress else True) as bar, \
+            scheduler_runner(args.scheduler) as runner:
+        if runner is not None:
+            print(f"  running on {runner.describe()}")
         for files, frames in source.batches(args.batch):
             t1 = time.perf_counter()
             l_in = compensate_frames(frames, X=X, T=Tm, choice=choice, clip=clip,
-                                        report=report, progress=args.progress, cache=cache)
+                                        report=report, progress=args.progress,
+                                        cache_bytes=cache_bytes, runner=runner)
             t_comp += time.perf_counter() - t1
             report.frames += len(frames)
             sink.write(files, l_in)
@@ -166,7 +177,8 @@ def run_compensate(args) -> int:
                 both = np.concatenate([l_in, frames])  # one pass over T for both
                 seen_all = to_frames(stream_matmul(S, to_vectors(both, order, compute_dtype(S)),
                                                    progress=args.progress, desc="T pass",
-                                                   cache=cache), order)
+                                                   cache_bytes=cache_bytes, runner=runner),
+                                     order)
                 seen, seen0 = seen_all[:len(frames)], seen_all[len(frames):]
                 seen_sink.write(files, seen)
                 sums["err"] += float(np.sum((seen - frames) ** 2))
@@ -226,7 +238,7 @@ def run_compensate(args) -> int:
 # --- relight ----------------------------------------------------------------------------
 
 def run_relight(args) -> int:
-    from ..compensation._stream import as_store
+    from ..compensation._stream import as_store, scheduler_runner
     from ..compensation.core import relight
     from ..images import ImageSink, ImageSource
 
@@ -237,11 +249,15 @@ def run_relight(args) -> int:
     print("  " + _describe(T, "T"))
     above = pixels = 0
     t0 = time.perf_counter()
-    for files, frames in source.batches(args.batch):
-        seen = relight(T, frames, batch=args.batch, progress=args.progress)
-        above += int(np.count_nonzero(seen > 1))
-        pixels += seen.size
-        sink.write(files, seen)
+    with scheduler_runner(args.scheduler) as runner:
+        if runner is not None:
+            print(f"  running on {runner.describe()}")
+        for files, frames in source.batches(args.batch):
+            seen = relight(T, frames, batch=args.batch, progress=args.progress,
+                           scheduler=runner)
+            above += int(np.count_nonzero(seen > 1))
+            pixels += seen.size
+            sink.write(files, seen)
     dt = time.perf_counter() - t0
     print(f"  {len(source)} frame(s) in {dt:.2f} s ({len(source) / dt:.1f} frames/s)")
     print(f"  wrote -> {sink.path}")

@@ -15,6 +15,8 @@ TERMS_HELP = (
 
 
 def register(subparsers) -> None:
+    from ..algorithms.methods import METHODS
+
     p = subparsers.add_parser(
         "invert", help="stratified inverse of a stored T, out of core, term by term",
         description="Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} "
@@ -31,21 +33,25 @@ def register(subparsers) -> None:
                         "M^k) inside each product (default %(default)g)")
     p.add_argument("--tol", type=float, default=None,
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
-    p.add_argument("--method", choices=("power", "horner", "newton-schulz"), default="power",
-                   help="power: P_k = M P_{k-1}, X_k = X_{k-1} + F^-1 P_k (default); horner: "
-                        "X_n = F^-1 + (I - F^-1 T) X_{n-1}; newton-schulz: X <- X (2I - T X)")
+    p.add_argument("--method", choices=tuple(METHODS), default="power",
+                   help="; ".join(f"{m.name}: {m.help}" for m in METHODS.values()))
     p.add_argument("--first-bounce", default="diag", metavar="diag|identity|FILE.npy",
                    help="F: diag(T) (default), identity (the naive choice), or a .npy vector "
                         "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="dask.distributed scheduler address (default: local threads)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
+                   help="run the tasks on a dask cluster: a scheduler address "
+                        "(tcp://HOST:PORT; T and the output must be at the same paths on "
+                        "every worker), or local:N to start N worker processes for this "
+                        "run (default: local threads)")
     p.add_argument("--workers", type=int, default=2,
                    help="threads of the local scheduler (default %(default)s)")
     p.add_argument("--memory-limit", default=None, metavar="SIZE",
-                   help="bound the resident memory of the whole process, e.g. 2GiB: what "
-                        "the process already holds is measured and the rest shared out "
-                        "(tile cache, a shared right factor, per-task batches); a limit "
-                        "too small is refused with the sizes")
+                   help="bound the resident memory of the process running the tasks, e.g. "
+                        "2GiB (with local:N, of the N workers together; a cluster's workers "
+                        "also keep their own limits): what a process already holds is "
+                        "measured and the rest shared out (tile cache, a shared right "
+                        "factor, per-task batches); a limit too small is refused with the "
+                        "sizes")
     p.add_argument("--json", default=None, metavar="FILE",
                    help="also write the report as JSON")
     p.add_argument("--force", action="store_true",
@@ -64,7 +70,7 @@ def invert_cmd(args) -> int:
         raise BigTError(f"--first-bounce: {fb!r} is neither diag, identity nor a .npy file")
     report = stratified_inverse(
         args.T, args.output, terms=args.terms, prune=args.prune, tol=args.tol,
-        first_bounce=fb, method=args.method, client=args.scheduler,
+        first_bounce=fb, method=args.method, scheduler=args.scheduler,
         memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
         workers=args.workers)
     print(report.table())

@@ -1,17 +1,19 @@
 """Streaming products of a block-CSR store with dense frame batches.
 
 One pass reads every tile row of the matrix once and multiplies it against all K
-columns of the batch, so K frames cost one read of the matrix (DESIGN.md: compensation
-streams row tiles of X against image batches). Tile rows are independent (they write
-disjoint row ranges of the result), so they are spread over a few threads: reading and
-decompressing one tile row overlaps the product of another, and both release the GIL.
+columns of the batch, so K frames cost one read of the matrix (compensation streams
+row tiles of X against image batches). Tile rows are independent (they write disjoint
+row ranges of the result), so they are tasks of the schedule layer's runner: a few
+local threads by default (reading and decompressing one tile row overlaps the product
+of another; both release the GIL), or the workers of a dask cluster. Decoded tiles are
+kept between passes in the process's tile cache (:mod:`bigT.schedule.cache`), the one
+the engine uses too.
 """
 
 from __future__ import annotations
 
 import os
-import threading
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -36,78 +38,33 @@ def compute_dtype(store) -> np.dtype:
     return np.result_type(np.dtype(store.dtype), np.float32)
 
 
-def _spmm():
-    """``spmm(A, X, out)``: out += A @ X, single-threaded (the threads are ours)."""
-    try:
-        from ..kernels import spmm_dense
-    except ImportError:
-        spmm_dense = None
-    if spmm_dense is None:
-        def spmm(A, X, out):
-            out += A @ X
-    else:
-        def spmm(A, X, out):
-            spmm_dense(A, X, out=out, n_threads=1)
-    return spmm
-
-
-class TileCache:
-    """Decoded tiles kept between passes, up to a byte budget; the rest is re-read.
-
-    A stream of frame batches makes one pass over X per batch; when X (or the part of it
-    that fits) stays decoded, later passes skip the read and the decompression. Memory
-    stays bounded by ``max_bytes`` whatever the matrix size.
-
-    Parameters
-    ----------
-    max_bytes : int, optional
-        Budget for the CSR arrays of cached tiles (default
-        ``config.COMPENSATE_CACHE_BYTES``; 0 disables the cache).
-    """
-
-    def __init__(self, max_bytes: int | None = None):
-        self.max_bytes = int(config.COMPENSATE_CACHE_BYTES if max_bytes is None else max_bytes)
-        self.bytes = 0
-        self.hits = self.misses = 0
-        self._tiles = {}
-        self._lock = threading.Lock()
-
-    def get(self, A, i: int, j: int):
-        key = (id(A), i, j)
-        tile = self._tiles.get(key)
-        if tile is not None:
-            self.hits += 1
-            return tile
-        self.misses += 1
-        tile = A.get_tile(i, j)
-        if self.max_bytes > 0:
-            size = tile.data.nbytes + tile.indices.nbytes + tile.indptr.nbytes
-            with self._lock:
-                if self.bytes + size <= self.max_bytes and key not in self._tiles:
-                    self._tiles[key] = tile
-                    self.bytes += size
-        return tile
-
-
-def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: bool = False,
-                  desc: str = "pass", cache: TileCache | None = None) -> np.ndarray:
+def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
+                  progress: bool = False, desc: str = "pass",
+                  cache_bytes: int | None = None) -> np.ndarray:
     """A @ V with A streamed from disk one tile row at a time.
 
     Parameters
     ----------
     A : BlockCSR, shape (n_rows, n_cols)
     V : ndarray, shape (n_cols, K) or (n_cols,)
+    runner : bigT.schedule.runner runner, optional
+        Where the tile rows run (a dask cluster's workers, say); default: local threads.
     workers : int, optional
-        Threads over tile rows (default ``config.COMPENSATE_WORKERS``).
+        Threads of the default runner (default ``config.COMPENSATE_WORKERS``).
     progress : bool
-        Show a tqdm bar over tile rows.
-    cache : TileCache, optional
-        Keep decoded tiles for the next pass (none: every tile is read from disk).
+        Show a progress bar over tile rows.
+    cache_bytes : int, optional
+        Decoded tiles kept for the next pass in each process's tile cache (default 0:
+        every tile is read from disk; :func:`~bigT.compensation.compensate` keeps
+        ``config.COMPENSATE_CACHE_BYTES`` for the batches of one call).
 
     Returns
     -------
     ndarray, shape (n_rows, K) or (n_rows,), dtype ``compute_dtype(A)``
     """
+    from ..schedule.matvec import matvec, matvec_spec
+    from ..schedule.runner import ThreadRunner, local_path
+
     n_rows, n_cols = A.shape
     dtype = compute_dtype(A)
     V = np.asarray(V)
@@ -116,36 +73,43 @@ def stream_matmul(A, V: np.ndarray, *, workers: int | None = None, progress: boo
         raise ShapeMismatchError(f"cannot multiply a {n_rows}x{n_cols} matrix by an array of "
                                  f"shape {V.shape}")
     V = np.ascontiguousarray(V.reshape(n_cols, -1), dtype=dtype)
-    out = np.zeros((n_rows, V.shape[1]), dtype=dtype)
-    spmm = _spmm()
-
-    ts = A.tile_size
-
-    def one_row(i):
-        # Tile by tile: no copy assembling the tile row, and each product touches only
-        # the rows of V under its tile.
-        start, stop = A.tile_row_range(i)
-        for j in A.tile_columns(i):
-            j = int(j)
-            tile = A.get_tile(i, j) if cache is None else cache.get(A, i, j)
-            if tile.nnz:
-                spmm(tile, V[j * ts:j * ts + tile.shape[1]], out[start:stop])
-        return i
-
-    n_tile_rows = A.grid[0]
-    workers = max(1, min(int(workers or config.COMPENSATE_WORKERS), n_tile_rows))
-    from tqdm.auto import tqdm
-
-    # delay: passes shorter than a second draw no bar at all
-    with tqdm(total=n_tile_rows, desc=desc, unit="tile row", leave=False, delay=1.0,
-              disable=not progress) as bar:
-        if workers == 1:
-            for i in range(n_tile_rows):
-                one_row(i)
-                bar.update()
-        else:
-            with ThreadPoolExecutor(workers) as pool:
-                for fut in as_completed([pool.submit(one_row, i) for i in range(n_tile_rows)]):
-                    fut.result()
-                    bar.update()
+    if runner is None:
+        runner = ThreadRunner(max(1, min(int(workers or config.COMPENSATE_WORKERS), A.grid[0])))
+    budget = 0 if cache_bytes is None else int(cache_bytes)
+    spec = matvec_spec(desc, local_path(A.path), n_rows, A.tile_size, A.dtype,
+                       cache_bytes=budget)
+    out = matvec(runner, spec, V, progress=progress).astype(dtype, copy=False)
     return out[:, 0] if squeeze else out
+
+
+@contextmanager
+def scheduler_runner(scheduler):
+    """The runner of ``scheduler`` (:func:`bigT.schedule.runner.open_runner`) for the
+    duration of the block, closed after; None (local threads) when none is given; a
+    runner itself is passed through (and left open)."""
+    if scheduler is None or hasattr(scheduler, "map") and hasattr(scheduler, "plans"):
+        yield scheduler
+        return
+    from ..schedule.runner import open_runner
+
+    runner = open_runner(scheduler)
+    try:
+        yield runner
+    finally:
+        runner.close()
+
+
+def cache_budget(cache_bytes: int | None) -> int:
+    """The tile-cache budget of a compensation call (default
+    ``config.COMPENSATE_CACHE_BYTES``)."""
+    return config.COMPENSATE_CACHE_BYTES if cache_bytes is None else max(0, int(cache_bytes))
+
+
+def forget_tiles(*stores) -> None:
+    """Drop the cached tiles of ``stores`` from this process's tile cache (the end of a
+    compensation call: a library's caller should not keep a gigabyte of tiles)."""
+    from ..schedule.worker import STATE
+
+    for store in stores:
+        if store is not None:
+            STATE.cache.drop(os.path.abspath(store.path))

@@ -19,7 +19,14 @@ from .. import config
 from ..errors import BigTError, ImageError, InvalidMatrixError, ShapeMismatchError
 from ..storage.pixel_order import PixelOrder
 from ._pixels import frames_to_matrix, matrix_to_frames
-from ._stream import TileCache, as_store, compute_dtype, stream_matmul
+from ._stream import (
+    as_store,
+    cache_budget,
+    compute_dtype,
+    forget_tiles,
+    scheduler_runner,
+    stream_matmul,
+)
 
 PATHS = ("explicit", "matrix-free", "auto")
 
@@ -68,18 +75,18 @@ def to_frames(vectors: np.ndarray, order: PixelOrder, clip=None) -> np.ndarray:
 # --- matrix-free stratified inverse ---------------------------------------------------
 
 def first_bounce_diag(T) -> np.ndarray:
-    """F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,), checked > 0."""
-    d = np.asarray(T.diagonal(), dtype=np.float64)
-    bad = np.flatnonzero(~(d > 0))
-    if bad.size:
-        raise InvalidMatrixError(f"diag(T) must be positive for F = diag(T); {bad.size} entries are "
-                                 f"not (first at index {bad[0]}: {d[bad[0]]!r})",
-                                 getattr(T, "path", None))
-    return d
+    """1/F for F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,): the
+    algorithms layer's :func:`~bigT.algorithms.resolve_first_bounce`, with its policy
+    for zero diagonals (a pixel whose row and column are empty is left out: 0 here;
+    any other zero or negative entry is an InvalidMatrixError)."""
+    from ..algorithms.first_bounce import resolve_first_bounce
+
+    return resolve_first_bounce(T, "diag").finv
 
 
 def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = None,
-                      progress: bool = False, cache: TileCache | None = None) -> np.ndarray:
+                      progress: bool = False, cache_bytes: int | None = None,
+                      runner=None) -> np.ndarray:
     """T_n^-1 B without forming T_n^-1: ``terms`` streaming products with T.
 
     Paper eq. 13: T_n^-1 = F^-1 S_n with S_n = sum_{k=0..n} M^k, M = I - T F^-1. Horner on
@@ -92,7 +99,8 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     B : ndarray, shape (n, K), in T's pixel order
     terms : int, n >= 0
     F : ndarray, shape (n,), optional; diag(T) by default.
-    cache : TileCache, optional; T's tiles kept between the passes.
+    cache_bytes : int, optional; T's tiles kept between the passes (tile cache budget).
+    runner : optional, where the passes run (default: local threads).
 
     Returns
     -------
@@ -102,13 +110,13 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     if terms < 0:
         raise BigTError(f"terms must be >= 0, got {terms}")
     dtype = compute_dtype(T)
-    finv = (1.0 / (first_bounce_diag(T) if F is None else np.asarray(F, np.float64)))
+    finv = first_bounce_diag(T) if F is None else 1.0 / np.asarray(F, np.float64)
     finv = finv.astype(dtype)[:, None]
     B = np.asarray(B, dtype=dtype).reshape(T.shape[0], -1)
     s = B.copy()
     for j in range(terms):
-        s = B + s - stream_matmul(T, finv * s, progress=progress, cache=cache,
-                                  desc=f"matrix-free term {j + 1}/{terms}")
+        s = B + s - stream_matmul(T, finv * s, progress=progress, cache_bytes=cache_bytes,
+                                  runner=runner, desc=f"matrix-free term {j + 1}/{terms}")
     return finv * s
 
 
@@ -197,15 +205,17 @@ class CompensationReport:
 
 def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice, clip=(0, 1),
                       report: CompensationReport | None = None, progress: bool = False,
-                      cache: TileCache | None = None):
+                      cache_bytes: int | None = None, runner=None):
     """One batch: (K, H, W) desired frames -> (K, H, W) projector inputs, clipped."""
     store = X if choice.path == "explicit" else T
     order = pixel_order_of(store, frames.shape[1:])
     B = to_vectors(frames, order, compute_dtype(store))
     if choice.path == "explicit":
-        Y = stream_matmul(X, B, progress=progress, desc="X pass", cache=cache)
+        Y = stream_matmul(X, B, progress=progress, desc="X pass", cache_bytes=cache_bytes,
+                          runner=runner)
     else:
-        Y = matrix_free_apply(T, B, choice.terms, progress=progress, cache=cache)
+        Y = matrix_free_apply(T, B, choice.terms, progress=progress, cache_bytes=cache_bytes,
+                              runner=runner)
     frames_out, below, above = matrix_to_frames(Y, order, clip)
     if report is not None:
         report.clipped_low += below
@@ -216,7 +226,7 @@ def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice,
 
 def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=None,
                terms: int | None = None, path: str = "explicit", progress: bool = False,
-               cache_bytes: int | None = None, return_report: bool = False):
+               cache_bytes: int | None = None, return_report: bool = False, scheduler=None):
     """Projector inputs that make the camera see ``images``: l_in = clip(X l_desired).
 
     Paper eqs. 44-45. X is streamed from disk one tile row at a time against ``batch``
@@ -240,6 +250,9 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
         0: every batch re-reads the matrix from disk).
     return_report : bool
         Also return a :class:`CompensationReport`.
+    scheduler : None, "local:N", an address or a distributed.Client
+        Where the tile rows run (:func:`bigT.schedule.runner.open_runner`); default:
+        local threads.
 
     Returns
     -------
@@ -253,12 +266,13 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
     report = CompensationReport(choice)
     out = np.empty_like(frames)
     batch = max(1, int(batch))
-    cache = TileCache(cache_bytes)
     t0 = time.perf_counter()
-    for s in range(0, len(frames), batch):
-        out[s:s + batch] = compensate_frames(frames[s:s + batch], X=X, T=T, choice=choice,
-                                                clip=clip, report=report, progress=progress,
-                                                cache=cache)
+    with scheduler_runner(scheduler) as runner:
+        for s in range(0, len(frames), batch):
+            out[s:s + batch] = compensate_frames(
+                frames[s:s + batch], X=X, T=T, choice=choice, clip=clip, report=report,
+                progress=progress, cache_bytes=cache_budget(cache_bytes), runner=runner)
+    forget_tiles(X, T)
     report.seconds = time.perf_counter() - t0
     report.frames = len(frames)
     result = out[0] if single else out
@@ -266,13 +280,14 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
 
 
 def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = False,
-            cache_bytes: int | None = None) -> np.ndarray:
+            cache_bytes: int | None = None, scheduler=None) -> np.ndarray:
     """What the camera sees for projector images: T l (forward transport).
 
     Parameters
     ----------
     T : BlockCSR or path, shape (n, n)
     images : ndarray, shape (H, W) or (K, H, W)
+    scheduler : as :func:`compensate`'s
 
     Returns
     -------
@@ -282,25 +297,31 @@ def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = Fa
     frames, single, order = _as_frames(images, T)
     out = np.empty_like(frames)
     batch = max(1, int(batch))
-    cache = TileCache(cache_bytes)
-    for s in range(0, len(frames), batch):
-        B = to_vectors(frames[s:s + batch], order, compute_dtype(T))
-        out[s:s + batch] = to_frames(stream_matmul(T, B, progress=progress, desc="T pass",
-                                                   cache=cache), order)
+    with scheduler_runner(scheduler) as runner:
+        for s in range(0, len(frames), batch):
+            B = to_vectors(frames[s:s + batch], order, compute_dtype(T))
+            out[s:s + batch] = to_frames(stream_matmul(
+                T, B, progress=progress, desc="T pass", cache_bytes=cache_budget(cache_bytes),
+                runner=runner), order)
+    forget_tiles(T)
     return out[0] if single else out
 
 
 # --- bounce separation ------------------------------------------------------------------
 
 def first_bounce_from_inverse(X) -> np.ndarray:
-    """True F of a diffuse scene from its inverse (paper eq. 33): F_ii = 1 / X_ii, (n,)."""
-    d = np.asarray(X.diagonal(), dtype=np.float64)
-    bad = np.flatnonzero(~(d > 0))
+    """True F of a diffuse scene from its inverse (paper eq. 33): F_ii = 1 / X_ii, (n,),
+    by the algorithms layer's :func:`~bigT.algorithms.recover_first_bounce` (0 on pixels
+    left out of the inverse, X_ii = 0); a negative X_ii is an InvalidMatrixError."""
+    from ..algorithms.first_bounce import recover_first_bounce
+
+    F = recover_first_bounce(X)
+    bad = np.flatnonzero(F < 0)
     if bad.size:
-        raise InvalidMatrixError(f"diag(X) must be positive to recover F_ii = 1/X_ii; {bad.size} "
-                                 f"entries are not (first at index {bad[0]}: {d[bad[0]]!r})",
+        raise InvalidMatrixError(f"diag(X) must not be negative to recover F_ii = 1/X_ii; "
+                                 f"{bad.size} entries are (first at index {bad[0]})",
                                  getattr(X, "path", None))
-    return 1.0 / d
+    return F
 
 
 def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -> np.ndarray:
@@ -339,10 +360,9 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     # Work in float64 for the dense vectors so the parts sum to T l to rounding.
     v = F * to_vectors(frames, order_x, np.float64)
     parts = [v]
-    cache = TileCache()
     for k in range(bounces):
         v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}",
-                                  cache=cache)
+                                  )
         parts.append(v)
     seen = to_frames(stream_matmul(T, to_vectors(frames, order_t, np.float64),
                                    progress=progress, desc="T pass"), order_t)

@@ -133,7 +133,7 @@ class Scene:
 
         Parameters
         ----------
-        X : BlockCSR of T's shape, tile size and pixel order, or (n,) ndarray
+        X : BlockCSR of T's shape and pixel order (any tile size), or (n,) ndarray
             An inverse on disk, or the diagonal of a diagonal one (e.g. 1 / diag(T)).
 
         Returns
@@ -155,15 +155,14 @@ class Scene:
                                     shape=(r1 - r0, T.shape[1]))
         else:
             where = getattr(X, "path", None)
-            if X.shape != T.shape or X.tile_size != T.tile_size:
-                raise ShapeMismatchError(f"X is {X.shape} with tile size {X.tile_size}, the scene "
-                                         f"is {T.shape} with tile size {T.tile_size}", where)
+            if X.shape != T.shape:
+                raise ShapeMismatchError(f"X is {X.shape}, the scene is {T.shape}", where)
             if X.pixel_order is not None and X.pixel_order != T.pixel_order:
                 raise ShapeMismatchError(f"X's pixel order {X.pixel_order} is not the scene's "
                                          f"{T.pixel_order}", where)
 
             def rows(i):
-                return sp.csr_array(X.get_tile_row(i), dtype=np.float64)
+                return sp.csr_array(X.get_rows(*T.tile_row_range(i)), dtype=np.float64)
         num = den = 0.0
         for i in range(T.grid[0]):
             ref = self.exact_inverse_rows(i)

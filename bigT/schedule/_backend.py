@@ -5,10 +5,10 @@ here, so the layers' contracts (docs/CONTRACTS.md) are used in one spot."""
 from __future__ import annotations
 
 from bigT.kernels import SPGEMM_GROUP, add_diag_scaled, prune, scale_cols, scale_rows, spgemm, spmm_dense
-from bigT.storage import BlockCSR, BlockCSRWriter, from_scipy, set_redirect
+from bigT.storage import BlockCSR, from_scipy, read_store_attrs, write_tile_row
 from bigT.storage import open as open_store
 
 __all__ = [
-    "SPGEMM_GROUP", "BlockCSR", "BlockCSRWriter", "add_diag_scaled", "from_scipy", "open_store", "prune",
-    "scale_cols", "scale_rows", "set_redirect", "spgemm", "spmm_dense",
+    "SPGEMM_GROUP", "BlockCSR", "add_diag_scaled", "from_scipy", "open_store", "prune",
+    "read_store_attrs", "scale_cols", "scale_rows", "spgemm", "spmm_dense", "write_tile_row",
 ]

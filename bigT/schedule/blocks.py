@@ -1,6 +1,6 @@
 """What runs on one tile row: pure functions on ``scipy.sparse.csr_array`` blocks.
 
-How the blocks are wired into a graph lives in :mod:`bigT.schedule.graph`; the
+How the blocks are wired into passes lives in :mod:`bigT.schedule.runner`; the
 operators that read tiles from stores live in :mod:`bigT.schedule.operators`. Nothing
 here touches dask or zarr.
 

@@ -89,6 +89,8 @@ class MemoryPlan:
     cache_bytes : int
     whole_bytes : int
     work_bytes_per_task : int
+    threads : int
+        Tasks in flight at once in the process.
     """
 
     limit: int | None
@@ -97,12 +99,14 @@ class MemoryPlan:
     cache_bytes: int
     whole_bytes: int
     work_bytes_per_task: int
+    threads: int = 1
 
     def describe(self) -> str:
         mib = 1 << 20
         if self.limit is None:
             return "no memory limit"
-        return (f"memory limit {self.limit / mib:.0f} MiB: baseline {self.baseline / mib:.0f}, "
+        return (f"memory limit {self.limit / mib:.0f} MiB, {self.threads} threads: baseline "
+                f"{self.baseline / mib:.0f}, "
                 f"per task fixed {self.fixed_per_task / mib:.0f} + work "
                 f"{self.work_bytes_per_task / mib:.0f}, tile cache {self.cache_bytes / mib:.0f}, "
                 f"shared factor {self.whole_bytes / mib:.0f} MiB")
@@ -135,7 +139,7 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
              + (SPGEMM_GROUP + 1) * 8 * int(n_cols) + 16 * int(n_cols))
     baseline = resident_bytes() if baseline is None else int(baseline)
     if limit is None:
-        return MemoryPlan(None, baseline, fixed, 1 << 30, 1 << 30, 1 << 30)
+        return MemoryPlan(None, baseline, fixed, 1 << 30, 1 << 30, 1 << 30, workers)
     headroom = config.MEMORY_HEADROOM_BYTES
     rest = int(limit) - baseline - headroom - workers * fixed
     minimum = workers * config.MEMORY_MIN_WORK_BYTES
@@ -155,7 +159,7 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     cache = int(config.MEMORY_CACHE_SHARE * rest)
     whole = int(config.MEMORY_WHOLE_SHARE * rest)
     work = (rest - cache - whole) // workers
-    return MemoryPlan(int(limit), baseline, fixed, cache, whole, work)
+    return MemoryPlan(int(limit), baseline, fixed, cache, whole, work, workers)
 
 
 #: A task holds its output tile rows whole until they are written (the previous X's

@@ -1,84 +1,27 @@
-"""Operands of the tile-row products: stored matrices and M = D - T F^-1, read tile by
-tile from the stores through a byte-bounded cache shared by the worker threads."""
+"""Operands of the row-block products: stored matrices and M = D - T F^-1, read tile
+by tile from the stores through the process's tile cache (:mod:`.cache`)."""
 
 from __future__ import annotations
 
 import threading
+
 import numpy as np
 import scipy.sparse as sp
 
 from . import blocks
 from ._backend import scale_rows, spmm_dense
+from .cache import TileCache
 from .memory import stored_bytes
 
 
-def nbytes(A) -> int:
-    if sp.issparse(A):
-        return int(A.data.nbytes + A.indices.nbytes + A.indptr.nbytes)
-    return int(getattr(A, "nbytes", 64))
-
-
-class TileCache:
-    """Tiles / tile rows kept in memory, bounded in bytes, thread safe.
-
-    Entries are admitted while they fit and kept until dropped: the passes of a run
-    scan tile rows in the same order every time, and a least-recently-used policy
-    smaller than the scan would evict every row just before it is needed again (no
-    hit at all); keeping the first rows that fit gives hits on that share of every
-    scan. ``budget`` 0 disables caching.
-    """
-
-    def __init__(self, budget: int):
-        self.budget = int(budget)
-        self.used = 0
-        self._d: dict = {}
-        self._lock = threading.Lock()
-        self.hits = self.misses = 0
-
-    def get(self, key, compute):
-        with self._lock:
-            if key in self._d:
-                self.hits += 1
-                return self._d[key]
-            self.misses += 1
-        value = compute()
-        size = nbytes(value)
-        with self._lock:
-            if key not in self._d and self.used + size <= self.budget:
-                self._d[key] = value
-                self.used += size
-        return value
-
-    def lookup(self, key):
-        """The entry under ``key``, or None (nothing is computed or admitted)."""
-        with self._lock:
-            value = self._d.get(key)
-            if value is not None:
-                self.hits += 1
-            return value
-
-    def has_room(self, size: int) -> bool:
-        """Whether an entry of ``size`` bytes would be admitted now."""
-        with self._lock:
-            return self.used + int(size) <= self.budget
-
-    def resize(self, budget: int) -> None:
-        """Set the budget; entries admitted last are forgotten until it holds."""
-        with self._lock:
-            self.budget = int(budget)
-            while self.used > self.budget and self._d:
-                self.used -= nbytes(self._d.pop(next(reversed(self._d))))
-
-    def drop(self, prefix):
-        """Forget every entry whose key starts with ``prefix`` (a store path)."""
-        self.drop_where(lambda path: path == prefix)
-
-    def drop_where(self, predicate):
-        """Forget every entry whose key's first element (a store path) satisfies
-        ``predicate``."""
-        with self._lock:
-            for k in [k for k in self._d if predicate(k[0])]:
-                self.used -= nbytes(self._d.pop(k))
+def needed_rows(left: sp.csr_array, right) -> np.ndarray:
+    """Tile rows of ``right`` that ``left @ right`` reads: those under a column of
+    ``left`` holding an entry and not empty (a pair with a zero factor is never
+    read). int64 array, ascending."""
+    hit = np.zeros(right.grid[0], dtype=bool)
+    if left.nnz:
+        hit[np.unique(np.asarray(left.indices) // right.tile_size)] = True
+    return np.flatnonzero(hit & right.nonempty)
 
 
 class StoreOperand:
@@ -89,26 +32,29 @@ class StoreOperand:
     store : BlockCSR
     row_scale : (n,) ndarray, optional
     cache : TileCache, optional
-        Tile rows (and the assembled matrix) are kept there when it is given.
+        Tile rows are kept there when it is given.
+    version : tuple, optional
+        Identifies this version of the store in the cache's keys.
     """
 
-    def __init__(self, store, row_scale=None, cache: TileCache | None = None):
+    def __init__(self, store, row_scale=None, cache: TileCache | None = None,
+                 version: tuple = ()):
         self.store = store
         self.row_scale = row_scale
         self.cache = cache
         self.shape = tuple(store.shape)
         self.dtype = np.dtype(store.dtype)
+        self.grid = tuple(store.grid)
+        self.tile_size = int(store.tile_size)
         indptr = np.asarray(store.tile_indptr)
         self.nonempty = np.diff(indptr) > 0
         self.nnz = int(store.nnz)
+        self._key = (str(store.path), version, "row", row_scale is not None)
         self._whole = None
         self._row_len = None
         self._lock = threading.Lock()
         self._row_nnz = np.add.reduceat(np.append(np.asarray(store.tile_nnz), 0),
                                         indptr[:-1]) * self.nonempty
-
-    def row_nnz(self, j) -> int:
-        return int(self._row_nnz[j])
 
     @property
     def nbytes(self) -> int:
@@ -117,7 +63,7 @@ class StoreOperand:
 
     def row_bytes(self, j) -> int:
         a, b = self.store.tile_row_range(j)
-        return stored_bytes(self.row_nnz(j), b - a, self.dtype.itemsize)
+        return stored_bytes(int(self._row_nnz[j]), b - a, self.dtype.itemsize)
 
     def work_per_row(self, left: sp.csr_array) -> np.ndarray:
         """Estimated multiply-adds of each row of ``left @ self``, shape (rows,): the
@@ -131,21 +77,28 @@ class StoreOperand:
         c = np.concatenate([[0.0], np.cumsum(self._row_len[left.indices])])
         return c[left.indptr[1:]] - c[left.indptr[:-1]]
 
-    def tile_columns(self, i) -> np.ndarray:
-        return np.asarray(self.store.tile_columns(i), dtype=np.int64)
+    def _scaled(self, r: sp.csr_array, a: int, b: int) -> sp.csr_array:
+        if self.row_scale is None:
+            return r
+        return scale_rows(r, np.asarray(self.row_scale[a:b], dtype=r.dtype))
 
     def _read_row(self, j):
-        r = sp.csr_array(self.store.get_tile_row(j))
-        if self.row_scale is not None:
-            a, b = self.store.tile_row_range(j)
-            r = scale_rows(r, np.asarray(self.row_scale[a:b], dtype=r.dtype))
-        return r
+        a, b = self.store.tile_row_range(j)
+        return self._scaled(sp.csr_array(self.store.get_tile_row(j)), a, b)
 
     def row(self, j) -> sp.csr_array:
         """Tile row j, shape (rows_j, n), global columns."""
         if self.cache is None:
             return self._read_row(j)
-        return self.cache.get((self.store.path, "row", int(j)), lambda: self._read_row(j))
+        return self.cache.get(self._key + (int(j),), lambda: self._read_row(j))
+
+    def rows(self, start: int, stop: int, cached: bool = True) -> sp.csr_array:
+        """Rows ``start:stop`` (a tile row of this store, or any range); through the
+        cache when ``cached`` and they are a tile row."""
+        j = start // self.tile_size
+        if self.store.tile_row_range(j) == (start, stop):
+            return self.row(j) if cached else self._read_row(j)
+        return self._scaled(self.store.get_rows(start, stop), start, stop)
 
     def assembled(self, js, cached: bool = True) -> sp.csr_array:
         """The (n, n) matrix restricted to tile rows ``js`` (others empty); tile rows
@@ -158,9 +111,10 @@ class StoreOperand:
             nnz=int(sum(self._row_nnz[j] for j in js)))
 
     def whole(self) -> sp.csr_array:
-        """The whole matrix in memory, read once per pass by the first task that needs
-        it and shared by the others (held by this operand, outside the tile cache, so
-        tile rows of M cannot evict it mid-pass; :meth:`release` lets it go)."""
+        """The whole matrix in memory, read once per pass by the first task of this
+        process that needs it and shared by the others (held by this operand, outside
+        the tile cache, so tile rows of M cannot evict it mid-pass; :meth:`release`
+        lets it go)."""
         with self._lock:
             if self._whole is None:
                 self._whole = self.assembled(np.flatnonzero(self.nonempty), cached=False)
@@ -171,18 +125,19 @@ class StoreOperand:
         with self._lock:
             self._whole = None
 
-    def matvec_row(self, i, V) -> np.ndarray:
-        a, b = self.store.tile_row_range(i)
-        out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        if self.nonempty[i]:
-            spmm_dense(self._read_row(i), V, out=out, n_threads=1)
+    def matvec_rows(self, start: int, stop: int, V) -> np.ndarray:
+        """Rows ``start:stop`` of B @ V, V of shape (n, k)."""
+        out = np.zeros((stop - start, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
+        block = self.rows(start, stop)
+        if block.nnz:
+            spmm_dense(block, V, out=out, n_threads=1)
         return out
 
 
 class MOperand:
-    """M = D - T F^-1 (paper eq. 13 with the preconditioner F), never stored: its tile
-    rows are made from T's when first needed and kept in the cache (every term and
-    every mat-vec uses them).
+    """M = D - T F^-1 (paper eq. 13 with the preconditioner F), never stored: its row
+    blocks are made from T's rows when first needed and kept in the cache (every term
+    and every mat-vec uses them).
 
     Parameters
     ----------
@@ -191,9 +146,12 @@ class MOperand:
     active : (n,) bool ndarray, D's diagonal
     zero_diagonal : bool, F = diag T (M's diagonal is exactly 0)
     cache : TileCache
+    digest : str, identifies F (cache keys)
+    version : tuple, identifies this version of T (cache keys)
     """
 
-    def __init__(self, T, finv, active, zero_diagonal, cache: TileCache):
+    def __init__(self, T, finv, active, zero_diagonal, cache: TileCache, digest: str = "",
+                 version: tuple = ()):
         self.T = T
         self.finv = finv
         self.active = active
@@ -201,68 +159,47 @@ class MOperand:
         self.cache = cache
         self.shape = tuple(T.shape)
         self.dtype = np.dtype(T.dtype)
-        self.grid = tuple(T.grid)
-        self.row_range = T.tile_row_range
-        self._key = (T.path, "M", bool(zero_diagonal), id(finv))
+        self._key = (str(T.path), version, "M", bool(zero_diagonal), digest)
+        row_nnz = np.add.reduceat(np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0),
+                                  np.asarray(T.tile_indptr)[:-1])
+        self._row_nnz = row_nnz * (np.diff(np.asarray(T.tile_indptr)) > 0)
 
-    def tile_columns(self, i) -> np.ndarray:
-        """Tile columns of M's (possibly) nonzero tiles in tile row i: T's, plus the
-        diagonal tile when D contributes there."""
-        js = np.asarray(self.T.tile_columns(i), dtype=np.int64)
-        a, b = self.T.tile_row_range(i)
-        if not self.zero_diagonal and self.active[a:b].any() and i not in set(js.tolist()):
-            js = np.sort(np.append(js, i))
-        return js
+    def _make_rows(self, a, b):
+        return blocks.m_rows(T_rows=sp.csr_array(self.T.get_rows(a, b)), start=a,
+                             finv=self.finv, active_rows=self.active[a:b],
+                             zero_diagonal=self.zero_diagonal)
 
-    def _make_row(self, i):
-        a, b = self.T.tile_row_range(i)
-        return blocks.m_rows(sp.csr_array(self.T.get_tile_row(i)), a, self.finv,
-                             self.active[a:b], self.zero_diagonal)
+    def rows(self, a: int, b: int) -> sp.csr_array:
+        """Rows ``a:b`` of M, shape (b - a, n), global columns."""
+        return self.cache.get(self._key + (int(a), int(b)), lambda: self._make_rows(a, b))
 
-    def row(self, i) -> sp.csr_array:
-        """Tile row i of M, shape (rows_i, n), global columns."""
-        return self.cache.get(self._key + ("row", int(i)), lambda: self._make_row(int(i)))
+    def row_bytes(self, a: int, b: int) -> int:
+        """Estimated bytes of rows ``a:b`` of M (T's tile-row nnz, pro rata)."""
+        ts = self.T.tile_size
+        nnz = sum(self._row_nnz[i] * (min(b, (i + 1) * ts) - max(a, i * ts))
+                  / (self.T.tile_row_range(i)[1] - i * ts)
+                  for i in range(a // ts, -(-b // ts)))
+        return stored_bytes(int(nnz), b - a, self.dtype.itemsize)
 
-    def matvec_row(self, i, V, minus_finv_v=None) -> np.ndarray:
-        """Rows of tile row i of M @ V, V of shape (n, k).
+    def matvec_rows(self, a: int, b: int, V, minus_finv_v=None) -> np.ndarray:
+        """Rows ``a:b`` of M @ V, V of shape (n, k).
 
-        When M's tile row is not cached and the cache has no room for it, T's tile row
-        is used as read, M V = D V - T F^-1 V (with M's zero diagonal restored when
-        F = diag T): building M's row costs more than the product and would not be
-        kept. ``minus_finv_v`` (a callable giving -F^-1 V) lets the tasks of one
-        mat-vec share that product (see :meth:`row_matvec`).
+        When M's rows are not cached and the cache has no room for them, T's rows are
+        used as read, M V = D V - T F^-1 V (with M's zero diagonal restored when
+        F = diag T): building M's rows costs more than the product and would not be
+        kept. ``minus_finv_v`` (-F^-1 V, computed once per pass per process) saves
+        each task that product.
         """
-        a, b = self.T.tile_row_range(i)
         out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        key = self._key + ("row", int(i))
-        M_row = self.cache.lookup(key)
-        if M_row is None and not self.cache.has_room(self._row_bytes(i)):
-            T_row = sp.csr_array(self.T.get_tile_row(i))
-            scaled = minus_finv_v() if minus_finv_v else -(self.finv[:, None] * V)
-            spmm_dense(T_row, scaled, out=out, n_threads=1)
+        M_rows = self.cache.lookup(self._key + (int(a), int(b)))
+        if M_rows is None and not self.cache.has_room(self.row_bytes(a, b)):
+            T_rows = sp.csr_array(self.T.get_rows(a, b))
+            scaled = -(self.finv[:, None] * V) if minus_finv_v is None else minus_finv_v
+            spmm_dense(T_rows, scaled, out=out, n_threads=1)
             if self.zero_diagonal:
-                out += (T_row.diagonal(k=a) * self.finv[a:b])[:, None] * V[a:b]
+                out += (T_rows.diagonal(k=a) * self.finv[a:b])[:, None] * V[a:b]
             else:
                 out += self.active[a:b, None] * V[a:b]
             return out
-        spmm_dense(self.row(i) if M_row is None else M_row, V, out=out, n_threads=1)
+        spmm_dense(self.rows(a, b) if M_rows is None else M_rows, V, out=out, n_threads=1)
         return out
-
-    def row_matvec(self, V):
-        """``matvec_row`` for the tile-row tasks of one mat-vec with V: -F^-1 V is
-        computed at most once, shared, and let go with the returned function."""
-        held, lock = [], threading.Lock()
-
-        def minus_finv_v():
-            with lock:
-                if not held:
-                    held.append(-(self.finv[:, None] * V))
-                return held[0]
-
-        return lambda i, V_: self.matvec_row(i, V_, minus_finv_v)
-
-    def _row_bytes(self, i) -> int:
-        a, b = self.T.tile_row_range(i)
-        lo, hi = self.T.tile_indptr[i], self.T.tile_indptr[i + 1]
-        nnz = int(np.asarray(self.T.tile_nnz[lo:hi]).sum())
-        return stored_bytes(nnz, b - a, self.dtype.itemsize)

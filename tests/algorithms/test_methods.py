@@ -60,7 +60,8 @@ def test_float32_store(tmp_path, make_store):
 
 def test_residual_estimate_is_unbiased_scale(tmp_path, make_store):
     from bigT.algorithms import estimate_residual, resolve_first_bounce
-    from bigT.schedule.operators import MOperand, TileCache
+    from bigT.schedule.cache import TileCache
+    from bigT.schedule.operators import MOperand
 
     A = random_dominant(120, seed=6, density=0.3)
     T = make_store(A, tile_size=32)
@@ -69,7 +70,8 @@ def test_residual_estimate_is_unbiased_scale(tmp_path, make_store):
     exact = np.linalg.norm(np.eye(120) - A @ X.to_scipy().toarray())
     fb = resolve_first_bounce(T)
     M = MOperand(T, fb.finv, fb.active, True, TileCache(1 << 20))
-    rel, absolute = estimate_residual(M, X, fb, probes=256, seed=1)
+    rel, absolute = estimate_residual(lambda V: M.matvec_rows(0, 120, V), lambda V: X @ V,
+                                      fb, probes=256, seed=1)
     assert absolute == pytest.approx(exact, rel=0.1)
     assert rel == pytest.approx(exact / np.sqrt(120), rel=0.1)
 
@@ -77,7 +79,7 @@ def test_residual_estimate_is_unbiased_scale(tmp_path, make_store):
 def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
     """The memory-bounded path (right factor in batches of tile rows, output rows in
     chunks, partial sums pruned once) gives the dense result too."""
-    from bigT.algorithms import stratified
+    from bigT.schedule import runner
     from bigT.schedule.memory import MemoryPlan
 
     A = random_dominant(80, seed=7, density=0.25)
@@ -85,7 +87,7 @@ def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
     # no shared factor, batches of ~2 tile rows, partial sums of a few rows per chunk
     tiny = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=0,
                       whole_bytes=0, work_bytes_per_task=3 * 600)
-    monkeypatch.setattr(stratified, "_memory_plan", lambda T, limit, workers: tiny)
+    monkeypatch.setattr(runner, "plan_memory", lambda *args: tiny)
     for method in ("power", "horner", "newton-schulz"):
         # the tiny plan cannot hold these tile rows either: the engine says so
         with pytest.warns(bigT.MemoryLimitWarning, match="may be exceeded"):
@@ -98,12 +100,12 @@ def test_batched_right_operand_equals_whole(tmp_path, make_store, monkeypatch):
 def test_whole_factor_may_borrow_the_cache_share():
     """A right factor larger than its own share but within its and the cache's is held
     whole, the cache shrunk for the pass; a larger one is read in batches."""
-    from bigT.algorithms.stratified import _whole_limit
+    from bigT.schedule.cache import TileCache
     from bigT.schedule.memory import MemoryPlan
-    from bigT.schedule.operators import TileCache
+    from bigT.schedule.worker import _cache_budget, _whole_limit
 
     plan = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=1000,
-                      whole_bytes=1000, work_bytes_per_task=100)
+                      whole_bytes=1000, work_bytes_per_task=100, threads=2)
 
     class Factor:
         def __init__(self, nbytes):
@@ -112,11 +114,15 @@ def test_whole_factor_may_borrow_the_cache_share():
     cache = TileCache(plan.cache_bytes)
     for k in range(4):
         cache.get(("T", "M", k), lambda: np.zeros(25))  # 200 bytes each
-    assert _whole_limit(plan, cache, None) == 1000
-    assert _whole_limit(plan, cache, Factor(900)) == 1000 and cache.budget == 1000
-    assert _whole_limit(plan, cache, Factor(1500)) == 1500
+    # a mat-vec pass (no factor) may use the factor's share and half the tasks'
+    assert _cache_budget(plan, None) == 1000 + 1000 + 100
+    assert _whole_limit(plan, Factor(900)) == 1000
+    assert _cache_budget(plan, Factor(900)) == 1000
+    assert _whole_limit(plan, Factor(1500)) == 1500
+    cache.resize(_cache_budget(plan, Factor(1500)))
     assert cache.budget == 500 and cache.used == 400
-    assert _whole_limit(plan, cache, Factor(2500)) == 1000
+    assert _whole_limit(plan, Factor(2500)) == 1000
+    assert _cache_budget(plan, Factor(2500)) == 1000
 
 
 def test_memory_limit_argument(tmp_path, make_store):

@@ -94,17 +94,19 @@ def test_streamed_equals_scipy(batch, tile_size, order, stream_stores):
 
 @pytest.mark.parametrize("budget", [0, 3000, 1 << 30])
 def test_tile_cache_same_result_bounded(tmp_path, budget):
-    from bigT.compensation._stream import TileCache
+    from bigT.schedule.worker import STATE
 
     T, X, F, A = random_transport(10, 12, seed=9)
     Xs = make_store(X, tmp_path / "X.zarr", image_shape=(10, 12), tile_size=32)
     V = np.random.default_rng(0).uniform(size=(120, 4))
-    cache = TileCache(budget)
-    first = stream_matmul(Xs, V, cache=cache)
-    second = stream_matmul(Xs, V, cache=cache)
+    cache = STATE.cache  # the process's tile cache, the engine's too
+    cache.drop_where(lambda path: True)
+    cache.hits = cache.misses = 0
+    first = stream_matmul(Xs, V, cache_bytes=budget)
+    second = stream_matmul(Xs, V, cache_bytes=budget)
     np.testing.assert_array_equal(first, second)
     np.testing.assert_allclose(first, X.astype(np.float32) @ V, rtol=1e-5, atol=1e-6)
-    assert cache.bytes <= budget
+    assert cache.used <= budget
     n_tiles = int(Xs.tile_nnz.size)
     assert cache.hits + cache.misses == 2 * n_tiles
     assert (cache.hits == n_tiles) == (budget == 1 << 30)

@@ -1,11 +1,13 @@
-"""MOperand's mat-vec, through M's cached tile rows and straight from T's (when the
-cache has no room), against a dense numpy M = D - T F^-1."""
+"""MOperand's mat-vec, through M's cached rows and straight from T's (when the cache
+has no room), on T's tile rows and on row blocks finer than them, against a dense
+numpy M = D - T F^-1."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from bigT.schedule.operators import MOperand, TileCache
+from bigT.schedule.cache import TileCache
+from bigT.schedule.operators import MOperand
 from bigT.storage import from_scipy
 
 
@@ -36,19 +38,21 @@ def test_matvec_from_T_rows_equals_M_rows_and_dense(tmp_path, zero_diagonal, dty
     finv = finv.astype(dtype)
     via_rows = MOperand(T, finv, active, zero_diagonal, TileCache(1 << 30))
     via_T = MOperand(T, finv, active, zero_diagonal, TileCache(0))
-    for i in range(T.grid[0]):
-        a, b = T.tile_row_range(i)
+    minus_finv_v = -(finv[:, None] * V)
+    blocks = [T.tile_row_range(i) for i in range(T.grid[0])] + [(0, 8), (8, 24), (30, 40)]
+    for a, b in blocks:
         ref = M_dense[a:b] @ V
-        np.testing.assert_allclose(via_rows.matvec_row(i, V), ref, atol=atol)
-        np.testing.assert_allclose(via_T.matvec_row(i, V), ref, atol=atol)
-        np.testing.assert_allclose(via_T.row_matvec(V)(i, V), ref, atol=atol)
+        np.testing.assert_allclose(via_rows.matvec_rows(a, b, V), ref, atol=atol)
+        np.testing.assert_allclose(via_T.matvec_rows(a, b, V), ref, atol=atol)
+        np.testing.assert_allclose(via_T.matvec_rows(a, b, V, minus_finv_v), ref, atol=atol)
+        np.testing.assert_allclose(via_rows.rows(a, b).toarray(), M_dense[a:b], atol=atol)
     assert via_T.cache.used == 0 and via_rows.cache.used > 0
 
 
 def test_m_row_size_estimate_is_what_is_cached(tmp_path):
     """has_room is asked with the size M's row will take (int32 indices even when D is
     added, F != diag T), so a row that fits is kept, not rebuilt every mat-vec."""
-    from bigT.schedule.operators import nbytes
+    from bigT.schedule.cache import nbytes
 
     A = _T(40, 4)
     T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype="float32")
@@ -56,11 +60,13 @@ def test_m_row_size_estimate_is_what_is_cached(tmp_path):
     active[5] = False  # the unlit pixel: no entry of T, none of D
     finv = np.where(active, 1 / (np.diag(A) * 1.3 + ~active), 0).astype(np.float32)
     M = MOperand(T, finv, active, False, TileCache(1 << 20))
-    for i in range(T.grid[0]):
-        assert nbytes(M.row(i)) == M._row_bytes(i)
-        assert M.row(i).indices.dtype == np.int32
+    ranges = [T.tile_row_range(i) for i in range(T.grid[0])]
+    for a, b in ranges:
+        assert nbytes(M.rows(a, b)) == M.row_bytes(a, b)
+        assert M.rows(a, b).indices.dtype == np.int32
     V = np.ones((40, 1))
+    misses = M.cache.misses
     for _ in range(3):
-        for i in range(T.grid[0]):
-            M.matvec_row(i, V)
-    assert M.cache.misses == T.grid[0]  # built once, then hits
+        for a, b in ranges:
+            M.matvec_rows(a, b, V)
+    assert M.cache.misses == misses  # built once, then hits

@@ -1,0 +1,196 @@
+"""The series methods of the stratified inverse, each one object: its next-term rule,
+the passes of a term (which task runs, which term stores it reads and writes) and its
+exhaustion test. The block tasks (one row block of one pass) live here too, beside the
+method that uses them; the engine (:mod:`.stratified`) knows none of their details.
+
+All work in the dimensionless variables of paper eq. 13: P_k = M^k, S_n = sum_{k<=n}
+M^k, and X = F^-1 S is stored. Adding a method is one class here and one entry in
+:data:`METHODS`; the CLI takes its choices from that.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..schedule import blocks
+from ..schedule._backend import prune, scale_rows
+from ..schedule.worker import TaskContext
+
+
+@dataclass(frozen=True)
+class Pass:
+    """One pass of a term.
+
+    Attributes
+    ----------
+    op : str
+    task : callable ``task(ctx) -> BlockStats``
+    inputs : tuple of (alias, store name, term)
+        The task reads input ``alias`` from store ``name`` of term ``term``
+        (e.g. ``("S", "X", 3)``: S read from t0003/X).
+    outputs : tuple of str, the stores of the new term it writes
+    right : str or None, the alias multiplied from the right
+    scaled : tuple of str, aliases read as F B (S = F X)
+    """
+
+    op: str
+    task: Callable
+    inputs: tuple[tuple[str, str, int], ...] = ()
+    outputs: tuple[str, ...] = ("X",)
+    right: str | None = None
+    scaled: tuple[str, ...] = ()
+
+
+# --- block tasks ---------------------------------------------------------------------
+
+def _x_rows(ctx: TaskContext, S: sp.csr_array) -> sp.csr_array:
+    """X = F^-1 S on the block's rows, explicit zeros dropped."""
+    X = scale_rows(sp.csr_array(S), np.asarray(ctx.finv[ctx.start:ctx.stop], dtype=ctx.dtype))
+    X.eliminate_zeros()
+    return X
+
+
+def _read_rows(ctx: TaskContext, alias: str) -> sp.csr_array:
+    """The block's rows of input ``alias`` (not cached: read once per term)."""
+    return ctx.operand(alias).rows(ctx.start, ctx.stop, cached=False)
+
+
+def diag_task(ctx: TaskContext):
+    """X_0 = F^-1 (term 0)."""
+    X = blocks.diag_rows(ctx.start, ctx.stop, ctx.spec.n, ctx.finv, ctx.dtype)
+    ctx.write("X", X)
+    return ctx.stats(nnz_P=X.nnz, nnz_X=X.nnz)
+
+
+def power_task(ctx: TaskContext):
+    """P_k = (M P_{k-1}) pruned, X_k = X_{k-1} + F^-1 P_k on the block's rows. Term 1
+    needs no product: P_1 = M P_0 = M, pruned. Rows whose every factor met a
+    converged (empty) row of P_{k-1} carry X over."""
+    M = ctx.M.rows(ctx.start, ctx.stop)
+    computed = skipped = 0
+    if "P" in dict(ctx.spec.inputs):
+        P, computed, skipped = ctx.product(M, "P", ctx.spec.threshold)
+    else:
+        P = prune(M, threshold=ctx.spec.threshold)
+    X_prev = _read_rows(ctx, "X")
+    X = blocks.add_scaled(X_prev, ctx.finv[ctx.start:ctx.stop], P) if P.nnz else X_prev
+    ctx.write("P", P)
+    ctx.write("X", X)
+    carried = "P" in dict(ctx.spec.inputs) and computed == 0
+    return ctx.stats(nnz_P=P.nnz, nnz_X=X.nnz, computed=computed, skipped=skipped,
+                     row_skipped=carried)
+
+
+def horner_task(ctx: TaskContext):
+    """S_n = D + (M S_{n-1}) pruned, X_n = F^-1 S_n, with S_{n-1} = F X_{n-1}."""
+    M = ctx.M.rows(ctx.start, ctx.stop)
+    MS, computed, skipped = ctx.product(M, "S", ctx.spec.threshold)
+    X = _x_rows(ctx, ctx.identity_rows() + MS)
+    ctx.write("X", X)
+    return ctx.stats(nnz_P=MS.nnz, nnz_X=X.nnz, computed=computed, skipped=skipped)
+
+
+def ns_residual_task(ctx: TaskContext):
+    """R = (I - T X) = D - S + M S (pruned) with S = F X, on the kept pixels."""
+    M = ctx.M.rows(ctx.start, ctx.stop)
+    MS, computed, skipped = ctx.product(M, "S", 0.0)
+    R = prune(sp.csr_array(ctx.identity_rows() - _read_rows(ctx, "S") + MS),
+              threshold=ctx.spec.threshold)
+    ctx.write("R", R)
+    return ctx.stats(nnz_P=R.nnz, computed=computed, skipped=skipped)
+
+
+def ns_update_task(ctx: TaskContext):
+    """S' = S + (S R) pruned, X' = F^-1 S': with the residual pass,
+    X' = X + X (I - T X) = X (2I - T X)."""
+    S = _read_rows(ctx, "S")
+    SR, computed, skipped = ctx.product(S, "R", ctx.spec.threshold)
+    X = _x_rows(ctx, S + SR)
+    ctx.write("X", X)
+    return ctx.stats(nnz_X=X.nnz, computed=computed, skipped=skipped)
+
+
+#: Term 0, the same for every method: X_0 = F^-1.
+TERM_ZERO = Pass("diag", diag_task)
+
+
+# --- the methods -----------------------------------------------------------------------
+
+class SeriesMethod:
+    """A series method: subclasses set ``name`` and ``help`` and define
+    :meth:`next_term` and :meth:`passes`; :meth:`exhausted` says when every later
+    term is exactly zero."""
+
+    name = ""
+    help = ""
+
+    def next_term(self, held: int) -> int:
+        return held + 1
+
+    def passes(self, held: int, k: int) -> list[Pass]:
+        raise NotImplementedError
+
+    def exhausted(self, held: int, name: str, store) -> str | None:
+        """A reason to stop when the finished store ``name`` (an output of a pass of
+        the term after ``held``, or an input held) shows the series has ended."""
+        return None
+
+
+class Power(SeriesMethod):
+    """P_0 = I, P_k = M P_{k-1} (pruned), X_k = X_{k-1} + F^-1 P_k: one product with
+    the shrinking P_{k-1} per term."""
+
+    name = "power"
+    help = "P_k = M P_{k-1}, X_k = X_{k-1} + F^-1 P_k (default)"
+
+    def passes(self, held, k):
+        inputs = (("X", "X", held),) if held == 0 else (("P", "P", held), ("X", "X", held))
+        return [Pass("power", power_task, inputs, ("P", "X"), right="P" if held else None)]
+
+    def exhausted(self, held, name, store):
+        if name == "P" and store.nnz == 0:
+            return f"series exhausted at term {held} (P_{held} = 0)"
+        return None
+
+
+class Horner(SeriesMethod):
+    """S_n = I + M S_{n-1}: one product with the ever-growing S per term; corrects
+    earlier pruning (module docstring of :mod:`.stratified`)."""
+
+    name = "horner"
+    help = "X_n = F^-1 + (I - F^-1 T) X_{n-1}"
+
+    def passes(self, held, k):
+        return [Pass("horner", horner_task, (("S", "X", held),), ("X",), right="S",
+                     scaled=("S",))]
+
+
+class NewtonSchulz(SeriesMethod):
+    """X <- X (2I - T X), as R = I - T X then X <- X + X R (two products per step);
+    after j steps from X_0 = F^-1, X = T_{2^j - 1}^-1."""
+
+    name = "newton-schulz"
+    help = "X <- X (2I - T X), bounces double per step"
+
+    def next_term(self, held):
+        return 2 * held + 1
+
+    def passes(self, held, k):
+        return [
+            Pass("ns-residual", ns_residual_task, (("S", "X", held),), ("R",), right="S",
+                 scaled=("S",)),
+            Pass("ns-update", ns_update_task, (("S", "X", held), ("R", "R", k)), ("X",),
+                 right="R", scaled=("S",)),
+        ]
+
+    def exhausted(self, held, name, store):
+        if name == "R" and store.nnz == 0:
+            return f"series exhausted at term {held} (I - T X pruned to 0)"
+        return None
+
+
+METHODS: dict[str, SeriesMethod] = {m.name: m for m in (Power(), Horner(), NewtonSchulz())}

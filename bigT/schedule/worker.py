@@ -1,0 +1,339 @@
+"""What runs inside any process that executes bigT tasks: the caller's own threads,
+or a ``dask worker`` process of a cluster.
+
+Each process keeps its own state (:class:`_ProcessState`): the stores it has opened
+(keyed by path and the identity of their root ``zarr.json``, so a store rewritten in
+place is opened afresh), one :class:`~.cache.TileCache`, its memory plans, and the
+right factor of the pass in progress. A task is ``run_block(spec, block, shared)``:
+it builds a :class:`TaskContext` from those, runs ``spec.task`` and returns a
+:class:`~.spec.BlockStats`. Errors other than bigT's own reach the caller as a
+one-line :class:`~bigT.errors.TaskError`.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import BigTError, DiskFullError, TaskError
+from . import blocks
+from ._backend import open_store, read_store_attrs, write_tile_row
+from .cache import TileCache
+from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
+from .operators import MOperand, StoreOperand, needed_rows
+from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
+
+#: Test hook: when set, called as ``task_hook(op, index)`` at the start of every task
+#: (tests inject a crash mid-term through it; threads of the calling process only).
+task_hook = None
+
+
+def _identity(path: str) -> tuple:
+    """(inode, mtime) of a store's root zarr.json: changes when it is rewritten."""
+    st = os.stat(os.path.join(path, "zarr.json"))
+    return st.st_ino, st.st_mtime_ns
+
+
+class _ProcessState:
+    """Open stores, the tile cache, memory plans and the pass in progress of this
+    process (module-level singleton :data:`STATE`)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.stores: dict[str, tuple[tuple, object]] = {}
+        self.operands: dict[tuple, StoreOperand] = {}
+        self.plans: dict[MemoryPolicy, MemoryPlan] = {}
+        self.cache = TileCache(0)
+        self.pass_id = None
+        self.minus_finv_v = None
+
+    def store(self, path: str):
+        """The store at ``path`` opened once per version of its root zarr.json."""
+        ident = _identity(path)
+        with self.lock:
+            held = self.stores.get(path)
+            if held is not None and held[0] == ident:
+                return held[1]
+        store = open_store(path)
+        with self.lock:
+            self.stores[path] = (ident, store)
+        return store
+
+    def operand(self, path: str, row_scale=None, digest: str = "") -> StoreOperand:
+        """A StoreOperand of the store at ``path`` (diag(row_scale) B when given),
+        one per store version, so tasks of a pass share its whole factor."""
+        store = self.store(path)
+        key = (path, _identity(path), row_scale is not None, digest)
+        with self.lock:
+            op = self.operands.get(key)
+            if op is None:
+                op = self.operands[key] = StoreOperand(store, row_scale, self.cache, key[1])
+            return op
+
+    def plan(self, policy: MemoryPolicy) -> MemoryPlan:
+        """This process's memory plan for ``policy``, made on first use."""
+        with self.lock:
+            plan = self.plans.get(policy)
+        if plan is None:
+            limit, threads = _process_limits(policy)
+            plan = plan_memory(limit, threads, policy.n_cols, policy.max_row_nnz)
+            with self.lock:
+                plan = self.plans.setdefault(policy, plan)
+        return plan
+
+    def install_plan(self, policy: MemoryPolicy, plan: MemoryPlan) -> None:
+        """Use ``plan`` for ``policy`` here (the local scheduler plans in the caller)."""
+        with self.lock:
+            self.plans[policy] = plan
+
+    def begin(self, spec: PassSpec) -> None:
+        """Called by every task: the first task of a new pass lets go of the previous
+        pass's shared factors."""
+        with self.lock:
+            if self.pass_id == spec.pass_id:
+                return
+            self.pass_id = spec.pass_id
+            self.minus_finv_v = None
+            operands = list(self.operands.values())
+            self.operands.clear()
+        for op in operands:
+            op.release()
+
+    def end(self, forget=()) -> None:
+        """Let go of the pass's shared factors, of cached rows of stores now gone and
+        of those under the paths ``forget``."""
+        with self.lock:
+            self.pass_id = None
+            self.minus_finv_v = None
+            operands = list(self.operands.values())
+            self.operands.clear()
+        for op in operands:
+            op.release()
+        forget = tuple(str(p) for p in forget)
+        self.cache.drop_where(lambda path: not os.path.exists(path) or path.startswith(forget))
+
+
+STATE = _ProcessState()
+
+
+def _process_limits(policy: MemoryPolicy) -> tuple[int | None, int]:
+    """(memory limit, threads) of this process: a dask worker's own, capped by the
+    policy's limit; else the policy's."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return policy.limit, policy.threads
+    return _worker_limits(worker, policy)
+
+
+def _worker_limits(worker, policy: MemoryPolicy) -> tuple[int | None, int]:
+    own = getattr(getattr(worker, "memory_manager", None), "memory_limit", None) or None
+    limits = [x for x in (own, policy.limit) if x]
+    return (min(limits) if limits else None), int(worker.state.nthreads)
+
+
+def plan_on_worker(policy: MemoryPolicy, dask_worker=None) -> MemoryPlan:
+    """The memory plan of the worker this runs on (``Client.run`` passes
+    ``dask_worker``); cached for its tasks."""
+    if dask_worker is not None:
+        limit, threads = _worker_limits(dask_worker, policy)
+        with STATE.lock:
+            if policy not in STATE.plans:
+                STATE.plans[policy] = plan_memory(limit, threads, policy.n_cols,
+                                                  policy.max_row_nnz)
+    return STATE.plan(policy)
+
+
+def end_pass(forget=()) -> None:
+    """Run on every process after a pass (:meth:`_ProcessState.end`)."""
+    STATE.end(forget)
+
+
+def worker_name() -> str:
+    return f"{os.getpid()}@{socket.gethostname()}"
+
+
+class TaskContext:
+    """What a task may touch: its row block, the pass's stores (opened by path), the
+    pass's shared vectors, the process's tile cache and memory plan, and the writers
+    of its own rows of the output stores. Nothing else.
+
+    Attributes
+    ----------
+    spec : PassSpec
+    block : RowBlock
+    start, stop : int, the block's rows
+    shared : dict of name -> ndarray (``finv``, ``f``, ``active`` (n,); ``V`` (n, k))
+    plan : MemoryPlan
+    """
+
+    def __init__(self, spec: PassSpec, block: RowBlock, shared: dict):
+        self.spec = spec
+        self.block = block
+        self.start, self.stop = block.start, block.stop
+        self.shared = shared
+        self.plan = STATE.plan(spec.memory)
+        self.cache = STATE.cache
+        self.dtype = np.dtype(spec.dtype)
+
+    @property
+    def finv(self) -> np.ndarray:
+        return self.shared["finv"]
+
+    @cached_property
+    def M(self) -> MOperand:
+        return MOperand(STATE.store(self.spec.T), self.shared["finv"].astype(self.dtype),
+                        self.shared["active"], self.spec.zero_diagonal, self.cache,
+                        self.spec.first_bounce, _identity(self.spec.T))
+
+    def operand(self, name: str) -> StoreOperand:
+        """Input ``name`` of the pass (read as diag(F) B when the spec says so)."""
+        scale = self.shared["f"].astype(self.dtype) if name in self.spec.scaled else None
+        return STATE.operand(self.spec.input_path(name), scale, self.spec.first_bounce)
+
+    def identity_rows(self) -> sp.csr_array:
+        """This block's rows of D = diag(active)."""
+        return blocks.identity_rows(self.start, self.stop, self.spec.n,
+                                    self.shared["active"], self.dtype)
+
+    def write(self, name: str, rows: sp.csr_array) -> bool:
+        """Write this block's rows of output ``name`` (idempotent: a row already
+        complete, e.g. by a task run twice, is left alone)."""
+        path = self.spec.output_path(name)
+        return write_tile_row(path, _attrs_of(path), self.block.index, rows)
+
+    def product(self, left: sp.csr_array, right_name: str, threshold: float):
+        """(left @ right pruned, tile products done, pairs skipped): see
+        :func:`row_product`."""
+        right = self.operand(right_name)
+        self.cache.resize(_cache_budget(self.plan, right))
+        return row_product(left, right, threshold, self.plan, _whole_limit(self.plan, right),
+                           self.spec.kernel_threads)
+
+    def minus_finv_v(self, V) -> np.ndarray:
+        """-F^-1 V, computed once per pass in this process."""
+        with STATE.lock:
+            if STATE.minus_finv_v is None:
+                STATE.minus_finv_v = -(self.shared["finv"][:, None] * V)
+            return STATE.minus_finv_v
+
+    def stats(self, **fields) -> BlockStats:
+        return BlockStats(self.block.index, **fields)
+
+
+_ATTRS: dict[str, tuple] = {}
+
+
+def _attrs_of(path: str):
+    ident = _identity(path)
+    held = _ATTRS.get(path)
+    if held is None or held[0] != ident:
+        held = _ATTRS[path] = (ident, read_store_attrs(path))
+    return held[1]
+
+
+def _whole_limit(plan: MemoryPlan, right: StoreOperand) -> int:
+    """Bytes the right factor may take held whole and shared by the process's tasks:
+    its own share, or the tile cache's too when it needs more (a factor read in
+    batches is re-read for every chunk of output rows, which costs far more than
+    rebuilding M's rows from T)."""
+    if right.nbytes <= plan.whole_bytes + plan.cache_bytes:
+        return max(plan.whole_bytes, right.nbytes)
+    return plan.whole_bytes
+
+
+def _cache_budget(plan: MemoryPlan, right: StoreOperand | None) -> int:
+    """The tile cache's budget during a pass: its share, less what a whole right
+    factor borrows from it; a pass without a right factor (a mat-vec) may also use the
+    factor's share and half the tasks' (nothing else is held then)."""
+    if right is None:
+        return plan.cache_bytes + plan.whole_bytes + plan.threads * plan.work_bytes_per_task // 2
+    borrowed = max(0, right.nbytes - plan.whole_bytes) if right.nbytes <= (
+        plan.whole_bytes + plan.cache_bytes) else 0
+    return plan.cache_bytes - borrowed
+
+
+def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
+                plan: MemoryPlan, whole_limit: int, kernel_threads: int = 1):
+    """``left @ right`` pruned at ``threshold``; only tile pairs with both factors
+    nonzero count (and are read).
+
+    The right factor is read whole, once per pass and shared by the process's tasks,
+    when it fits ``whole_limit``; else the tile rows this product needs, in batches of
+    at most a third of the task's work share, multiplied against chunks of the output
+    rows (:func:`~.blocks.row_product_batched`).
+
+    Returns
+    -------
+    (csr_array of left's shape, int tile products, int pairs skipped)
+    """
+    use = needed_rows(left, right)
+    skipped = int(np.unique(np.asarray(left.indices) // right.tile_size).size) - len(use) \
+        if left.nnz else 0
+    if not len(use):
+        return blocks.empty(left.shape, left.dtype), 0, skipped
+    if right.nbytes <= whole_limit:
+        out = blocks.row_product(left, right.whole(), threshold, kernel_threads)
+        return out, len(use), skipped
+    batch_bytes = max(plan.work_bytes_per_task // 3, 1)
+    groups, cur, cur_bytes = [], [], 0
+    for j in use:
+        if cur and cur_bytes + right.row_bytes(j) > batch_bytes:
+            groups.append(cur)
+            cur, cur_bytes = [], 0
+        cur.append(int(j))
+        cur_bytes += right.row_bytes(j)
+    groups.append(cur)
+    batches = [lambda js=js: right.assembled(js) for js in groups]
+    partial = max((plan.work_bytes_per_task - batch_bytes) // PARTIAL_BYTES_PER_ENTRY, 1)
+    out = blocks.row_product_batched(left, batches, threshold, right.work_per_row(left),
+                                     partial, kernel_threads)
+    return out, len(use), skipped
+
+
+def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
+    """The task: run ``spec.task`` on ``block`` in this process.
+
+    Raises
+    ------
+    BigTError
+        bigT's own errors, as raised (a full disk, a damaged store).
+    TaskError
+        Any other failure, on one line naming the pass, the rows and the cause.
+    """
+    STATE.begin(spec)
+    if task_hook is not None:
+        task_hook(spec.op, block.index)
+    t0 = time.perf_counter()
+    try:
+        stats = spec.task(TaskContext(spec, block, shared))
+    except BigTError:
+        raise
+    except OSError as exc:
+        if exc.errno == 28:  # ENOSPC
+            raise DiskFullError(f"disk full in {spec.op} (term {spec.term}, rows "
+                                f"{block.start}:{block.stop}); finished rows are kept",
+                                exc.filename or spec.T) from None
+        raise TaskError(f"{spec.op} (term {spec.term}, rows {block.start}:{block.stop}) "
+                        f"failed: {type(exc).__name__}: {exc}", spec.T) from None
+    except MemoryError:
+        raise TaskError(f"{spec.op} (term {spec.term}, rows {block.start}:{block.stop}) ran "
+                        "out of memory: give the workers more memory or a --memory-limit "
+                        "the plan can keep", spec.T) from None
+    except Exception as exc:
+        raise TaskError(f"{spec.op} (term {spec.term}, rows {block.start}:{block.stop}) "
+                        f"failed: {type(exc).__name__}: {exc}", spec.T) from None
+    return stats.replace(seconds=time.perf_counter() - t0, worker=worker_name())
+
+
+def run_mapped_block(block: RowBlock, *, spec: PassSpec, shared: dict) -> BlockStats:
+    """:func:`run_block` with the block first (``Client.map`` maps the first argument)."""
+    return run_block(spec, block, shared)
