@@ -40,6 +40,9 @@ TASKS_PER_THREAD = 4
 #: (opening stores, reading T's tiles, writing tile files) outweighs the product.
 MIN_BLOCK_ROWS = 1024
 
+#: Seconds to wait for a dask scheduler given by address before giving up.
+SCHEDULER_CONNECT_SECONDS = 10
+
 # --- compensation -------------------------------------------------------------------
 #: Frames streamed against each row tile of X at once.
 DEFAULT_BATCH = 64

@@ -20,6 +20,7 @@ import uuid
 import dask
 from dask.callbacks import Callback
 
+from .. import config
 from ..errors import BigTError, SchedulerError, StoreError
 from .memory import MemoryPlan, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
@@ -121,8 +122,10 @@ class ClusterRunner:
         return text + (f", dashboard {link}" if link and self._has_dashboard() else "")
 
     def _has_dashboard(self) -> bool:
-        services = self.client.scheduler_info().get("services") or {}
-        return "dashboard" in services
+        try:
+            return bool(self.client.run_on_scheduler(_serves_dashboard))
+        except Exception:  # an old scheduler or no permission: say nothing
+            return False
 
     def plans(self, policy: MemoryPolicy) -> dict[str, MemoryPlan]:
         """Each worker's plan, made on the worker from its own limit and threads."""
@@ -166,6 +169,10 @@ class ClusterRunner:
     def close(self) -> None:
         for obj in reversed(self.owned):
             obj.close()
+
+
+def _serves_dashboard(dask_scheduler=None) -> bool:
+    return "dashboard" in (getattr(dask_scheduler, "services", None) or {})
 
 
 def _missing_paths(paths) -> list[str]:
@@ -254,7 +261,7 @@ def _connect(address: str) -> ClusterRunner:
     from distributed import Client
 
     try:
-        client = Client(address, timeout=10)
+        client = Client(address, timeout=config.SCHEDULER_CONNECT_SECONDS)
     except (OSError, TimeoutError, ValueError) as exc:
         raise SchedulerError(f"cannot reach the dask scheduler at {address} "
                              f"({type(exc).__name__}: {exc})") from None
