@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -45,18 +44,11 @@ def make_scene(size, path, density):
 
 
 def peak_rss() -> int:
-    """Peak resident set of this process in bytes: VmHWM of /proc/self/status (the
-    high-water mark of this process's own memory). Not ru_maxrss: after fork + exec
-    Linux carries the parent's high-water mark into the child's ru_maxrss, so a child
-    started by a parent that built a big scene would report the parent's peak."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """Peak resident set of this process in bytes (VmHWM; see
+    :func:`bigT.schedule.memory.peak_resident_bytes`)."""
+    from bigT.schedule.memory import peak_resident_bytes
+
+    return peak_resident_bytes()
 
 
 def child(args):

@@ -56,6 +56,25 @@ def _empty_rows_and_cols(T, candidates: np.ndarray) -> np.ndarray:
     return candidates[~row_nz[candidates] & ~col_nz[candidates]]
 
 
+def _refuse_nonpositive(f: np.ndarray, active: np.ndarray, what: str, path) -> None:
+    """InvalidMatrixError when F has a negative entry, or a zero one on a pixel that is
+    not left out (its row or column of T holds light): counts and first indices."""
+    bad = np.flatnonzero(active & (f <= 0))
+    if not len(bad):
+        return
+    neg, zero = bad[f[bad] < 0], bad[f[bad] == 0]
+    parts = []
+    if len(neg):
+        parts.append(f"{len(neg)} negative entries (first at index {neg[0]}, "
+                     f"value {f[neg[0]]:.4g})")
+    if len(zero):
+        parts.append(f"{len(zero)} zero entries on pixels whose row or column is not "
+                     f"zero (first at index {zero[0]})")
+    raise InvalidMatrixError(
+        f"{what} has " + " and ".join(parts) + "; F = diag(T) needs a positive "
+        "diagonal: fix the measurement, or pass first_bounce='identity' or a vector", path)
+
+
 def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     """Turn ``first_bounce=`` into F.
 
@@ -98,22 +117,9 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     excluded = _empty_rows_and_cols(T, zero_diag) if len(zero_diag) else zero_diag
     active = np.ones(n, dtype=bool)
     active[excluded] = False
-    what = "T's diagonal" if kind == "diag" else "first_bounce"
-    bad = np.flatnonzero(active & (f <= 0)) if kind != "identity" else np.array([], int)
-    if len(bad):
-        neg = bad[f[bad] < 0]
-        zero = bad[f[bad] == 0]
-        parts = []
-        if len(neg):
-            parts.append(f"{len(neg)} negative entries (first at index {neg[0]}, "
-                         f"value {f[neg[0]]:.4g})")
-        if len(zero):
-            parts.append(f"{len(zero)} zero entries on pixels whose row or column is not "
-                         f"zero (first at index {zero[0]})")
-        raise InvalidMatrixError(
-            f"{what} has " + " and ".join(parts) + "; F = diag(T) needs a positive "
-            "diagonal: fix the measurement, or pass first_bounce='identity' or a vector",
-            getattr(T, "path", None))
+    if kind != "identity":
+        _refuse_nonpositive(f, active, "T's diagonal" if kind == "diag" else "first_bounce",
+                            getattr(T, "path", None))
     f = np.where(active, f, 0.0)
     finv = np.zeros(n)
     finv[active] = 1.0 / f[active]

@@ -86,7 +86,7 @@ import numpy as np
 from .. import config
 from ..errors import BigTError, DivergenceError, NotSquareError
 from ..schedule.matvec import matvec, matvec_spec
-from ..schedule.memory import warn_if_rows_outgrow
+from ..schedule.memory import human_bytes, warn_if_rows_outgrow
 from ..schedule.operators import StoreOperand
 from ..schedule.runner import local_path, new_pass_id, open_runner
 from ..schedule.spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
@@ -130,6 +130,9 @@ class InverseReport:
     memory: str = "no memory limit"
     scheduler: str = "local threads"
     tile_size: int = 0
+    tasks: int = 0
+    task_overhead_ms: float = 0.0
+    peak_memory: tuple[tuple[str, int], ...] = ()
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -148,8 +151,13 @@ class InverseReport:
         lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}, "
                      f"first bounce {self.first_bounce}), spectral radius of M {rho}, "
                      f"{self.excluded_pixels} pixels left out, stopped: {self.stopped}")
-        lines.append(f"ran on {self.scheduler}, row blocks of {self.tile_size} rows")
+        lines.append(f"ran on {self.scheduler}, row blocks of {self.tile_size} rows, "
+                     f"{self.tasks} tasks, {self.task_overhead_ms:.1f} ms scheduling "
+                     "overhead per task")
         lines.append(self.memory)
+        if self.peak_memory:
+            lines.append("peak resident memory: " + ", ".join(
+                f"{who} {human_bytes(b)}" for who, b in self.peak_memory))
         return "\n".join(lines)
 
 
@@ -362,7 +370,39 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         engine = _Engine(T, out, series, runner, opts, first_bounce, memory_limit)
         return engine.run(t_start)
     finally:
-        runner.close()
+        _let_go(runner, T, out)
+
+
+def _let_go(runner, T, out) -> None:
+    """End of a run: every process forgets the cached rows of T's M and of the
+    inverse's terms (a caller's later work starts with an empty cache), then the
+    runner closes what it started."""
+    try:
+        runner.end_pass(None, forget=(local_path(T.path), out))
+    except Exception:  # a cluster gone with the run: nothing left to free
+        pass
+    runner.close()
+
+
+@dataclass
+class _PassTiming:
+    """Tasks of the product passes and the threads' time not spent inside them:
+    (wall time x threads - time in tasks) / tasks is what scheduling a task costs
+    (submission, scattering, results, idle threads at the end of a pass)."""
+
+    tasks: int = 0
+    thread_seconds: float = 0.0
+    task_seconds: float = 0.0
+
+    def add(self, wall: float, stats: list[BlockStats], threads: int) -> None:
+        self.tasks += len(stats)
+        self.thread_seconds += wall * threads
+        self.task_seconds += sum(s.seconds for s in stats)
+
+    def overhead_ms(self) -> float:
+        if not self.tasks:
+            return 0.0
+        return 1e3 * max(0.0, self.thread_seconds - self.task_seconds) / self.tasks
 
 
 class _Engine:
@@ -372,7 +412,8 @@ class _Engine:
     def __init__(self, T, out, series: SeriesMethod, runner, opts: _Options, first_bounce,
                  memory_limit):
         self.T, self.series, self.runner, self.opts = T, series, runner, opts
-        runner.check_paths([T.path])
+        self.T_path = local_path(T.path, "transport T")  # as the workers will open it
+        runner.check_paths([self.T_path])
         self.fb = resolve_first_bounce(T, first_bounce)
         self.policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], _max_row_nnz(T))
         self.plans = runner.plans(self.policy)
@@ -388,6 +429,7 @@ class _Engine:
         self.kernel_threads = 1 if n_blocks >= runner.threads else runner.idle_kernel_threads
         self.shared = {"finv": self.fb.finv, "f": self.fb.f, "active": self.fb.active}
         self.products = 0
+        self.timing = _PassTiming()
 
     def _save(self, record) -> None:
         self.store.save(record)
@@ -468,7 +510,7 @@ class _Engine:
             stats += self._run_pass(p, k)
         self._finish_term(k, stats, t0)
         self.store.drop_term(held)
-        self.runner.end_pass(forget=(str(self.store.path / term_dir(held)),))
+        self.runner.end_pass(None, forget=(str(self.store.path / term_dir(held)),))
         return None
 
     def _exhausted(self, p: Pass, held: int) -> str | None:
@@ -490,11 +532,15 @@ class _Engine:
         todo = [i for i in range(n_blocks) if any(i not in d for d in done)]
         stats = []
         if todo:
-            stats = self.runner.map(self._spec(p, k, paths),
-                                    row_blocks(self.T.shape[0], self.tile_size, todo),
-                                    self.shared, progress=self.opts.progress,
-                                    desc=f"term {k} {p.op}")
-            self.runner.end_pass()
+            t0 = time.perf_counter()
+            spec = self._spec(p, k, paths)
+            try:
+                stats = self.runner.map(spec, row_blocks(self.T.shape[0], self.tile_size, todo),
+                                        self.shared, progress=self.opts.progress,
+                                        desc=f"term {k} {p.op}")
+            finally:
+                self.runner.end_pass(spec.pass_id)
+            self.timing.add(time.perf_counter() - t0, stats, self.runner.threads)
         for name in p.outputs:
             self.store.finalize_term_store(k, name)
         self.products += sum(s.computed for s in stats)
@@ -504,7 +550,7 @@ class _Engine:
         inputs = tuple((alias, str(self.store.term_path(term, name)))
                        for alias, name, term in p.inputs)
         return PassSpec(
-            op=p.op, term=k, task=p.task, T=str(self.T.path), first_bounce=self.fb.digest,
+            op=p.op, term=k, task=p.task, T=self.T_path, first_bounce=self.fb.digest,
             zero_diagonal=self.fb.zero_diagonal, n=self.T.shape[0],
             block_rows=self.tile_size, dtype=np.dtype(self.T.dtype).name, memory=self.policy,
             inputs=inputs, scaled=p.scaled,
@@ -544,14 +590,14 @@ class _Engine:
     # --- mat-vecs -------------------------------------------------------------------
 
     def _apply_M(self, V: np.ndarray) -> np.ndarray:
-        spec = matvec_spec("matvec-M", str(self.T.path), self.T.shape[0], self.tile_size,
-                           self.T.dtype, memory=self.policy, T=str(self.T.path),
+        spec = matvec_spec("matvec-M", self.T_path, self.T.shape[0], self.tile_size,
+                           self.T.dtype, memory=self.policy, T=self.T_path,
                            first_bounce=self.fb.digest, zero_diagonal=self.fb.zero_diagonal)
         return matvec(self.runner, spec, V, self.shared)
 
     def _apply_X(self, X, V: np.ndarray) -> np.ndarray:
         spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,
-                           memory=self.policy)
+                           memory=self.policy, cache_tiles=False)
         return matvec(self.runner, spec, V)
 
     # --- reporting ------------------------------------------------------------------
@@ -582,5 +628,7 @@ class _Engine:
             stopped=stopped, resumed_from=resumed_from, products=self.products,
             seconds=seconds, n=self.T.shape[0], nnz_T=int(self.T.nnz), history=rec.history,
             seconds_spectral_radius=t_rho, memory=self._memory_text(),
-            scheduler=self.runner.describe(), tile_size=self.tile_size)
+            scheduler=self.runner.describe(), tile_size=self.tile_size,
+            tasks=self.timing.tasks, task_overhead_ms=self.timing.overhead_ms(),
+            peak_memory=tuple(sorted(self.runner.peak_memory().items())))
 

@@ -105,11 +105,14 @@ def cache_budget(cache_bytes: int | None) -> int:
     return config.COMPENSATE_CACHE_BYTES if cache_bytes is None else max(0, int(cache_bytes))
 
 
-def forget_tiles(*stores) -> None:
-    """Drop the cached tiles of ``stores`` from this process's tile cache (the end of a
-    compensation call: a library's caller should not keep a gigabyte of tiles)."""
-    from ..schedule.worker import STATE
+def forget_tiles(runner, *stores) -> None:
+    """Drop the cached tiles of ``stores`` in every process that ran the passes (the
+    end of a compensation call: a library's caller should not keep a gigabyte of
+    tiles)."""
+    from ..schedule.worker import end_pass
 
-    for store in stores:
-        if store is not None:
-            STATE.cache.drop(os.path.abspath(store.path))
+    paths = tuple(os.path.abspath(s.path) for s in stores if s is not None)
+    if runner is None:
+        end_pass(None, paths)
+    else:
+        runner.end_pass(None, paths)

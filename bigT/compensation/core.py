@@ -10,6 +10,7 @@ row-major images.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -74,14 +75,23 @@ def to_frames(vectors: np.ndarray, order: PixelOrder, clip=None) -> np.ndarray:
 
 # --- matrix-free stratified inverse ---------------------------------------------------
 
+_FINV: dict[tuple, np.ndarray] = {}
+
+
 def first_bounce_diag(T) -> np.ndarray:
-    """1/F for F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,): the
+    """F^-1 for F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,): the
     algorithms layer's :func:`~bigT.algorithms.resolve_first_bounce`, with its policy
     for zero diagonals (a pixel whose row and column are empty is left out: 0 here;
-    any other zero or negative entry is an InvalidMatrixError)."""
+    any other zero or negative entry is an InvalidMatrixError). Kept per store
+    version: with zero diagonals it is a pass over T, not to be paid per batch."""
     from ..algorithms.first_bounce import resolve_first_bounce
 
-    return resolve_first_bounce(T, "diag").finv
+    st = os.stat(os.path.join(T.path, "zarr.json"))
+    key = (os.path.abspath(T.path), st.st_ino, st.st_mtime_ns)
+    if key not in _FINV:
+        _FINV.clear()  # one store at a time: a vector of n per store is enough
+        _FINV[key] = resolve_first_bounce(T, "diag").finv
+    return _FINV[key]
 
 
 def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = None,
@@ -268,11 +278,13 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
     batch = max(1, int(batch))
     t0 = time.perf_counter()
     with scheduler_runner(scheduler) as runner:
-        for s in range(0, len(frames), batch):
-            out[s:s + batch] = compensate_frames(
-                frames[s:s + batch], X=X, T=T, choice=choice, clip=clip, report=report,
-                progress=progress, cache_bytes=cache_budget(cache_bytes), runner=runner)
-    forget_tiles(X, T)
+        try:
+            for s in range(0, len(frames), batch):
+                out[s:s + batch] = compensate_frames(
+                    frames[s:s + batch], X=X, T=T, choice=choice, clip=clip, report=report,
+                    progress=progress, cache_bytes=cache_budget(cache_bytes), runner=runner)
+        finally:
+            forget_tiles(runner, X, T)
     report.seconds = time.perf_counter() - t0
     report.frames = len(frames)
     result = out[0] if single else out
@@ -298,12 +310,14 @@ def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = Fa
     out = np.empty_like(frames)
     batch = max(1, int(batch))
     with scheduler_runner(scheduler) as runner:
-        for s in range(0, len(frames), batch):
-            B = to_vectors(frames[s:s + batch], order, compute_dtype(T))
-            out[s:s + batch] = to_frames(stream_matmul(
-                T, B, progress=progress, desc="T pass", cache_bytes=cache_budget(cache_bytes),
-                runner=runner), order)
-    forget_tiles(T)
+        try:
+            for s in range(0, len(frames), batch):
+                B = to_vectors(frames[s:s + batch], order, compute_dtype(T))
+                out[s:s + batch] = to_frames(stream_matmul(
+                    T, B, progress=progress, desc="T pass",
+                    cache_bytes=cache_budget(cache_bytes), runner=runner), order)
+        finally:
+            forget_tiles(runner, T)
     return out[0] if single else out
 
 
@@ -360,10 +374,13 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     # Work in float64 for the dense vectors so the parts sum to T l to rounding.
     v = F * to_vectors(frames, order_x, np.float64)
     parts = [v]
-    for k in range(bounces):
-        v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}",
-                                  )
-        parts.append(v)
+    try:
+        for k in range(bounces):
+            v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}",
+                                      cache_bytes=cache_budget(None))
+            parts.append(v)
+    finally:
+        forget_tiles(None, X)
     seen = to_frames(stream_matmul(T, to_vectors(frames, order_t, np.float64),
                                    progress=progress, desc="T pass"), order_t)
     out = [to_frames(p, order_x) for p in parts]

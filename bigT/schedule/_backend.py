@@ -1,14 +1,14 @@
-"""The one place where the engine reaches the storage and kernel layers: every other
-module of ``bigT.schedule`` and ``bigT.algorithms`` imports stores and kernels from
-here, so the layers' contracts (docs/CONTRACTS.md) are used in one spot."""
+"""The one place where ``bigT.schedule`` reaches the storage and kernel layers: its
+other modules (and the algorithms' block tasks) import stores and kernels from here, so
+the layers' contracts (docs/CONTRACTS.md) are used in one spot."""
 
 from __future__ import annotations
 
 from bigT.kernels import SPGEMM_GROUP, add_diag_scaled, prune, scale_cols, scale_rows, spgemm, spmm_dense
-from bigT.storage import BlockCSR, from_scipy, read_store_attrs, write_tile_row
+from bigT.storage import BlockCSR, from_scipy, read_store_attrs, row_marker, write_tile_row
 from bigT.storage import open as open_store
 
 __all__ = [
     "SPGEMM_GROUP", "BlockCSR", "add_diag_scaled", "from_scipy", "open_store", "prune",
-    "read_store_attrs", "scale_cols", "scale_rows", "spgemm", "spmm_dense", "write_tile_row",
+    "read_store_attrs", "row_marker", "scale_cols", "scale_rows", "spgemm", "spmm_dense", "write_tile_row",
 ]

@@ -50,11 +50,6 @@ class TileCache:
                 self.used += size
         return value
 
-    def get_tile(self, store, i: int, j: int):
-        """Tile (i, j) of ``store`` (a BlockCSR), through the cache."""
-        return self.get((str(store.path), "tile", int(i), int(j)),
-                        lambda: store.get_tile(i, j))
-
     def lookup(self, key):
         """The entry under ``key``, or None (nothing is computed or admitted)."""
         with self._lock:

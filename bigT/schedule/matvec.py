@@ -9,14 +9,13 @@ import numpy as np
 
 from ._backend import spmm_dense
 from .spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
-from .worker import STATE, TaskContext, _identity
 from .runner import new_pass_id
+from .worker import STATE, TaskContext, _identity
 
 
 def m_matvec_task(ctx: TaskContext) -> BlockStats:
     """Rows of M V (:meth:`~.operators.MOperand.matvec_rows`)."""
     V = ctx.shared["V"]
-    ctx.cache.resize(_matvec_cache_budget(ctx))
     y = ctx.M.matvec_rows(ctx.start, ctx.stop, V, ctx.minus_finv_v(V))
     return ctx.stats(y=y)
 
@@ -27,37 +26,34 @@ def store_matvec_task(ctx: TaskContext) -> BlockStats:
     V = ctx.shared["V"]
     path = ctx.spec.input_path("A")
     A = STATE.store(path)
-    ctx.cache.resize(_matvec_cache_budget(ctx))
     i, ts = ctx.block.index, A.tile_size
     out = np.zeros((ctx.stop - ctx.start, V.shape[1]), np.result_type(V.dtype, A.dtype))
     ident = _identity(path)
     for j in A.tile_columns(i):
         j = int(j)
-        tile = ctx.cache.get((path, ident, "tile", i, j), lambda j=j: A.get_tile(i, j))
+        if ctx.spec.cache_tiles:
+            tile = ctx.cache.get((path, ident, "tile", i, j), lambda j=j: A.get_tile(i, j))
+        else:
+            tile = A.get_tile(i, j)
         if tile.nnz:
             spmm_dense(tile, V[j * ts:j * ts + tile.shape[1]], out=out, n_threads=1)
     return ctx.stats(y=out)
 
 
-def _matvec_cache_budget(ctx: TaskContext) -> int:
-    if ctx.spec.cache_bytes is not None:
-        return ctx.spec.cache_bytes
-    plan = ctx.plan
-    # nothing but the cache is held during a mat-vec: it may use the factor's share too
-    return plan.cache_bytes + plan.whole_bytes + plan.threads * plan.work_bytes_per_task // 2
-
-
 def matvec_spec(op: str, store_path: str, n: int, block_rows: int, dtype, *,
                 memory: MemoryPolicy | None = None, cache_bytes: int | None = None,
                 T: str | None = None, first_bounce: str = "",
-                zero_diagonal: bool = False) -> PassSpec:
-    """The spec of A V for the store at ``store_path`` (``T`` given: of M V)."""
+                zero_diagonal: bool = False, cache_tiles: bool = True) -> PassSpec:
+    """The spec of A V for the store at ``store_path`` (``T`` given: of M V).
+    ``cache_bytes`` 0 caches nothing and leaves the tile cache as it is."""
+    if cache_bytes == 0:
+        cache_bytes, cache_tiles = None, False
     return PassSpec(
         op=op, term=0, task=m_matvec_task if T else store_matvec_task,
         T=T or store_path, first_bounce=first_bounce, zero_diagonal=zero_diagonal, n=n,
         block_rows=block_rows, dtype=np.dtype(dtype).name,
         memory=memory or MemoryPolicy(None, 1, n, 0), inputs=(("A", store_path),),
-        cache_bytes=cache_bytes)
+        cache_bytes=cache_bytes, cache_tiles=cache_tiles)
 
 
 def matvec(runner, spec: PassSpec, V: np.ndarray, shared: dict | None = None, *,
@@ -65,7 +61,10 @@ def matvec(runner, spec: PassSpec, V: np.ndarray, shared: dict | None = None, *,
     """Y = A V (or M V) of shape (n, k) through ``runner``, one task per row block."""
     spec = spec.replace(pass_id=new_pass_id())
     blocks = row_blocks(spec.n, spec.block_rows)
-    stats = runner.map(spec, blocks, {**(shared or {}), "V": V}, progress=progress)
+    try:
+        stats = runner.map(spec, blocks, {**(shared or {}), "V": V}, progress=progress)
+    finally:
+        runner.end_pass(spec.pass_id)
     Y = np.zeros((spec.n, V.shape[1]), dtype=np.result_type(V.dtype, np.dtype(spec.dtype),
                                                             np.float32))
     for b, s in zip(blocks, stats):

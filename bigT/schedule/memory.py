@@ -60,13 +60,34 @@ def resident_bytes() -> int:
         with open("/proc/self/statm") as fh:
             return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError, AttributeError):
-        pass
+        return _ru_maxrss_bytes()
+
+
+def _ru_maxrss_bytes() -> int:
+    """The peak resident set from getrusage, in bytes (kilobytes on Linux, bytes on
+    macOS); 0 on Windows, where the plan then assumes nothing held."""
     try:
         import resource
-    except ImportError:  # Windows: no measurement; the plan then assumes nothing held
+    except ImportError:
         return 0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return int(peak if sys.platform == "darwin" else peak * 1024)  # bytes on macOS
+    return int(peak if sys.platform == "darwin" else peak * 1024)
+
+
+def peak_resident_bytes() -> int:
+    """Peak resident set of this process in bytes: VmHWM of /proc/self/status (the
+    high-water mark of this process's own memory). Not ru_maxrss where /proc exists:
+    after fork + exec Linux carries the parent's high-water mark into the child's
+    ru_maxrss, so a child started by a parent that built a big scene would report the
+    parent's peak."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return _ru_maxrss_bytes()
 
 
 def stored_bytes(nnz: int, n_rows: int, itemsize: int) -> int:

@@ -14,14 +14,18 @@ from .cache import TileCache
 from .memory import stored_bytes
 
 
-def needed_rows(left: sp.csr_array, right) -> np.ndarray:
+def needed_rows(left: sp.csr_array, right) -> tuple[np.ndarray, int]:
     """Tile rows of ``right`` that ``left @ right`` reads: those under a column of
     ``left`` holding an entry and not empty (a pair with a zero factor is never
-    read). int64 array, ascending."""
-    hit = np.zeros(right.grid[0], dtype=bool)
-    if left.nnz:
-        hit[np.unique(np.asarray(left.indices) // right.tile_size)] = True
-    return np.flatnonzero(hit & right.nonempty)
+    read), int64 ascending; and how many such pairs were skipped (the left tile holds
+    entries, the right tile row is empty). One counting pass over ``left.indices``
+    (a sort of millions of indices per task would cost more than the pairs save)."""
+    if not left.nnz:
+        return np.zeros(0, dtype=np.int64), 0
+    hit = np.bincount(np.asarray(left.indices) // right.tile_size,
+                      minlength=right.grid[0]) > 0
+    use = np.flatnonzero(hit & right.nonempty)
+    return use, int(np.count_nonzero(hit)) - len(use)
 
 
 class StoreOperand:
@@ -124,14 +128,6 @@ class StoreOperand:
         """Drop the whole matrix read by :meth:`whole` (end of a pass)."""
         with self._lock:
             self._whole = None
-
-    def matvec_rows(self, start: int, stop: int, V) -> np.ndarray:
-        """Rows ``start:stop`` of B @ V, V of shape (n, k)."""
-        out = np.zeros((stop - start, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        block = self.rows(start, stop)
-        if block.nnz:
-            spmm_dense(block, V, out=out, n_threads=1)
-        return out
 
 
 class MOperand:

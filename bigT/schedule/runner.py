@@ -22,7 +22,7 @@ from dask.callbacks import Callback
 
 from .. import config
 from ..errors import BigTError, SchedulerError, StoreError
-from .memory import MemoryPlan, plan_memory
+from .memory import MemoryPlan, peak_resident_bytes, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
 
@@ -82,8 +82,14 @@ class ThreadRunner:
         with _bar(progress, len(tasks), desc or spec.op) as bar, _Posttask(bar):
             return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
 
-    def end_pass(self, forget=()) -> None:
-        end_pass(forget)
+    def end_pass(self, pass_id: str | None = None, forget=()) -> None:
+        """Let go of a pass's shared items (all when None) and of cached rows of the
+        stores under ``forget`` (:func:`~.worker.end_pass`)."""
+        end_pass(pass_id, tuple(str(p) for p in forget))
+
+    def peak_memory(self) -> dict[str, int]:
+        """Peak resident bytes of the process running the tasks (this one)."""
+        return {"local": peak_resident_bytes()}
 
     def close(self) -> None:
         end_pass()
@@ -115,7 +121,10 @@ class ClusterRunner:
         return 1
 
     def describe(self) -> str:
-        workers = self._workers()
+        try:
+            workers = self._workers()
+        except Exception:  # gone at the end of a run: the report says what it can
+            return f"dask cluster {self.client.scheduler.address}"
         text = (f"dask cluster {self.client.scheduler.address}: {len(workers)} workers, "
                 f"{self.threads} threads")
         link = getattr(self.client, "dashboard_link", None)
@@ -145,13 +154,13 @@ class ClusterRunner:
             progress: bool = False, desc: str = "") -> list[BlockStats]:
         from distributed import as_completed
 
-        scattered = {k: self.client.scatter(v, broadcast=True, hash=False)
-                     for k, v in shared.items()}
         keys = [f"{spec.op}-{spec.pass_id}-{b.index}" for b in blocks]
-        futures = self.client.map(run_mapped_block, blocks, spec=spec, shared=scattered, key=keys,
-                                  pure=False, retries=0)
-        results = []
+        futures, scattered, results = [], {}, []
         try:
+            scattered = {k: self.client.scatter(v, broadcast=True, hash=False)
+                         for k, v in shared.items()}
+            futures = self.client.map(run_mapped_block, blocks, spec=spec, shared=scattered,
+                                      key=keys, pure=False, retries=0)
             with _bar(progress, len(futures), desc or spec.op) as bar:
                 for fut in as_completed(futures):
                     results.append(fut.result())
@@ -163,8 +172,17 @@ class ClusterRunner:
             del futures, scattered
         return sorted(results, key=lambda s: s.index)
 
-    def end_pass(self, forget=()) -> None:
-        self.client.run(end_pass, tuple(str(p) for p in forget))
+    def end_pass(self, pass_id: str | None = None, forget=()) -> None:
+        """As :meth:`ThreadRunner.end_pass`, on every worker."""
+        self.client.run(end_pass, pass_id, tuple(str(p) for p in forget))
+
+    def peak_memory(self) -> dict[str, int]:
+        """Peak resident bytes of each worker process (empty when they cannot be
+        asked any more: the figure is for the report, not worth failing a run)."""
+        try:
+            return self.client.run(peak_resident_bytes)
+        except Exception:
+            return {}
 
     def close(self) -> None:
         for obj in reversed(self.owned):
@@ -172,7 +190,12 @@ class ClusterRunner:
 
 
 def _serves_dashboard(dask_scheduler=None) -> bool:
-    return "dashboard" in (getattr(dask_scheduler, "services", None) or {})
+    """Whether the scheduler serves distributed's dashboard (its HTTP server runs
+    without bokeh too, but shows no dashboard then)."""
+    import importlib.util
+
+    return ("dashboard" in (getattr(dask_scheduler, "services", None) or {})
+            and importlib.util.find_spec("bokeh") is not None)
 
 
 def _missing_paths(paths) -> list[str]:
@@ -248,12 +271,9 @@ def _local_cluster(n: int, memory_limit: int | None) -> ClusterRunner:
     return ClusterRunner(client, owned=[cluster, client])
 
 
-def _dashboard():
-    """A free port for the dashboard when bokeh is installed, else none."""
-    try:
-        import bokeh  # noqa: F401
-    except ImportError:
-        return None
+def _dashboard() -> str:
+    """A free port on 127.0.0.1 for the scheduler's HTTP server (and dashboard, with
+    bokeh): never a fixed port another cluster may hold."""
     return "127.0.0.1:0"
 
 

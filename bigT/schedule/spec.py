@@ -87,6 +87,9 @@ class PassSpec:
         Unique per pass: a worker lets go of the previous pass's shared factor.
     cache_bytes : int or None
         The tile cache's budget during the pass (compensation); None: the memory plan's.
+    cache_tiles : bool
+        A mat-vec keeps the tiles it reads in the cache (compensation's batches reuse
+        them; the engine's X of one term is read once, and would only evict M's rows).
     """
 
     op: str
@@ -107,6 +110,7 @@ class PassSpec:
     kernel_threads: int = 1
     pass_id: str = ""
     cache_bytes: int | None = None
+    cache_tiles: bool = True
 
     def input_path(self, name: str) -> str:
         return dict(self.inputs)[name]

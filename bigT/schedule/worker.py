@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import socket
+from pathlib import Path
 import threading
 import time
 from functools import cached_property
@@ -23,7 +24,7 @@ import scipy.sparse as sp
 
 from ..errors import BigTError, DiskFullError, TaskError
 from . import blocks
-from ._backend import open_store, read_store_attrs, write_tile_row
+from ._backend import open_store, read_store_attrs, row_marker, write_tile_row
 from .cache import TileCache
 from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
 from .operators import MOperand, StoreOperand, needed_rows
@@ -40,41 +41,68 @@ def _identity(path: str) -> tuple:
     return st.st_ino, st.st_mtime_ns
 
 
+class _PassState:
+    """What the tasks of one pass share in a process: its operands (so a right factor is
+    read whole once), its vectors cast to the pass's dtype, M, a mat-vec's -F^-1 V."""
+
+    def __init__(self):
+        # reentrant: making one item may get another (M needs F^-1 in the pass's dtype)
+        self.lock = threading.RLock()
+        self.items: dict = {}
+
+    def get(self, key, make):
+        """The item under ``key``, made by ``make()`` by the first task that asks (the
+        others wait for it rather than make their own)."""
+        with self.lock:
+            if key not in self.items:
+                self.items[key] = make()
+            return self.items[key]
+
+    def release(self) -> None:
+        with self.lock:
+            items = list(self.items.values())
+            self.items.clear()
+        for item in items:
+            if isinstance(item, StoreOperand):
+                item.release()
+
+
+#: Passes whose shared items a process keeps at once (two runs may share a cluster);
+#: the oldest is let go when a task of another pass arrives.
+_MAX_PASSES = 4
+
+
 class _ProcessState:
-    """Open stores, the tile cache, memory plans and the pass in progress of this
+    """Open stores, the tile cache, memory plans and the passes in progress of this
     process (module-level singleton :data:`STATE`)."""
 
     def __init__(self):
         self.lock = threading.Lock()
         self.stores: dict[str, tuple[tuple, object]] = {}
-        self.operands: dict[tuple, StoreOperand] = {}
+        self.attrs: dict[str, tuple[tuple, object]] = {}
+        self.passes: dict[str, _PassState] = {}
         self.plans: dict[MemoryPolicy, MemoryPlan] = {}
         self.cache = TileCache(0)
-        self.pass_id = None
-        self.minus_finv_v = None
 
-    def store(self, path: str):
-        """The store at ``path`` opened once per version of its root zarr.json."""
+    def _opened(self, table: dict, path: str, opener):
+        """``opener(path)`` once per version of the root zarr.json at ``path``."""
         ident = _identity(path)
         with self.lock:
-            held = self.stores.get(path)
+            held = table.get(path)
             if held is not None and held[0] == ident:
                 return held[1]
-        store = open_store(path)
+        value = opener(path)
         with self.lock:
-            self.stores[path] = (ident, store)
-        return store
+            table[path] = (ident, value)
+        return value
 
-    def operand(self, path: str, row_scale=None, digest: str = "") -> StoreOperand:
-        """A StoreOperand of the store at ``path`` (diag(row_scale) B when given),
-        one per store version, so tasks of a pass share its whole factor."""
-        store = self.store(path)
-        key = (path, _identity(path), row_scale is not None, digest)
-        with self.lock:
-            op = self.operands.get(key)
-            if op is None:
-                op = self.operands[key] = StoreOperand(store, row_scale, self.cache, key[1])
-            return op
+    def store(self, path: str):
+        """The store at ``path``, opened once per version."""
+        return self._opened(self.stores, path, open_store)
+
+    def store_attrs(self, path: str):
+        """The attributes of the store at ``path`` (for its writers)."""
+        return self._opened(self.attrs, path, read_store_attrs)
 
     def plan(self, policy: MemoryPolicy) -> MemoryPlan:
         """This process's memory plan for ``policy``, made on first use."""
@@ -92,31 +120,36 @@ class _ProcessState:
         with self.lock:
             self.plans[policy] = plan
 
-    def begin(self, spec: PassSpec) -> None:
-        """Called by every task: the first task of a new pass lets go of the previous
-        pass's shared factors."""
+    def pass_state(self, spec: PassSpec) -> _PassState:
+        """The shared items of ``spec``'s pass in this process."""
         with self.lock:
-            if self.pass_id == spec.pass_id:
-                return
-            self.pass_id = spec.pass_id
-            self.minus_finv_v = None
-            operands = list(self.operands.values())
-            self.operands.clear()
-        for op in operands:
-            op.release()
+            state = self.passes.get(spec.pass_id)
+            if state is not None:
+                return state
+            state = self.passes[spec.pass_id] = _PassState()
+            stale = [self.passes.pop(k) for k in list(self.passes)[:-_MAX_PASSES]]
+        for old in stale:
+            old.release()
+        return state
 
-    def end(self, forget=()) -> None:
-        """Let go of the pass's shared factors, of cached rows of stores now gone and
-        of those under the paths ``forget``."""
+    def end(self, pass_id: str | None = None, forget=()) -> None:
+        """Let go of a pass's shared items (every pass's when None), and of the cached
+        rows and open stores of stores now gone or under the paths ``forget``."""
         with self.lock:
-            self.pass_id = None
-            self.minus_finv_v = None
-            operands = list(self.operands.values())
-            self.operands.clear()
-        for op in operands:
-            op.release()
+            keys = list(self.passes) if pass_id is None else [pass_id]
+            ended = [self.passes.pop(k) for k in keys if k in self.passes]
+        for state in ended:
+            state.release()
         forget = tuple(str(p) for p in forget)
-        self.cache.drop_where(lambda path: not os.path.exists(path) or path.startswith(forget))
+
+        def gone(path) -> bool:
+            return (bool(forget) and str(path).startswith(forget)) or not os.path.exists(path)
+
+        self.cache.drop_where(gone)
+        with self.lock:
+            for table in (self.stores, self.attrs):
+                for path in [p for p in table if gone(p)]:
+                    del table[path]
 
 
 STATE = _ProcessState()
@@ -152,9 +185,9 @@ def plan_on_worker(policy: MemoryPolicy, dask_worker=None) -> MemoryPlan:
     return STATE.plan(policy)
 
 
-def end_pass(forget=()) -> None:
+def end_pass(pass_id: str | None = None, forget=()) -> None:
     """Run on every process after a pass (:meth:`_ProcessState.end`)."""
-    STATE.end(forget)
+    STATE.end(pass_id, forget)
 
 
 def worker_name() -> str:
@@ -183,21 +216,33 @@ class TaskContext:
         self.plan = STATE.plan(spec.memory)
         self.cache = STATE.cache
         self.dtype = np.dtype(spec.dtype)
+        self._pass = STATE.pass_state(spec)
+
+    def _cast(self, name: str) -> np.ndarray:
+        """Shared vector ``name`` in the pass's dtype, cast once per pass."""
+        return self._pass.get(("cast", name), lambda: self.shared[name].astype(self.dtype))
 
     @property
     def finv(self) -> np.ndarray:
         return self.shared["finv"]
 
-    @cached_property
+    @property
     def M(self) -> MOperand:
-        return MOperand(STATE.store(self.spec.T), self.shared["finv"].astype(self.dtype),
-                        self.shared["active"], self.spec.zero_diagonal, self.cache,
-                        self.spec.first_bounce, _identity(self.spec.T))
+        spec = self.spec
+        return self._pass.get("M", lambda: MOperand(
+            STATE.store(spec.T), self._cast("finv"), self.shared["active"],
+            spec.zero_diagonal, self.cache, spec.first_bounce, _identity(spec.T)))
 
     def operand(self, name: str) -> StoreOperand:
-        """Input ``name`` of the pass (read as diag(F) B when the spec says so)."""
-        scale = self.shared["f"].astype(self.dtype) if name in self.spec.scaled else None
-        return STATE.operand(self.spec.input_path(name), scale, self.spec.first_bounce)
+        """Input ``name`` of the pass (read as diag(F) B when the spec says so), one per
+        pass in this process, so its tasks share a whole right factor."""
+        path = self.spec.input_path(name)
+
+        def make():
+            scale = self._cast("f") if name in self.spec.scaled else None
+            return StoreOperand(STATE.store(path), scale, self.cache, _identity(path))
+
+        return self._pass.get(("operand", name), make)
 
     def identity_rows(self) -> sp.csr_array:
         """This block's rows of D = diag(active)."""
@@ -208,36 +253,35 @@ class TaskContext:
         """Write this block's rows of output ``name`` (idempotent: a row already
         complete, e.g. by a task run twice, is left alone)."""
         path = self.spec.output_path(name)
-        return write_tile_row(path, _attrs_of(path), self.block.index, rows)
+        return write_tile_row(path, STATE.store_attrs(path), self.block.index, rows)
 
     def product(self, left: sp.csr_array, right_name: str, threshold: float):
         """(left @ right pruned, tile products done, pairs skipped): see
         :func:`row_product`."""
         right = self.operand(right_name)
-        self.cache.resize(_cache_budget(self.plan, right))
         return row_product(left, right, threshold, self.plan, _whole_limit(self.plan, right),
                            self.spec.kernel_threads)
 
     def minus_finv_v(self, V) -> np.ndarray:
         """-F^-1 V, computed once per pass in this process."""
-        with STATE.lock:
-            if STATE.minus_finv_v is None:
-                STATE.minus_finv_v = -(self.shared["finv"][:, None] * V)
-            return STATE.minus_finv_v
+        return self._pass.get("minus_finv_v", lambda: -(self.shared["finv"][:, None] * V))
+
+    def cache_budget(self) -> int | None:
+        """The tile cache's budget for this pass: the spec's, when it sets one; none
+        (left as it is) for a pass that caches nothing; the plan's share less what a
+        whole right factor borrows; for a mat-vec of M, also the factor's share and
+        half the tasks' (nothing else is held then)."""
+        spec = self.spec
+        if spec.cache_bytes is not None:
+            return spec.cache_bytes
+        if not spec.cache_tiles:
+            return None
+        if spec.right is not None:
+            return _cache_budget(self.plan, self.operand(spec.right))
+        return _cache_budget(self.plan, None) if not spec.outputs else self.plan.cache_bytes
 
     def stats(self, **fields) -> BlockStats:
         return BlockStats(self.block.index, **fields)
-
-
-_ATTRS: dict[str, tuple] = {}
-
-
-def _attrs_of(path: str):
-    ident = _identity(path)
-    held = _ATTRS.get(path)
-    if held is None or held[0] != ident:
-        held = _ATTRS[path] = (ident, read_store_attrs(path))
-    return held[1]
 
 
 def _whole_limit(plan: MemoryPlan, right: StoreOperand) -> int:
@@ -275,9 +319,7 @@ def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
     -------
     (csr_array of left's shape, int tile products, int pairs skipped)
     """
-    use = needed_rows(left, right)
-    skipped = int(np.unique(np.asarray(left.indices) // right.tile_size).size) - len(use) \
-        if left.nnz else 0
+    use, skipped = needed_rows(left, right)
     if not len(use):
         return blocks.empty(left.shape, left.dtype), 0, skipped
     if right.nbytes <= whole_limit:
@@ -299,6 +341,22 @@ def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
     return out, len(use), skipped
 
 
+def _already_written(spec: PassSpec, block: RowBlock) -> BlockStats | None:
+    """Stats read from the row markers when every output row of ``block`` is complete
+    (a task the scheduler reruns after losing its worker, or its result): nothing is
+    recomputed. None when a row is still to be written."""
+    if not spec.outputs:
+        return None
+    nnz = {}
+    for name, path in spec.outputs:
+        marker = row_marker(Path(path), block.index)
+        if marker is None:
+            return None
+        nnz[name] = int(sum(marker["tile_nnz"]))
+    first = nnz.get("P", nnz.get("R", 0))
+    return BlockStats(block.index, nnz_P=first, nnz_X=nnz.get("X", 0))
+
+
 def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
     """The task: run ``spec.task`` on ``block`` in this process.
 
@@ -309,12 +367,18 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
     TaskError
         Any other failure, on one line naming the pass, the rows and the cause.
     """
-    STATE.begin(spec)
     if task_hook is not None:
         task_hook(spec.op, block.index)
     t0 = time.perf_counter()
+    done = _already_written(spec, block)
+    if done is not None:
+        return done.replace(seconds=time.perf_counter() - t0, worker=worker_name())
     try:
-        stats = spec.task(TaskContext(spec, block, shared))
+        ctx = TaskContext(spec, block, shared)
+        budget = ctx.cache_budget()
+        if budget is not None:
+            ctx.cache.resize(budget)
+        stats = spec.task(ctx)
     except BigTError:
         raise
     except OSError as exc:

@@ -8,7 +8,7 @@ the versioned inverse store: :class:`InverseStore`.
 """
 
 from .attrs import StoreAttrs
-from .block_csr import BlockCSR, open, set_redirect  # noqa: A004
+from .block_csr import BlockCSR, open, row_marker, set_redirect  # noqa: A004
 from .inverse_store import InverseRecord, InverseStore, TermRecord
 from .pixel_order import PixelOrder
 from .writer import (
@@ -24,5 +24,5 @@ from .writer import (
 __all__ = [
     "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "PixelOrder",
     "StoreAttrs", "TermRecord", "clean_partial_rows", "create_store", "finalize_store",
-    "from_scipy", "open", "read_store_attrs", "set_redirect", "write_tile_row",
+    "from_scipy", "open", "read_store_attrs", "row_marker", "set_redirect", "write_tile_row",
 ]

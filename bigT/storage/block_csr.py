@@ -77,8 +77,9 @@ def _check_redirect(target: str, root: Path) -> Path:
     return root.joinpath(*p.parts)
 
 
-def _row_marker(path: Path, i: int) -> dict | None:
-    """The completion record of tile row ``i``, or None when the row is not complete."""
+def row_marker(path: Path, i: int) -> dict | None:
+    """The completion record of tile row ``i`` (``{"complete": True, "tile_columns":
+    [...], "tile_nnz": [...]}``), or None when the row is not complete."""
     try:
         with io.open(path / fmt.row_path(i) / "zarr.json", "rb") as f:
             meta = json.load(f)
@@ -210,7 +211,7 @@ class BlockCSR:
         n_rows = self.grid[0]
         cols, counts, lengths = [], [], []
         for i in range(n_rows):
-            rec = _row_marker(self.path, i)
+            rec = row_marker(self.path, i)
             if rec is None:
                 self.missing_tile_rows.append(i)
                 c, k = [], []
@@ -539,7 +540,7 @@ class BlockCSR:
         total = 0
         for i in range(self.grid[0]):
             if self.complete:
-                rec = _row_marker(self.path, i)
+                rec = row_marker(self.path, i)
                 if rec is None:
                     raise CorruptStoreError(f"tile row {i} has no completion marker", self.path)
                 if list(rec.get("tile_columns", [])) != self.tile_columns(i).tolist():

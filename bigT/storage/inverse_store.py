@@ -215,16 +215,6 @@ class InverseStore:
     def term_path(self, k: int, name: str) -> Path:
         return self.path / term_dir(k) / name
 
-    def complete_term_store(self, k: int, name: str) -> BlockCSR | None:
-        """The finished store ``name`` of term ``k``, or None."""
-        path = self.term_path(k, name)
-        if not path.exists():
-            return None
-        try:
-            return open_store(path)
-        except StoreError:
-            return None
-
     def prepare_term_store(self, k: int, name: str, attrs: StoreAttrs) -> Path:
         """Create the store ``name`` of term ``k`` with ``attrs``, or keep the one an
         interrupted run left (its complete rows; what its writers left half done is

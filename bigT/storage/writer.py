@@ -27,7 +27,7 @@ from .attrs import StoreAttrs
 from .block_csr import (
     BlockCSR,
     _read_bigt_attrs,
-    _row_marker,
+    row_marker,
     atomic_write_json,
     group_json,
     write_root_attrs,
@@ -225,7 +225,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> b
     path, i = Path(path), int(i)
     if not 0 <= i < attrs.grid[0]:
         raise ShapeMismatchError(f"tile row {i} out of range [0, {attrs.grid[0]})", path)
-    if _row_marker(path, i) is not None:
+    if row_marker(path, i) is not None:
         return False
     block = _validate_block(path, attrs, i, block)
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
@@ -258,7 +258,7 @@ def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
         os.rename(tmp, path / fmt.row_path(i))  # replaces an empty directory only
         return True
     except OSError as exc:
-        if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or _row_marker(path, i) is None:
+        if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or row_marker(path, i) is None:
             raise
     shutil.rmtree(tmp, ignore_errors=True)
     return False
@@ -268,7 +268,7 @@ def completed_rows(path, n_rows: int) -> dict[int, tuple[list[int], list[int]]]:
     """``{i: (tile_columns, tile_nnz)}`` of the tile rows marked complete on disk."""
     out = {}
     for i in range(n_rows):
-        rec = _row_marker(Path(path), i)
+        rec = row_marker(Path(path), i)
         if rec is not None:
             out[i] = (list(rec["tile_columns"]), list(rec["tile_nnz"]))
     return out
@@ -286,7 +286,7 @@ def clean_partial_rows(path, n_rows: int) -> int:
     for entry in rows.iterdir():
         stale = entry.name.endswith(".partial") or (
             entry.name.isdigit() and int(entry.name) < n_rows
-            and _row_marker(Path(path), int(entry.name)) is None)
+            and row_marker(Path(path), int(entry.name)) is None)
         if stale and entry.is_dir():
             shutil.rmtree(entry, ignore_errors=True)
             gone += 1

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import bigT
-from bigT.schedule import worker as graph
+from bigT.schedule import worker
 
 from inverse_helpers import dense, dense_stratified, random_dominant
 
@@ -72,10 +72,10 @@ def test_crash_mid_term_then_resume(tmp_path, make_store, monkeypatch, method):
             if calls["n"] == (6 + 4 if method == "power" else 6 + 4):
                 raise Crash("injected")
 
-    monkeypatch.setattr(graph, "task_hook", hook)
+    monkeypatch.setattr(worker, "task_hook", hook)
     with pytest.raises(Crash):
         bigT.stratified_inverse(T, out, terms=3, prune=1e-6, method=method, progress=False)
-    monkeypatch.setattr(graph, "task_hook", None)
+    monkeypatch.setattr(worker, "task_hook", None)
     # the previous term is still readable and says which term it is
     X_prev = bigT.open(out)
     assert X_prev.metadata["inverse"]["term"] == 1
@@ -83,9 +83,9 @@ def test_crash_mid_term_then_resume(tmp_path, make_store, monkeypatch, method):
                                atol=1e-5)
 
     done = []
-    monkeypatch.setattr(graph, "task_hook", lambda op, i: done.append((op, i)))
+    monkeypatch.setattr(worker, "task_hook", lambda op, i: done.append((op, i)))
     rep = bigT.stratified_inverse(T, out, terms=3, prune=1e-6, method=method, progress=False)
-    monkeypatch.setattr(graph, "task_hook", None)
+    monkeypatch.setattr(worker, "task_hook", None)
     assert rep.resumed_from == 1 and rep.terms == 3
     # rows completed before the crash were not recomputed
     assert len([d for d in done if d[0] == crash_op]) < 12

@@ -101,13 +101,20 @@ def test_tile_cache_same_result_bounded(tmp_path, budget):
     V = np.random.default_rng(0).uniform(size=(120, 4))
     cache = STATE.cache  # the process's tile cache, the engine's too
     cache.drop_where(lambda path: True)
+    cache.resize(1 << 20)
+    other = str(tmp_path)  # an existing path: entries of vanished stores are dropped
+    cache.get((other, "row", 0), lambda: np.zeros(8))  # someone else's entry
     cache.hits = cache.misses = 0
     first = stream_matmul(Xs, V, cache_bytes=budget)
     second = stream_matmul(Xs, V, cache_bytes=budget)
     np.testing.assert_array_equal(first, second)
     np.testing.assert_allclose(first, X.astype(np.float32) @ V, rtol=1e-5, atol=1e-6)
-    assert cache.used <= budget
     n_tiles = int(Xs.tile_nnz.size)
+    if budget == 0:  # nothing cached, and the cache is left as it was
+        assert (cache.hits, cache.misses) == (0, 0)
+        assert cache.lookup((other, "row", 0)) is not None
+        return
+    assert cache.used <= budget
     assert cache.hits + cache.misses == 2 * n_tiles
     assert (cache.hits == n_tiles) == (budget == 1 << 30)
     assert (cache.hits == 0) == (budget == 0)

@@ -153,3 +153,30 @@ def test_in_memory_or_url_stores_are_refused(tmp_path):
         bigT.stratified_inverse(T, "memory://X", terms=1, progress=False)
     with pytest.raises(bigT.StoreError, match="in-memory"):
         bigT.stratified_inverse(T, {"zarr.json": b""}, terms=1, progress=False)
+
+
+def test_a_rerun_task_whose_rows_are_written_recomputes_nothing(tmp_path):
+    """A scheduler reruns a task whose worker died after writing: the rows on disk
+    stand, the task function is not called, the counts come from the row markers."""
+    from bigT.schedule.worker import run_block
+    from bigT.storage import StoreAttrs, create_store, read_store_attrs, write_tile_row
+
+    A = sp.csr_array(_dominant(32, 6))
+    outputs = []
+    for name in ("P", "X"):
+        path = tmp_path / name
+        create_store(path, StoreAttrs((32, 32), 16, "float64"))
+        write_tile_row(path, read_store_attrs(path), 1, A[16:32])
+        outputs.append((name, str(path)))
+
+    def must_not_run(ctx):
+        raise AssertionError("recomputed")
+
+    spec = PassSpec(op="power", term=2, task=must_not_run, T=str(tmp_path / "T"),
+                    first_bounce="", zero_diagonal=True, n=32, block_rows=16,
+                    dtype="float64", memory=MemoryPolicy(None, 1, 32, 0),
+                    outputs=tuple(outputs), pass_id="p")
+    stats = run_block(spec, RowBlock(1, 16, 32), {})
+    assert (stats.nnz_P, stats.nnz_X) == (A[16:32].nnz, A[16:32].nnz)
+    with pytest.raises(bigT.BigTError, match="rows 0:16.*recomputed"):
+        run_block(spec, RowBlock(0, 0, 16), {})  # row 0 is not written: the task runs

@@ -1,0 +1,106 @@
+"""Helpers for bigT's tests and benchmarks (as ``numpy.testing``): a dask cluster of
+real processes on this machine.
+
+:class:`ProcessCluster` starts one ``dask scheduler`` and N ``dask worker`` processes
+(``--nthreads 1``, a memory limit each, no nanny, so the PIDs started are the processes
+that run tasks) on 127.0.0.1 only, and stops every process it started, by PID.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+DASK = str(Path(sys.executable).with_name("dask"))
+
+
+class ProcessCluster:
+    """The processes of one cluster and the scheduler's address.
+
+    Parameters
+    ----------
+    tmp : Path, a directory for the scheduler file and the processes' logs
+    n_workers : int
+    memory_limit : str, each worker's ``--memory-limit``
+    """
+
+    def __init__(self, tmp: Path, n_workers: int = 2, memory_limit: str = "2GiB"):
+        self.tmp = tmp
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._logs = []
+        try:
+            self._launch(n_workers, memory_limit)
+        except BaseException:
+            self.stop()  # what started is stopped, whatever failed
+            raise
+
+    def _launch(self, n_workers: int, memory_limit: str) -> None:
+        sched_file = self.tmp / "scheduler.json"
+        self._start("scheduler", [DASK, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                  "--no-dashboard", "--scheduler-file", str(sched_file)])
+        self.address = self._wait_address(sched_file)
+        for k in range(n_workers):
+            self._start(f"worker{k}", [DASK, "worker", self.address, "--host", "127.0.0.1",
+                                       "--nthreads", "1", "--memory-limit", memory_limit,
+                                       "--no-nanny", "--no-dashboard", "--name", f"w{k}"])
+        self.wait_for_workers(n_workers)
+
+    def _start(self, name, cmd):
+        log = open(self.tmp / f"{name}.log", "w")
+        self._logs.append(log)
+        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                            start_new_session=True)
+
+    def _wait_address(self, sched_file: Path, timeout: float = 60) -> str:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            if sched_file.exists():
+                try:
+                    return json.loads(sched_file.read_text())["address"]
+                except (ValueError, KeyError):
+                    pass
+            time.sleep(0.2)
+        raise RuntimeError("dask scheduler did not start: " + self.log("scheduler"))
+
+    def wait_for_workers(self, n: int, timeout: float = 90) -> None:
+        from distributed import Client
+
+        with Client(self.address, timeout=30) as client:
+            client.wait_for_workers(n, timeout=timeout)
+
+    def pid(self, name: str) -> int:
+        return self.procs[name].pid
+
+    def log(self, name: str) -> str:
+        return (self.tmp / f"{name}.log").read_text()[-3000:]
+
+    def stop(self) -> None:
+        """Workers first (a worker whose scheduler is gone keeps trying to reconnect),
+        then the scheduler; SIGTERM, then SIGKILL after a few seconds."""
+        workers = [p for name, p in self.procs.items() if name != "scheduler"]
+        scheduler = [self.procs["scheduler"]] if "scheduler" in self.procs else []
+        for group in (workers, scheduler):
+            for proc in group:
+                if proc.poll() is None:
+                    os.kill(proc.pid, signal.SIGTERM)
+            deadline = time.monotonic() + 5
+            for proc in group:
+                try:
+                    proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    proc.wait(timeout=10)
+        for log in self._logs:
+            log.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+        return False
