@@ -7,6 +7,7 @@ import json
 import os
 import shutil
 import uuid
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,23 @@ def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
         return DiskFullError(f"disk full while writing {what}; tile rows completed before it "
                              f"are kept (resume with resume=True)", path)
     return None
+
+
+@contextmanager
+def _deleted_on_failure(tmp: Path, path: Path, what: str):
+    """Delete the directory ``tmp`` (a row or store being built aside) when the block
+    fails; a full disk becomes a DiskFullError naming ``path`` and ``what``."""
+    try:
+        yield
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        wrapped = _wrap_oserror(exc, path, what)
+        if wrapped is not None:
+            raise wrapped from exc
+        raise
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def _split_tiles(indptr, indices, data, n_rows: int, ts: int):
@@ -229,7 +247,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> b
         return False
     block = _validate_block(path, attrs, i, block)
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
-    try:
+    with _deleted_on_failure(tmp, path, f"tile row {i}"):
         tmp.mkdir()
         cols, counts = [], []
         for j, ptr, ind, dat in _split_tiles(block.indptr, block.indices, block.data,
@@ -240,15 +258,6 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> b
         atomic_write_json(tmp / "zarr.json", group_json(
             {fmt.ROW_ATTRS_KEY: {"complete": True, "tile_columns": cols, "tile_nnz": counts}}))
         return _move_row_into_place(tmp, path, i)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        wrapped = _wrap_oserror(exc, path, f"tile row {i}")
-        if wrapped is not None:
-            raise wrapped from exc
-        raise
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
@@ -569,24 +578,15 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_sibling(path)
     try:
-        writer = BlockCSRWriter(tmp, A.shape, tile_size=tile_size, dtype=dt, pixel_order=po,
-                                metadata=metadata)
-        for i in range(writer.grid[0]):
-            r0, r1 = writer.tile_row_range(i)
-            writer.write_tile_row(i, A[r0:r1])
-        writer.finalize()
-        move_into_place(tmp, path)
+        with _deleted_on_failure(tmp, path, "the store"):
+            writer = BlockCSRWriter(tmp, A.shape, tile_size=tile_size, dtype=dt,
+                                    pixel_order=po, metadata=metadata)
+            for i in range(writer.grid[0]):
+                r0, r1 = writer.tile_row_range(i)
+                writer.write_tile_row(i, A[r0:r1])
+            writer.finalize()
+            move_into_place(tmp, path)
     except DiskFullError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
         raise DiskFullError(f"disk full while writing ({exc.problem}); nothing was changed at the "
                             f"destination", path) from exc
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        wrapped = _wrap_oserror(exc, path, "the store")
-        if wrapped is not None:
-            raise wrapped from exc
-        raise
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return open_store(path)
