@@ -6,7 +6,7 @@ Part 1, throughput at 384x512 (n = 196608) with X read from disk in batches:
   * scipy ``splu`` of T: factor time, then one solve per frame.
   T and X come from ``bigT.scenes.corner`` (``--density``) and
   ``bigT.stratified_inverse``; ``--synthetic`` uses a synthetic local transport with
-  the same nnz/row as DESIGN.md's measured 4-term inverse instead, labelled as such.
+  the same nnz/row as docs/DESIGN.md's measured 4-term inverse instead, labelled as such.
 
 Part 2, quality on a small corner scene: fluctuation (max - min)/mean of the camera
 image for a constant target, uncompensated and compensated with the stratified inverse
@@ -155,7 +155,7 @@ def throughput(args, out):
         T = synthetic_local(out / "T_synth.zarr", size, args.t_nnz, seed=1)
         X = synthetic_local(out / "X_synth.zarr", size, args.x_nnz, seed=2)
         res["T"] = f"synthetic local transport, {args.t_nnz} nnz/row"
-        res["X"] = f"synthetic local matrix, {args.x_nnz} nnz/row (DESIGN.md's 4-term inverse)"
+        res["X"] = f"synthetic local matrix, {args.x_nnz} nnz/row (docs/DESIGN.md's 4-term inverse)"
     n = T.shape[0]
     res.update(nnz_T=int(T.nnz), nnz_X=int(X.nnz), nnz_X_per_row=X.nnz / n,
                nnz_T_per_row=T.nnz / n)
@@ -317,7 +317,7 @@ def quality(args, out):
         row(f"stratified_inverse n={terms} ({secs:.1f} s)", compensate(Xs, desired, clip=None))
     lines["exact inverse"] = scan_line(row("exact inverse F^-1 (I - A)",
                                            compensate(X, desired, clip=None)))
-    # Throughput at this size, where sparse LU is a serious rival (DESIGN.md).
+    # Throughput at this size, where sparse LU is a serious rival (docs/DESIGN.md).
     frames = np.random.default_rng(1).uniform(0.2, 0.8, (64, *size))
     compensate(X, frames[:1])
     for batch in (1, 64):

@@ -5,7 +5,7 @@ run (timings on a shared machine drift; compare only within one table).
 
 Input: M = I - T F^-1 with F = diag(T) of the synthetic corner scene
 (``bigT.scenes.corner``). The default density knobs (form-factor cut 2e-4, threshold
-1e-6) give about DESIGN.md's 385 nonzeros per row at 96x128.
+1e-6) give about docs/DESIGN.md's 385 nonzeros per row at 96x128.
 
     python benchmarks/bench_kernels.py --sizes 96x128,192x256 --threshold 1e-5 --repeat 3
 """
@@ -158,7 +158,7 @@ def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False, ff_cu
     )
     rows.append((f"bigT spgemm rows ({n_threads} thr)", t, C))
     if "bsr" in methods:
-        # DESIGN.md's micro-block variant: M is in image-tile-major order with 8x8 image
+        # docs/DESIGN.md's micro-block variant: M is in image-tile-major order with 8x8 image
         # tiles, so 8x8 blocks of M are pairs of image tiles. scipy's BSR product (1
         # thread) + prune, to see whether a BSR inner format would pay.
         for bs in (4, 8):

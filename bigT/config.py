@@ -1,4 +1,4 @@
-"""Tunables, in one place (DESIGN.md: never as magic numbers in kernels).
+"""Tunables, in one place (docs/DESIGN.md: never as magic numbers in kernels).
 
 Each value is a default; the public functions take keyword arguments that override
 it for one call.

@@ -78,6 +78,7 @@ import hashlib
 import math
 import os
 import re
+import sys
 import time
 from dataclasses import asdict, dataclass
 
@@ -414,6 +415,9 @@ class _Engine:
         self.T, self.series, self.runner, self.opts = T, series, runner, opts
         self.T_path = local_path(T.path, "transport T")  # as the workers will open it
         runner.check_paths([self.T_path])
+        if opts.progress and runner.idle_kernel_threads == 1 and hasattr(runner, "client"):
+            # a cluster run may be long: where to watch it (the dashboard) comes first
+            print(f"bigT: running on {runner.describe()}", file=sys.stderr)
         self.fb = resolve_first_bounce(T, first_bounce)
         self.policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], _max_row_nnz(T))
         self.plans = runner.plans(self.policy)

@@ -339,7 +339,7 @@ def first_bounce_from_inverse(X) -> np.ndarray:
 
 
 def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -> np.ndarray:
-    """Split the camera image T l into light bounces (Seitz et al. 2005, DESIGN.md).
+    """Split the camera image T l into light bounces (Seitz et al. 2005, docs/DESIGN.md).
 
     F is recovered from X (F_ii = 1/X_ii, paper eq. 33), A = I - F X, and bounce k is
     b_k = A^k F l, computed with mat-vecs only: A v = v - F (X v). Since

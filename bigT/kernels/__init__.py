@@ -1,6 +1,6 @@
 """bigT.kernels: numba kernels on raw CSR arrays, with checked scipy.sparse wrappers.
 
-No zarr or dask here (DESIGN.md): the schedule layer feeds tiles in and gets
+No zarr or dask here (docs/DESIGN.md): the schedule layer feeds tiles in and gets
 ``scipy.sparse.csr_array`` (sorted, duplicate-free) back.
 """
 

@@ -3,7 +3,7 @@
 A scene is built in four steps, each in bounded memory:
 
 1. geometry (:mod:`.geometry`): the surface patch seen by every pixel, renumbered into
-   the store's pixel order (image-tile-major by default, DESIGN.md "Pixel order");
+   the store's pixel order (image-tile-major by default, docs/DESIGN.md "Pixel order");
 2. interreflection (:mod:`.radiosity`): A = diag(albedo) FF, sparse, in memory (its
    size is capped by ``config.SCENE_MAX_A_NNZ``);
 3. transport: T = (sum_k A^k) F [G] (paper eq. 6/8) one tile row at a time with the

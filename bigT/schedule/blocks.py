@@ -4,7 +4,7 @@ How the blocks are wired into passes lives in :mod:`bigT.schedule.runner`; the
 operators that read tiles from stores live in :mod:`bigT.schedule.operators`. Nothing
 here touches dask or zarr.
 
-Notation (paper eq. 13, DESIGN.md "The math"): T is n x n, F the first bounce
+Notation (paper eq. 13, docs/DESIGN.md "The math"): T is n x n, F the first bounce
 (diagonal, stored as the vector ``f``; ``finv`` = 1/f, 0 on excluded pixels), D the
 diagonal 0/1 mask of active pixels, M = D - T F^-1.
 """

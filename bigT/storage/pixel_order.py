@@ -10,7 +10,7 @@ pixel depends on the *pixel order* recorded in the store:
     and column may be smaller); tiles are numbered in row-major order and the pixels
     of one tile are contiguous, in row-major order inside the tile. Far-apart image
     regions then fall into different matrix tiles, so more matrix tiles are zero
-    (DESIGN.md, "Pixel order matters").
+    (docs/DESIGN.md, "Pixel order matters").
 
 The permutation stored with a matrix is ``perm`` with ``matrix_index k <-> row-major
 pixel perm[k]``; it is derived from the image shape and tile, never stored twice.
