@@ -89,7 +89,7 @@ from ..errors import BigTError, DivergenceError, NotSquareError
 from ..schedule.matvec import matvec, matvec_spec
 from ..schedule.memory import human_bytes, warn_if_rows_outgrow
 from ..schedule.operators import StoreOperand
-from ..schedule.runner import local_path, new_pass_id, open_runner
+from ..schedule.runner import ClusterRunner, local_path, new_pass_id, open_runner
 from ..schedule.spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
 from ..storage import InverseStore, StoreAttrs, TermRecord
 from ..storage import open as open_store
@@ -415,7 +415,7 @@ class _Engine:
         self.T, self.series, self.runner, self.opts = T, series, runner, opts
         self.T_path = local_path(T.path, "transport T")  # as the workers will open it
         runner.check_paths([self.T_path])
-        if opts.progress and runner.idle_kernel_threads == 1 and hasattr(runner, "client"):
+        if opts.progress and isinstance(runner, ClusterRunner):
             # a cluster run may be long: where to watch it (the dashboard) comes first
             print(f"bigT: running on {runner.describe()}", file=sys.stderr)
         self.fb = resolve_first_bounce(T, first_bounce)
