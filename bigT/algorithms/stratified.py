@@ -78,6 +78,7 @@ import hashlib
 import math
 import os
 import re
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -278,6 +279,7 @@ class _Options:
     progress: bool
     force: bool
     seed: int
+    overwrite: bool = False
 
 
 def _check_arguments(method, terms, prune, tol) -> SeriesMethod:
@@ -295,7 +297,7 @@ def _check_arguments(method, terms, prune, tol) -> SeriesMethod:
 def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        first_bounce="diag", method="power", client=None, memory_limit=None,
                        progress=True, force=False, *, workers=2, seed=0,
-                       scheduler=None) -> InverseReport:
+                       scheduler=None, overwrite=False) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -337,6 +339,9 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         Progress bars (shown only when stderr is a terminal).
     force : bool
         Go on although the estimated spectral radius of M is >= 1.
+    overwrite : bool
+        Delete an inverse ``out`` holds (whatever its parameters) and start anew;
+        never anything that is not a bigT inverse store.
 
     Returns
     -------
@@ -364,7 +369,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         raise NotSquareError(f"T is {T.shape[0]} x {T.shape[1]}; the inverse needs a square "
                              "T (apply the pixel correspondence first)", T.path)
     out = local_path(out, "inverse store")
-    opts = _Options(int(terms), float(prune), tol, progress, force, seed)
+    opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite)
     memory_limit = parse_bytes(memory_limit)
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
     try:
@@ -422,8 +427,9 @@ class _Engine:
         self.policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], _max_row_nnz(T))
         self.plans = runner.plans(self.policy)
         self.store = InverseStore(out)
+        self.created = not os.path.exists(out) or opts.overwrite
         self.record = self.store.open_or_create(
-            _fingerprint(T, self.fb, opts.prune, series.name))
+            _fingerprint(T, self.fb, opts.prune, series.name), overwrite=opts.overwrite)
         runner.check_paths([out])
         if self.record.tile_size is None:
             ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads)
@@ -443,11 +449,18 @@ class _Engine:
 
     def run(self, t_start: float) -> InverseReport:
         resumed_from = self.record.term
-        t_rho = time.perf_counter()
-        rho = self._spectral_radius()
-        t_rho = time.perf_counter() - t_rho
-        if self.record.term is None:
-            self._term_zero()
+        try:
+            t0 = time.perf_counter()
+            rho = self._spectral_radius()
+            t_rho = time.perf_counter() - t0
+            if self.record.term is None:
+                self._term_zero()
+        except BaseException:
+            # refused (a diverging series) or stopped before any term was finished: an
+            # output this run created holds nothing worth keeping
+            if self.created and self.record.term is None:
+                shutil.rmtree(self.store.path, ignore_errors=True)
+            raise
         stopped = self._extend(resumed_from)
         return self._report(stopped, resumed_from, t_rho, time.perf_counter() - t_start, rho)
 

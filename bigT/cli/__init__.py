@@ -10,9 +10,33 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from ..errors import BigTError
+
+#: Library wording in error messages -> the command line's (errors are raised by the
+#: library, which names its Python arguments; the CLI user knows the flags).
+CLI_WORDING = (
+    ("pass overwrite=True (--overwrite)", "pass --overwrite"),
+    ("overwrite=True", "--overwrite"),
+    ("force=True (bigT invert --force)", "--force"),
+    ("force=True", "--force"),
+    ("first_bounce='diag'", "--first-bounce diag"),
+    ("first_bounce='identity'", "--first-bounce identity"),
+    ("first_bounce=", "--first-bounce "),
+    ("resume writing with resume=True and finalize()", "rerun the command that wrote it"),
+    ("resume writing with resume=True", "rerun the command that wrote it"),
+    ("resume with resume=True", "rerun the same command to resume"),
+    ("memory_limit", "--memory-limit"),
+)
+
+
+def cli_message(message: str) -> str:
+    """``message`` on one line, in the command line's words (:data:`CLI_WORDING`)."""
+    for python, flag in CLI_WORDING:
+        message = message.replace(python, flag)
+    return message.replace("\n", " ")
 
 # Modules that contribute sub-commands, in the order their help is listed.
 COMMAND_MODULES = (
@@ -30,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Out-of-core stratified inversion of light-transport matrices "
         "stored as zarr v3 block-CSR.",
     )
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"bigT {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
@@ -51,8 +78,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except BigTError as exc:
-        print(f"bigT {args.command}: error: {exc}".replace("\n", " "), file=sys.stderr)
+        print(cli_message(f"bigT {args.command}: error: {exc}"), file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader went away (`bigT info X.zarr | head`): not an error of ours; point
+        # stdout at /dev/null so the interpreter's final flush does not complain
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, what a shell reports for a writer cut off
     except KeyboardInterrupt:
         print(f"bigT {args.command}: interrupted; finished work on disk is kept",
               file=sys.stderr)

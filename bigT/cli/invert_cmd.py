@@ -56,6 +56,9 @@ def register(subparsers) -> None:
                    help="also write the report as JSON")
     p.add_argument("--force", action="store_true",
                    help="run even when the estimated spectral radius of M is >= 1")
+    p.add_argument("--overwrite", action="store_true",
+                   help="delete the inverse the output holds (whatever its parameters) and "
+                        "start anew; never deletes anything that is not a bigT inverse")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=invert_cmd)
 
@@ -67,12 +70,13 @@ def invert_cmd(args) -> int:
     if fb not in ("diag", "identity") and not os.path.exists(fb):
         from ..errors import BigTError
 
-        raise BigTError(f"--first-bounce: {fb!r} is neither diag, identity nor a .npy file")
+        raise BigTError(f"--first-bounce: {fb!r} is neither diag, identity nor a .npy file",
+                        fb)
     report = stratified_inverse(
         args.T, args.output, terms=args.terms, prune=args.prune, tol=args.tol,
         first_bounce=fb, method=args.method, scheduler=args.scheduler,
         memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
-        workers=args.workers)
+        workers=args.workers, overwrite=args.overwrite)
     print(report.table())
     print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
     if args.json:

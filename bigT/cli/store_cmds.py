@@ -6,6 +6,7 @@ import json
 import re
 import sys
 
+from .. import config
 from ..errors import ShapeMismatchError
 
 
@@ -24,7 +25,8 @@ def register(subparsers) -> None:
     p.add_argument("input", metavar="IN")
     p.add_argument("-o", "--output", required=True, metavar="OUT.zarr")
     p.add_argument("--tile-size", type=int, default=None,
-                   help="rows/cols of one matrix tile (default: config.DEFAULT_TILE_SIZE)")
+                   help="rows/cols of one matrix tile (default "
+                        f"{config.DEFAULT_TILE_SIZE})")
     p.add_argument("--var", default=None, help="variable of a .mat file")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     p.add_argument("--image-shape", default=None, metavar="HxW",

@@ -165,9 +165,11 @@ class InverseStore:
         root.setdefault("attributes", {})[INVERSE_ATTR] = record.to_dict()
         atomic_write_json(self.path / "zarr.json", root)
 
-    def open_or_create(self, params: Mapping) -> InverseRecord:
+    def open_or_create(self, params: Mapping, overwrite: bool = False) -> InverseRecord:
         """The record of the inverse at ``path``: a new one (the directory created), or
-        the one held when it was made with the same ``params`` (reconciled).
+        the one held when it was made with the same ``params`` (reconciled). With
+        ``overwrite`` an inverse held (of any parameters) is deleted and started anew;
+        anything that is not a bigT inverse store is never deleted.
 
         Raises
         ------
@@ -175,6 +177,10 @@ class InverseStore:
             ``path`` holds something else, or an inverse with other parameters.
         """
         params = jsonable(params)
+        if overwrite and self.path.is_dir() and self.read_record() is not None:
+            shutil.rmtree(self.path)
+        if self.path.is_dir() and not any(self.path.iterdir()):
+            self.path.rmdir()  # an empty directory is nobody's work: take it
         if not self.path.exists():
             self.path.mkdir(parents=True)
             record = InverseRecord(params)
@@ -189,7 +195,8 @@ class InverseStore:
             held = ", ".join(f"{k}={record.params.get(k)}" for k in diff)
             raise StoreError("holds an inverse with different " + ", ".join(diff) + " than "
                              f"asked (it holds {held}); rerun with the same parameters to "
-                             "resume, or choose another path", self.path)
+                             "resume, pass overwrite=True to start anew, or choose another "
+                             "path", self.path)
         return self.reconcile(record)
 
     def reconcile(self, record: InverseRecord) -> InverseRecord:

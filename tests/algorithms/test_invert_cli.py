@@ -45,7 +45,7 @@ def test_invert_errors_are_one_line(tmp_path, make_store, capsys):
     A = random_dominant(32, seed=12)
     T = make_store(A, tile_size=16)
     cases = [
-        (["--memory-limit", "64MiB"], "memory_limit 64 MiB is too small", "Y1.zarr"),
+        (["--memory-limit", "64MiB"], "--memory-limit 64 MiB is too small", "Y1.zarr"),
         (["--first-bounce", str(tmp_path / "nope.npy")], "neither diag, identity", "Y2.zarr"),
     ]
     for extra, message, name in cases:
@@ -66,6 +66,51 @@ def test_invert_diverging_series_stops_with_the_number(tmp_path, make_store, cap
                  "--first-bounce", "identity", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "diverges" in err and "--force" in err and len(_lines(err)) == 1
+    assert "force=True" not in err and "first_bounce=" not in err  # the CLI's words
+    assert not (tmp_path / "X.zarr").exists()  # a refused run leaves nothing behind
     rho = float(err.split("is about ")[1].split()[0])
     M = np.eye(n) - A
     assert rho >= 1 and abs(rho - max(abs(np.linalg.eigvals(M)))) < 0.05 * rho
+
+
+def test_overwrite_starts_anew_and_never_deletes_foreign_data(tmp_path, make_store, capsys):
+    A = random_dominant(32, seed=13)
+    T = make_store(A, tile_size=16)
+    X = tmp_path / "X.zarr"
+    base = ["invert", T.path.as_posix(), "-o", str(X), "--terms", "2", "--no-progress"]
+    assert main(base + ["--prune", "0"]) == 0
+    capsys.readouterr()
+    assert main(base + ["--prune", "1e-3"]) == 2  # other parameters: refused, kept
+    err = capsys.readouterr().err
+    assert "different prune" in err and "--overwrite" in err and "overwrite=True" not in err
+    np.testing.assert_allclose(dense(X), dense_stratified(A, 2), atol=1e-10)
+    assert main(base + ["--prune", "1e-3", "--overwrite"]) == 0
+    assert "held term 2 (power, prune 0.001" in capsys.readouterr().out
+    foreign = tmp_path / "notes"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("mine")
+    assert main(["invert", T.path.as_posix(), "-o", str(foreign), "--overwrite",
+                 "--no-progress"]) == 2
+    assert "not a bigT inverse store" in capsys.readouterr().err
+    assert (foreign / "keep.txt").read_text() == "mine"
+
+
+def test_version_and_a_closed_pipe(tmp_path, make_store, capsys):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import pytest
+
+    import bigT
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"bigT {bigT.__version__}"
+    T = make_store(random_dominant(16, seed=14), tile_size=16)
+    exe = Path(sys.executable).with_name("bigT")
+    proc = subprocess.Popen([str(exe), "info", T.path.as_posix()], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.close()  # `bigT info T.zarr | head -0`: the reader is gone before a line
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and "Traceback" not in err and err == ""

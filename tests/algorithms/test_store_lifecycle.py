@@ -49,9 +49,13 @@ def test_refuses_other_parameters_and_resumes_same(tmp_path, make_store):
     np.testing.assert_allclose(dense(out), dense_stratified(A, 4), atol=1e-12)
     rep = bigT.stratified_inverse(T, out, terms=3, prune=0, progress=False)
     assert rep.terms == 4 and rep.stopped.startswith("already held")
+    (tmp_path / "empty").mkdir()  # an empty directory holds nobody's work: it is used
+    assert bigT.stratified_inverse(T, tmp_path / "empty", terms=1, progress=False).terms == 1
     (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "notes.txt").write_text("mine")
     with pytest.raises(bigT.StoreError, match="not a bigT inverse"):
         bigT.stratified_inverse(T, tmp_path / "junk", terms=1, progress=False)
+    assert (tmp_path / "junk" / "notes.txt").read_text() == "mine"
 
 
 @pytest.mark.parametrize("method", ["power", "newton-schulz"])
