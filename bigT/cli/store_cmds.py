@@ -46,7 +46,8 @@ def register(subparsers) -> None:
                    help="row-major image order (default; undoes a tile-major pixel order) or "
                         "the stored matrix order")
     p.add_argument("--max-gb", type=float, default=None,
-                   help="refuse beyond this many GB of CSR arrays (default config.TO_SCIPY_MAX_BYTES)")
+                   help="refuse beyond this many GB of CSR arrays (default "
+                        f"{config.TO_SCIPY_MAX_BYTES / 1e9:g})")
     p.set_defaults(func=export_cmd)
 
     p = subparsers.add_parser("info", help="summarise a bigT store",
