@@ -49,7 +49,8 @@ def register(sub) -> None:
     p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
                    help="run the passes on a dask cluster: a scheduler address, or local:N "
                    "for N worker processes started for this command (default: local threads)")
-    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress bars")
     p.set_defaults(func=run_compensate)
 
     p = sub.add_parser("relight", help="what the camera sees for projector images: T l",
@@ -57,12 +58,15 @@ def register(sub) -> None:
     p.add_argument("T", help="transport store (T.zarr)")
     p.add_argument("input", help="projector image or folder of frames")
     p.add_argument("-o", "--output", required=True, help="output image file or folder")
-    p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH)
-    p.add_argument("--bits", type=int, choices=(8, 16), default=None)
+    p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH,
+                   help=f"frames per pass over T (default {config.DEFAULT_BATCH})")
+    p.add_argument("--bits", type=int, choices=(8, 16), default=None,
+                   help="PNG bit depth of the outputs (default: that of each input PNG)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
                    help="run the passes on a dask cluster: a scheduler address, or local:N "
                    "for N worker processes started for this command (default: local threads)")
-    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress bars")
     p.set_defaults(func=run_relight)
 
     p = sub.add_parser("bounces", help="split the camera image T l into light bounces",
@@ -75,7 +79,8 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--format", choices=("tif", "npy", "png"), default="tif",
                    help="image format of the parts (tif/npy keep floats; default tif)")
-    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress bars")
     p.set_defaults(func=run_bounces)
 
 

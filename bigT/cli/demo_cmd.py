@@ -38,10 +38,13 @@ def register(subparsers) -> None:
                     "a constant image, bounce separation, and a report (report.md + PNGs).")
     p.add_argument("--dir", default="bigT-demo", help="output folder (default %(default)s; "
                    "its previous demo outputs are replaced)")
-    p.add_argument("--size", default=f"{DEMO_SIZE[0]}x{DEMO_SIZE[1]}", metavar="HxW")
-    p.add_argument("--terms", type=int, default=DEMO_TERMS)
-    p.add_argument("--prune", type=float, default=None, help="prune threshold of the inverse")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--size", default=f"{DEMO_SIZE[0]}x{DEMO_SIZE[1]}", metavar="HxW",
+                   help="projector size of the synthetic corner scene (default %(default)s)")
+    p.add_argument("--terms", type=int, default=DEMO_TERMS,
+                   help="series terms n of the inverse T_n^-1 (default %(default)s)")
+    p.add_argument("--prune", type=float, default=None,
+                   help="prune threshold of the inverse (default: bigT invert's)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=demo_cmd)
 
 

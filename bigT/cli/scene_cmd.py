@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from .. import config
 from .store_cmds import _image_shape
 
 
@@ -27,7 +28,8 @@ def register(subparsers) -> None:
     p.add_argument("name", choices=SCENE_NAMES)
     p.add_argument("--size", type=_image_shape, default=None, metavar="HxW",
                    help="image size (default: 96x128; cornell 64x80 = 5120 patches)")
-    p.add_argument("-o", "--output", required=True, metavar="T.zarr")
+    p.add_argument("-o", "--output", required=True, metavar="T.zarr",
+                   help="the transport store to write (with its ground truth)")
     p.add_argument("--albedo", type=float, default=0.6, help="Lambertian albedo in [0, 1)")
     p.add_argument("--density", type=_density, default=None,
                    metavar="|".join(DENSITIES) + "|CUT",
@@ -42,9 +44,12 @@ def register(subparsers) -> None:
                    help="entries below this are dropped after the noise (default 3 x noise)")
     p.add_argument("--blur", type=float, default=0.0,
                    help="projector defocus: Gaussian std in pixels (0: none)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--tile-size", type=int, default=None)
-    p.add_argument("--pixel-order", choices=("tile-major", "row-major"), default="tile-major")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the noise (default %(default)s)")
+    p.add_argument("--tile-size", type=int, default=None,
+                   help=f"rows/cols of one matrix tile (default {config.DEFAULT_TILE_SIZE})")
+    p.add_argument("--pixel-order", choices=("tile-major", "row-major"), default="tile-major",
+                   help="pixel order of the store (default %(default)s)")
     p.add_argument("--dtype", choices=("float32", "float64"), default=None,
                    help="dtype of T's values (default float32; dihedral4 float64)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")

@@ -23,25 +23,29 @@ def register(subparsers) -> None:
         description="Convert a matrix file (scipy .npz, Matrix Market .mtx, MATLAB .mat, "
                     "dense .npy) into a bigT zarr block-CSR store.")
     p.add_argument("input", metavar="IN")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.zarr")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.zarr",
+                   help="the bigT store to write")
     p.add_argument("--tile-size", type=int, default=None,
                    help="rows/cols of one matrix tile (default "
                         f"{config.DEFAULT_TILE_SIZE})")
     p.add_argument("--var", default=None, help="variable of a .mat file")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                   help="value type of the store (default %(default)s)")
     p.add_argument("--image-shape", default=None, metavar="HxW",
                    help="the matrix maps HxW images (numbered row-major in IN)")
     p.add_argument("--pixel-order", choices=("row-major", "tile-major"), default="row-major",
                    help="pixel order of the store (needs --image-shape for tile-major)")
     p.add_argument("--image-tile", default=None, metavar="HxW",
-                   help="image tile of the tile-major order (default config.DEFAULT_IMAGE_TILE)")
+                   help="image tile of the tile-major order (default "
+                        f"{config.DEFAULT_IMAGE_TILE[0]}x{config.DEFAULT_IMAGE_TILE[1]})")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
     p.set_defaults(func=convert_cmd)
 
     p = subparsers.add_parser("export", help="write a bigT store to .npz or .mtx",
                               description="Write a bigT store to scipy .npz or Matrix Market .mtx.")
     p.add_argument("store", metavar="STORE")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.{npz,mtx}")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.{npz,mtx}",
+                   help="the matrix file to write (.npz or .mtx)")
     p.add_argument("--order", choices=("row-major", "matrix"), default="row-major",
                    help="row-major image order (default; undoes a tile-major pixel order) or "
                         "the stored matrix order")
