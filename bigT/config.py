@@ -98,7 +98,8 @@ SCENE_PRUNE_FRACTION = 0.1
 SCENE_NEUMANN_TOL = 1e-12
 #: A bounce series not converged after this many bounces is reported as divergent.
 SCENE_MAX_BOUNCES = 200
-#: Bounce shares ||A^k F 1|| / ||T 1|| are listed until below this share, for at most
+#: A scene lists its bounces' shares of the light (sum(A^k F 1), adding up to 100 %) until
+#: a bounce's norm is below this fraction of the first's, for at most
 #: this many bounces.
 SCENE_SHARE_TOL = 1e-4
 SCENE_SHARE_MAX_BOUNCES = 30

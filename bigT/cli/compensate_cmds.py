@@ -71,7 +71,10 @@ def register(sub) -> None:
 
     p = sub.add_parser("bounces", help="split the camera image T l into light bounces",
                        description="Seitz-style bounce separation: F_ii = 1/X_ii (paper eq. "
-                       "33), A = I - F X, b_k = A^k F l, plus the remainder T l - sum b_k.")
+                       "33), A = I - F X, b_k = A^k F l, plus the remainder T l - sum b_k. "
+                       "Each part's share is its sum over the pixels divided by the sum of T l "
+                       "(the share of the total light; the shares add up to 100%), as "
+                       "`bigT scene` reports the bounces of a white image.")
     p.add_argument("T", help="transport store (T.zarr)")
     p.add_argument("X", help="inverse store (X.zarr), as exact as possible")
     p.add_argument("input", help="projector image l (png/tif/npy)")

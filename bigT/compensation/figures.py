@@ -68,9 +68,9 @@ def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
     plt = _pyplot()
     K = parts.shape[0] - 2
     panels = list(parts) + [parts.sum(axis=0)]
-    titles = [f"b{k} {'direct' if k == 0 else 'bounce'} {100 * shares[k]:.1f}%"
+    titles = [f"b{k} {'direct' if k == 0 else 'bounce'} {100 * shares[k]:.3g}%"
               for k in range(K + 1)]
-    titles += [f"remainder {100 * shares[-1]:.1f}%", "sum = T l"]
+    titles += [f"remainder {100 * shares[-1]:.3g}%", "sum = T l"]
     H, W = parts.shape[1:]
     fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.4 * H / W + 0.7),
                              squeeze=False)

@@ -110,8 +110,10 @@ class Scene:
 
     @property
     def bounce_shares(self) -> list[float]:
-        """||A^k F G 1|| / ||T 1|| for k = 0, 1, ... (G = I without blur): each bounce's
-        share of T 1."""
+        """Each bounce's share of the light of a white projector image: sum(A^k F G 1) /
+        sum_j sum(A^j F G 1) for k = 0, 1, ... (G = I without blur), adding up to 1; the
+        bounces are listed until one carries less than ``config.SCENE_SHARE_TOL`` of
+        the first."""
         return self.summary.get("bounce_shares", [])
 
     @property
@@ -183,7 +185,8 @@ class Scene:
             f"bounces per row",
             f"  spectral radius of M = I - T diag(T)^-1: {s['spectral_radius']:.4f}; "
             f"of A: {s['spectral_radius_A']:.4f}",
-            "  bounce shares of T 1: " + ", ".join(f"{100 * v:.2f}%" for v in s["bounce_shares"]),
+            "  bounce shares of the light of a white image (adding up to 100%): "
+            + ", ".join(f"{100 * v:.3g}%" for v in s["bounce_shares"]),
             f"  built in {s['seconds']:.1f} s"
             + (f"; preview {s['preview']}" if s.get("preview") else ""),
             "  exact inverse F^-1 (I - A) " + ("holds" if s["exact"] else
@@ -458,8 +461,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         b0 = f * (G @ white if G is not None else white)
         bounces = radiosity.bounce_images(A, b0, config.SCENE_SHARE_MAX_BOUNCES,
                                           config.SCENE_SHARE_TOL)
-        norm_T1 = float(np.linalg.norm(T1)) or 1.0
-        shares = [float(np.linalg.norm(b)) / norm_T1 for b in bounces]
+        shares = radiosity.light_shares(bounces)
         seconds_stats = time.perf_counter() - t0
 
         summary = {
@@ -532,7 +534,7 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
         "nnz_A": int(np.count_nonzero(A)), "bounces": 0,
         "spectral_radius": float(max(abs(np.linalg.eigvals(M)))),
         "spectral_radius_A": float(max(abs(np.linalg.eigvals(A)))),
-        "bounce_shares": [float(np.linalg.norm(b) / np.linalg.norm(T1)) for b in bounces],
+        "bounce_shares": radiosity.light_shares(bounces),
         "exact": True, "seconds": 0.0,
         "preview": str(preview_path(path)) if preview else None,
     }

@@ -263,6 +263,14 @@ def power_spectral_radius(matvec, n: int, iterations: int) -> float:
     return max(lam, 0.0)
 
 
+def light_shares(bounces) -> list[float]:
+    """Each bounce's share of the total light: sum(b_k) / sum_j sum(b_j), adding up to
+    1 (the definition ``bigT bounces`` uses for an image's parts too)."""
+    totals = np.array([float(np.sum(b)) for b in bounces])
+    whole = totals.sum()
+    return (totals / whole).tolist() if whole else [0.0] * len(totals)
+
+
 def bounce_images(A: sp.csr_array, F1: np.ndarray, max_bounces: int, rel_tol: float):
     """b_k = A^k F 1 for k = 0..K, stopping when ||b_k|| < rel_tol ||b_0||."""
     out = [np.asarray(F1, np.float64)]

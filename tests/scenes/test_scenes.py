@@ -90,9 +90,13 @@ def test_corner_interreflects_across_the_fold_only(tmp_path):
     assert A[np.ix_(wall, wall)].max() == 0 and A[np.ix_(~wall, ~wall)].max() == 0
     assert A[np.ix_(wall, ~wall)].min() > 0  # every pair across the fold sees each other
     assert 0 < sc.spectral_radius < 1
-    # T = (I - A)^-1 F has a bounce expansion: its shares decrease
+    # T = (I - A)^-1 F has a bounce expansion: its shares of the light decrease and,
+    # as `bigT bounces` counts them, add up to 100 %
     shares = sc.bounce_shares
     assert shares[0] > shares[1] > shares[2] > 0
+    assert sum(shares) == pytest.approx(1.0, abs=1e-12)
+    T1 = dense(sc.T) @ np.ones(sc.T.shape[0])  # exact scene: the bounces sum to T 1
+    assert shares[1] == pytest.approx(float(np.sum(dense(sc.A) @ sc.F)) / T1.sum(), rel=1e-3)
 
 
 @pytest.mark.parametrize("builder", [
