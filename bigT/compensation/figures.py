@@ -64,7 +64,8 @@ def scan_lines(path, lines: dict, *, title: str, target: float | None = None) ->
 
 
 def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
-    """b_0 ... b_K, remainder and their sum, each panel scaled to its own range."""
+    """b_0 ... b_K and their sum in grey from 0 to each panel's maximum; the remainder,
+    which may be negative, on a diverging scale centred on 0 with a colour bar."""
     plt = _pyplot()
     K = parts.shape[0] - 2
     panels = list(parts) + [parts.sum(axis=0)]
@@ -74,14 +75,21 @@ def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
     H, W = parts.shape[1:]
     fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.4 * H / W + 0.7),
                              squeeze=False)
-    for ax, img, title in zip(axes[0], panels, titles):
-        lo, hi = float(img.min()), float(img.max())
-        ax.imshow(img, cmap="gray", vmin=min(lo, 0.0), vmax=hi if hi > lo else lo + 1e-12,
-                  interpolation="nearest")
+    for k, (ax, img, title) in enumerate(zip(axes[0], panels, titles)):
+        if k == K + 1:  # the remainder: signed
+            span = float(np.abs(img).max()) or 1e-12
+            shown = ax.imshow(img, cmap="RdBu_r", vmin=-span, vmax=span,
+                              interpolation="nearest")
+            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02)
+        else:
+            hi = float(img.max())
+            ax.imshow(img, cmap="gray", vmin=0.0, vmax=hi if hi > 0 else 1e-12,
+                      interpolation="nearest")
         ax.set_title(title, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle("bounce separation (each panel shown from 0 to its own maximum)", fontsize=9)
+    fig.suptitle("bounce separation (grey: 0 to each panel's maximum; remainder: blue "
+                 "negative, red positive, centred on 0)", fontsize=9)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -315,7 +315,7 @@ def _preview(path: Path, image: np.ndarray, title: str) -> Path:
 
     plt = _pyplot()
     H, W = image.shape
-    rows = sorted({H // 4, H // 2, (3 * H) // 4})
+    rows = distinct_rows(image, 3)
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
     ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -335,6 +335,25 @@ def _preview(path: Path, image: np.ndarray, title: str) -> Path:
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def distinct_rows(image: np.ndarray, k: int) -> list[int]:
+    """``k`` rows of ``image`` whose profiles differ most, ascending: the centre row,
+    then greedily the row farthest (L2) from those chosen. A scene symmetric top to
+    bottom (the corner) would draw two of the quarter rows on top of each other."""
+    image = np.asarray(image, np.float64)
+    H = image.shape[0]
+    chosen = [H // 2]
+    dist = np.linalg.norm(image - image[chosen[0]], axis=1)
+    edge = H // 8  # a line drawn on the frame of the picture would not be seen
+    dist[:edge] = dist[H - edge:] = -1.0
+    while len(chosen) < min(k, H):
+        r = int(np.argmax(dist))
+        if dist[r] <= 0:  # every row left repeats one chosen: nothing more to show
+            break
+        chosen.append(r)
+        dist = np.minimum(dist, np.linalg.norm(image - image[r], axis=1))
+    return sorted(chosen)
 
 
 def preview_path(path: Path) -> Path:

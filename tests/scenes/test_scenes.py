@@ -249,3 +249,19 @@ def test_albedo_texture(tmp_path):
     F_img = sc.pixel_order.to_images(sc.F)
     assert F_img[:, :3].max() < F_img[:, 3:6].min()
     assert sc.summary["albedo"] == "texture"
+
+
+def test_preview_scan_lines_differ():
+    """The preview's three scan lines are rows whose profiles differ: a scene symmetric
+    top to bottom would otherwise draw one on top of another."""
+    from bigT.scenes.builder import distinct_rows
+
+    H, W = 12, 16
+    y = np.abs(np.arange(H) - (H - 1) / 2)[:, None]  # symmetric top to bottom
+    image = 1.0 / (1.0 + y) + np.linspace(0, 0.1, W)[None, :]
+    rows = distinct_rows(image, 3)
+    assert len(rows) == 3 and rows == sorted(rows)
+    profiles = image[rows]
+    assert min(np.linalg.norm(a - b) for i, a in enumerate(profiles)
+               for b in profiles[i + 1:]) > 0
+    assert distinct_rows(np.ones((5, 4)), 3) == [2]  # identical rows: one line says it all
