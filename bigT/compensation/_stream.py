@@ -87,10 +87,11 @@ def scheduler_runner(scheduler):
     """The runner of ``scheduler`` (:func:`bigT.schedule.runner.open_runner`) for the
     duration of the block, closed after; None (local threads) when none is given; a
     runner itself is passed through (and left open)."""
-    if scheduler is None or hasattr(scheduler, "map") and hasattr(scheduler, "plans"):
+    from ..schedule.runner import ClusterRunner, ThreadRunner, open_runner
+
+    if scheduler is None or isinstance(scheduler, (ThreadRunner, ClusterRunner)):
         yield scheduler
         return
-    from ..schedule.runner import open_runner
 
     runner = open_runner(scheduler)
     try:

@@ -104,12 +104,15 @@ class _ProcessState:
         """The attributes of the store at ``path`` (for its writers)."""
         return self._opened(self.attrs, path, read_store_attrs)
 
-    def plan(self, policy: MemoryPolicy) -> MemoryPlan:
-        """This process's memory plan for ``policy``, made on first use."""
+    def plan(self, policy: MemoryPolicy, worker=None) -> MemoryPlan:
+        """This process's memory plan for ``policy``, made on first use from the limit
+        and threads of ``worker`` (a dask worker; by default the one running this, if
+        any)."""
         with self.lock:
             plan = self.plans.get(policy)
         if plan is None:
-            limit, threads = _process_limits(policy)
+            limit, threads = (_process_limits(policy) if worker is None
+                              else _worker_limits(worker, policy))
             plan = plan_memory(limit, threads, policy.n_cols, policy.max_row_nnz)
             with self.lock:
                 plan = self.plans.setdefault(policy, plan)
@@ -176,13 +179,7 @@ def _worker_limits(worker, policy: MemoryPolicy) -> tuple[int | None, int]:
 def plan_on_worker(policy: MemoryPolicy, dask_worker=None) -> MemoryPlan:
     """The memory plan of the worker this runs on (``Client.run`` passes
     ``dask_worker``); cached for its tasks."""
-    if dask_worker is not None:
-        limit, threads = _worker_limits(dask_worker, policy)
-        with STATE.lock:
-            if policy not in STATE.plans:
-                STATE.plans[policy] = plan_memory(limit, threads, policy.n_cols,
-                                                  policy.max_row_nnz)
-    return STATE.plan(policy)
+    return STATE.plan(policy, dask_worker)
 
 
 def end_pass(pass_id: str | None = None, forget=()) -> None:
