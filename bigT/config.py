@@ -26,11 +26,20 @@ DEFAULT_IMAGE_TILE = (8, 8)
 DEFAULT_PRUNE = 1e-5
 #: Random probes z used to estimate ||I - T X||_F by r = z - T (X z).
 RESIDUAL_PROBES = 4
-#: Power iterations used to estimate the spectral radius of M before the first product
-#: (at most; at least the minimum, then until two estimates agree to the tolerance).
-SPECTRAL_RADIUS_ITERATIONS = 30
-SPECTRAL_RADIUS_MIN_ITERATIONS = 10
-SPECTRAL_RADIUS_RTOL = 1e-3
+#: The spectral radius of M is computed before the first product (bigT.spectral):
+#: densely up to this many unknowns (one block product of the identity)...
+SPECTRAL_RADIUS_DENSE_MAX = 256
+#: ...above, by ARPACK's Arnoldi: the Ritz values of largest modulus it converges (a
+#: +-rho pair or a complex pair needs more than one), the Krylov basis size,
+SPECTRAL_RADIUS_RITZ = 4
+SPECTRAL_RADIUS_NCV = 20
+#: its relative tolerance (the ground truth of scenes asks for SCENE_SPECTRAL_RTOL),
+SPECTRAL_RADIUS_RTOL = 1e-4
+#: and the operator products after which it gives up (an uncertain estimate).
+SPECTRAL_RADIUS_MAX_PRODUCTS = 600
+#: A term whose residual estimate exceeds the previous term's by this factor stops the
+#: run (the series diverges); the same probes are used at every term.
+RESIDUAL_GROWTH = 1.01
 
 #: A pass has at least this many row blocks (tasks) per thread of the scheduler: the
 #: term stores' tile size is T's, halved until it gives that many (a cluster's threads
@@ -103,6 +112,10 @@ SCENE_MAX_BOUNCES = 200
 #: this many bounces.
 SCENE_SHARE_TOL = 1e-4
 SCENE_SHARE_MAX_BOUNCES = 30
+#: Relative tolerance of the scenes' ground-truth spectral radii (ARPACK).
+SCENE_SPECTRAL_RTOL = 1e-8
+#: ...computed from T held in memory up to this size, else streamed from its store.
+SCENE_IN_MEMORY_BYTES = 2 << 30
 #: Bytes of decoded tiles of X (or T) that compensation keeps between frame batches;
 #: beyond it tiles are re-read from disk on every pass (0: always re-read).
 COMPENSATE_CACHE_BYTES = 1 << 30

@@ -4,16 +4,16 @@
 from ..storage import TermRecord
 from .first_bounce import FirstBounce, recover_first_bounce, resolve_first_bounce
 from .methods import SeriesMethod
+from ..spectral import SpectralRadius, spectral_radius
 from .stratified import (
     METHODS,
     InverseReport,
     estimate_residual,
-    estimate_spectral_radius,
     stratified_inverse,
 )
 
 __all__ = [
-    "METHODS", "FirstBounce", "InverseReport", "SeriesMethod", "TermRecord", "estimate_residual",
-    "estimate_spectral_radius", "recover_first_bounce", "resolve_first_bounce",
+    "METHODS", "FirstBounce", "InverseReport", "SeriesMethod", "SpectralRadius", "TermRecord",
+    "estimate_residual", "recover_first_bounce", "resolve_first_bounce", "spectral_radius",
     "stratified_inverse",
 ]

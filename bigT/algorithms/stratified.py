@@ -50,6 +50,13 @@ the issue). The report gives the relative value ||I - T X||_F / sqrt(n_kept) (th
 of the columns of I - T X), which ``tol`` is compared with, and the absolute one.
 T (X z) is computed as u - M u with u = F X z, the same T on the kept pixels.
 
+Divergence: before term 0, rho(M) is computed by :func:`bigT.spectral.spectral_radius`
+(Arnoldi, with the Ritz residual as its uncertainty) and the run is refused unless
+rho + uncertainty < 1. As a second line, the residuals are estimated with the same
+probes at every term, and a term whose residual exceeds the previous one's by
+``config.RESIDUAL_GROWTH`` is not published: the run stops with the last good term held.
+``force`` skips both checks.
+
 Out of core and resumable: the inverse store ``out`` is a versioned bigT store
 (:class:`bigT.storage.InverseStore`). Term k is written to a new subgroup ``tKKKK``
 (X and, for the power form, P) by the tasks of its passes, each task writing its own
@@ -92,6 +99,7 @@ from ..schedule.memory import human_bytes, warn_if_rows_outgrow
 from ..schedule.operators import StoreOperand
 from ..schedule.runner import ClusterRunner, local_path, new_pass_id, open_runner
 from ..schedule.spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
+from ..spectral import SpectralRadius, spectral_radius
 from ..storage import InverseStore, StoreAttrs, TermRecord
 from ..storage import open as open_store
 from ..storage.inverse_store import term_dir
@@ -135,6 +143,7 @@ class InverseReport:
     tasks: int = 0
     task_overhead_ms: float = 0.0
     peak_memory: tuple[tuple[str, int], ...] = ()
+    spectral_uncertainty: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -148,6 +157,8 @@ class InverseReport:
             lines.append(f"{r.term:>4} {r.seconds:>8.2f} {r.nnz_P:>12d} {r.nnz_X:>12d} "
                          f"{r.tiles_computed:>10d} {r.tiles_skipped:>8d} {res:>10}")
         rho = "-" if self.spectral_radius is None else f"{self.spectral_radius:.4f}"
+        if self.spectral_radius is not None and self.spectral_uncertainty is not None:
+            rho += f" +- {self.spectral_uncertainty:.1e}"
         lines.append(f"spectral radius estimate {self.seconds_spectral_radius:.2f} s, "
                      f"total {self.seconds:.2f} s")
         lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}, "
@@ -217,40 +228,6 @@ def choose_tile_size(n: int, tile_size: int, threads: int) -> int:
 
 
 # --- the estimates -----------------------------------------------------------------------
-
-def estimate_spectral_radius(apply_M, active, iterations=None, seed=0) -> float:
-    """rho(M) by power iteration (at most ``config.SPECTRAL_RADIUS_ITERATIONS``
-    mat-vecs ``apply_M(V)`` with V of shape (n, 1), each streaming the tiles of M): the
-    geometric mean of the growth ||M v|| / ||v|| over the second half of the
-    iterations (robust to a two-cycle from a +-rho pair).
-
-    Stops early, after at least ``config.SPECTRAL_RADIUS_MIN_ITERATIONS``, once two
-    estimates two iterations apart (both over an even window, so a two-cycle averages
-    out) agree to ``config.SPECTRAL_RADIUS_RTOL``: each mat-vec re-reads T from disk
-    when the tile cache cannot hold it."""
-    iterations = iterations or config.SPECTRAL_RADIUS_ITERATIONS
-    rng = np.random.default_rng(seed)
-    v = rng.standard_normal((len(active), 1)) * active[:, None]
-    nv = np.linalg.norm(v)
-    if nv == 0:
-        return 0.0
-    v /= nv
-    logs, previous = [], None
-    for _ in range(iterations):
-        w = apply_M(v)
-        nw = float(np.linalg.norm(w))
-        if nw == 0 or not np.isfinite(nw):
-            return 0.0 if nw == 0 else float("inf")
-        logs.append(math.log(nw))
-        v = w / nw
-        if len(logs) >= config.SPECTRAL_RADIUS_MIN_ITERATIONS and len(logs) % 2 == 0:
-            estimate = math.exp(np.mean(logs[len(logs) // 2:]))
-            if previous is not None and abs(estimate - previous) <= \
-                    config.SPECTRAL_RADIUS_RTOL * estimate:
-                return float(estimate)
-            previous = estimate
-    return float(math.exp(np.mean(logs[len(logs) // 2:])))
-
 
 def estimate_residual(apply_M, apply_X, fb: FirstBounce, probes=None,
                       seed=0) -> tuple[float, float]:
@@ -464,18 +441,28 @@ class _Engine:
         stopped = self._extend(resumed_from)
         return self._report(stopped, resumed_from, t_rho, time.perf_counter() - t_start, rho)
 
-    def _spectral_radius(self) -> float:
-        rho = self.record.spectral_radius
-        if rho is None:
-            rho = estimate_spectral_radius(self._apply_M, self.fb.active, seed=self.opts.seed)
-            self._save(self.record.replace(spectral_radius=rho))
-        if rho >= 1 and not self.opts.force:
+    def _spectral_radius(self) -> SpectralRadius:
+        """rho(M), estimated once per store (kept in the record); a series that may
+        diverge (rho + its uncertainty >= 1) is refused unless forced."""
+        rec = self.record
+        if rec.spectral_radius is None:
+            rho = spectral_radius(self._apply_M, self.T.shape[0], self.fb.active,
+                                  seed=self.opts.seed)
+            if rho.converged:  # else estimated anew on the next run
+                self._save(rec.replace(spectral_radius=rho.value,
+                                       spectral_uncertainty=rho.uncertainty,
+                                       spectral_products=rho.products))
+        else:
+            # a store written before uncertainties were recorded has none
+            rho = SpectralRadius(rec.spectral_radius, rec.spectral_uncertainty or 0.0,
+                                 rec.spectral_products or 0, "recorded")
+        if not rho.upper < 1 and not self.opts.force:
             raise DivergenceError(
-                f"the spectral radius of M = I - T F^-1 is about {rho:.4f} >= 1 "
-                f"(first_bounce={self.fb.kind!r}): the series diverges. Try "
-                "first_bounce='diag', a higher threshold on T's small entries (or denoising "
-                "it), fixing negative or zero diagonal entries, or force=True (bigT invert "
-                "--force) to run anyway", self.T.path)
+                f"the spectral radius of M = I - T F^-1 is {rho.describe()}, so it may be "
+                f">= 1 (first bounce {self.fb.kind}): the series diverges. Try the "
+                "diagonal first bounce, a higher threshold on T's small entries (or "
+                "denoising it), fixing negative or zero diagonal entries, or force=True "
+                "(bigT invert --force) to run anyway", self.T.path)
         return rho
 
     def _extend(self, resumed_from) -> str:
@@ -588,8 +575,10 @@ class _Engine:
     def _finish_term(self, k: int, stats: list[BlockStats], t0: float) -> None:
         """Estimate term k's residual, then publish it (redirect and record)."""
         X = open_store(self.store.term_path(k, "X"))
+        # the same probes at every term, so that two terms' residuals compare exactly
         res_rel, res_abs = estimate_residual(self._apply_M, lambda V: self._apply_X(X, V),
-                                             self.fb, seed=self.opts.seed + k)
+                                             self.fb, seed=self.opts.seed)
+        self._check_residual_falls(k, res_rel)
         rec = TermRecord(
             term=k, seconds=time.perf_counter() - t0,
             nnz_P=int(sum(s.nnz_P for s in stats)), nnz_X=int(X.nnz),
@@ -603,6 +592,21 @@ class _Engine:
                 "residual_abs": res_abs, "record": rec.to_dict()}
         self.store.publish(record, X, meta)
         self.record = record
+
+    def _check_residual_falls(self, k: int, residual: float) -> None:
+        """Refuse term k (unless forced) when its residual exceeds the held term's by
+        more than ``config.RESIDUAL_GROWTH``: the series diverges, whatever the
+        spectral radius estimate said. The held term stays published."""
+        h = self.record.history
+        if self.opts.force or not h or h[-1].residual is None:
+            return
+        before = h[-1].residual
+        if residual > before * config.RESIDUAL_GROWTH:
+            raise DivergenceError(
+                f"the residual grew from {before:.3e} at term {h[-1].term} to {residual:.3e} "
+                f"at term {k}: the series diverges (spectral radius estimate "
+                f"{self.record.spectral_radius}). The inverse keeps term {h[-1].term}; "
+                "force=True (bigT invert --force) goes on anyway", self.store.path)
 
     # --- mat-vecs -------------------------------------------------------------------
 
@@ -641,7 +645,8 @@ class _Engine:
         return InverseReport(
             path=str(self.store.path), terms=rec.term, requested_terms=self.opts.terms,
             method=self.series.name, prune=self.opts.prune, first_bounce=self.fb.kind,
-            spectral_radius=rho, excluded_pixels=self.fb.excluded, residual=rec.residual,
+            spectral_radius=rho.value, spectral_uncertainty=rho.uncertainty,
+            excluded_pixels=self.fb.excluded, residual=rec.residual,
             stopped=stopped, resumed_from=resumed_from, products=self.products,
             seconds=seconds, n=self.T.shape[0], nnz_T=int(self.T.nnz), history=rec.history,
             seconds_spectral_radius=t_rho, memory=self._memory_text(),

@@ -45,6 +45,7 @@ from ..storage import BlockCSRWriter, PixelOrder, from_scipy
 from ..storage import open as open_store
 from ..storage.block_csr import atomic_write_json, group_json
 from ..storage.writer import check_replaceable, move_into_place, temporary_sibling
+from ..spectral import SpectralRadius, spectral_radius
 from . import geometry, radiosity
 
 #: The 4x4 transport of the paper's dihedral (eq. 34), true first bounce 1.75 I.
@@ -104,8 +105,11 @@ class Scene:
 
     @property
     def spectral_radius(self) -> float:
-        """Estimated spectral radius of M = I - T F^-1 with F = diag(T), the first bounce
-        ``bigT invert`` uses by default (its own estimate may differ in the last digits)."""
+        """Spectral radius of M = I - T F^-1 with F = diag(T), the first bounce
+        ``bigT invert`` uses by default: all eigenvalues for up to
+        ``config.SPECTRAL_RADIUS_DENSE_MAX`` pixels, else ARPACK to a relative
+        ``config.SCENE_SPECTRAL_RTOL`` (the Ritz residual is in
+        ``summary["spectral_radius_uncertainty"]``)."""
         return self.summary.get("spectral_radius")
 
     @property
@@ -183,8 +187,10 @@ class Scene:
             f"  T: {s['nnz_T']} nonzeros ({s['nnz_T'] / s['n']:.1f} per row), "
             f"A: {s['nnz_A']} ({s['nnz_A'] / s['n']:.1f} per row), up to {s['bounces']} "
             f"bounces per row",
-            f"  spectral radius of M = I - T diag(T)^-1: {s['spectral_radius']:.4f}; "
-            f"of A: {s['spectral_radius_A']:.4f}",
+            f"  spectral radius of M = I - T diag(T)^-1: {s['spectral_radius']:.4f}"
+            f"{_uncertainty(s.get('spectral_radius_uncertainty'))}; "
+            f"of A: {s['spectral_radius_A']:.4f}"
+            f"{_uncertainty(s.get('spectral_radius_A_uncertainty'))}",
             "  bounce shares of the light of a white image (adding up to 100%): "
             + ", ".join(f"{100 * v:.3g}%" for v in s["bounce_shares"]),
             f"  built in {s['seconds']:.1f} s"
@@ -283,13 +289,26 @@ def _add_noise(rows: sp.csr_array, noise: float, floor: float, rng) -> sp.csr_ar
     return rows
 
 
-def _power_radius_T(T, d, iterations):
-    """rho(M) for M = I - T diag(d)^-1: M = -N with N = offdiag(T) diag(d)^-1 >= 0,
-    so rho(M) = rho(N), the Perron root (streams T once per iteration)."""
+def _uncertainty(value) -> str:
+    """`` +- 1.2e-09`` (Ritz residual of the ground truth), or nothing for older scenes."""
+    return "" if value is None else f" +- {value:.1e}"
+
+
+def _spectral_radius_T(T, d) -> SpectralRadius:
+    """rho(M) for M = I - T diag(d)^-1 on the pixels with d > 0, to
+    ``config.SCENE_SPECTRAL_RTOL`` (streams T once per product)."""
     inv = np.zeros_like(d)
     inv[d > 0] = 1.0 / d[d > 0]
-    return radiosity.power_spectral_radius(lambda x: T @ (x * inv) - x * (d > 0), T.shape[0],
-                                           iterations)
+    lit = d > 0
+    if _csr_bytes(T.nnz, T.shape[0]) <= config.SCENE_IN_MEMORY_BYTES:
+        T = T.to_scipy()  # ARPACK's products then skip reading and decompressing tiles
+    return spectral_radius(lambda V: V - T @ (V * inv[:, None]), T.shape[0], lit,
+                           rtol=config.SCENE_SPECTRAL_RTOL)
+
+
+def _csr_bytes(nnz: int, n: int) -> int:
+    """Bytes of a float64 CSR matrix: 8 B values + 4 B (int32) column indices per entry."""
+    return 12 * int(nnz) + 8 * (int(n) + 1)
 
 
 def _write_ground_truth(root: Path, A: sp.csr_array, F: np.ndarray, po, tile_size):
@@ -472,9 +491,8 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
 
         t0 = time.perf_counter()
         d = np.asarray(T.diagonal(), np.float64)
-        rho_M = _power_radius_T(T, d, config.SPECTRAL_RADIUS_ITERATIONS)
-        rho_A = radiosity.power_spectral_radius(lambda x: A @ x, n,
-                                                config.SPECTRAL_RADIUS_ITERATIONS)
+        rho_M = _spectral_radius_T(T, d)
+        rho_A = spectral_radius(lambda V: A @ V, n, rtol=config.SCENE_SPECTRAL_RTOL)
         white = np.ones(n)
         T1 = T @ white
         b0 = f * (G @ white if G is not None else white)
@@ -489,7 +507,9 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
             "noise": noise, "noise_floor": floor, "blur": blur, "seed": int(seed),
             "dtype": str(T.dtype),
             "nnz_T": int(T.nnz), "nnz_A": int(A.nnz), "bounces": int(max_bounces),
-            "spectral_radius": float(rho_M), "spectral_radius_A": float(rho_A),
+            "spectral_radius": rho_M.value, "spectral_radius_A": rho_A.value,
+            "spectral_radius_uncertainty": rho_M.uncertainty,
+            "spectral_radius_A_uncertainty": rho_A.uncertainty,
             "bounce_shares": shares, "exact": bool(exact),
             "seconds": 0.0, "seconds_form_factors": seconds_ff, "seconds_T": seconds_T,
             "seconds_stats": seconds_stats,
@@ -502,7 +522,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     scene = load(path)
     if preview:
         _preview(preview_path(path), po.to_images(T1), f"{name} {H}x{W}: T 1, "
-                 f"rho(M) = {rho_M:.3f}")
+                 f"rho(M) = {rho_M.value:.3f}")
     return scene
 
 

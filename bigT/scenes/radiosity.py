@@ -240,29 +240,6 @@ def transport_rows(A: sp.csr_array, f: np.ndarray, r0: int, r1: int, *, prune: f
     return T, k
 
 
-def power_spectral_radius(matvec, n: int, iterations: int) -> float:
-    """Perron root of a nonnegative operator N by power iteration on I + N.
-
-    The shift makes the Perron root strictly dominant even when N is imprimitive (the
-    corner's left/right wall coupling is bipartite), so the 1-norm ratio converges.
-    At most ``iterations`` mat-vecs; after ``config.SPECTRAL_RADIUS_MIN_ITERATIONS``
-    it stops once two successive estimates agree to ``config.SPECTRAL_RADIUS_RTOL``.
-    """
-    x = np.full(n, 1.0 / n)
-    lam = 0.0
-    for it in range(iterations):
-        y = x + matvec(x)
-        s = float(np.abs(y).sum())
-        if s == 0:
-            return 0.0
-        previous, lam = lam, s / float(np.abs(x).sum()) - 1.0
-        x = y / s
-        if it + 1 >= config.SPECTRAL_RADIUS_MIN_ITERATIONS and \
-                abs(lam - previous) <= config.SPECTRAL_RADIUS_RTOL * abs(lam):
-            break
-    return max(lam, 0.0)
-
-
 def light_shares(bounces) -> list[float]:
     """Each bounce's share of the total light: sum(b_k) / sum_j sum(b_j), adding up to
     1 (the definition ``bigT bounces`` uses for an image's parts too)."""

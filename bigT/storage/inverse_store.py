@@ -87,6 +87,11 @@ class InverseRecord:
         may be beyond it: every later term equals it).
     history : tuple of TermRecord
     spectral_radius : float or None
+        The estimate of rho(M) made before term 0 (:mod:`bigT.spectral`).
+    spectral_uncertainty : float or None
+        Its Ritz residual: rho is believed within ``spectral_radius`` +- this.
+    spectral_products : int or None
+        Products with M the estimate took.
     exhausted_at : int or None
     tile_size : int or None
         Tile size of the term stores (T's, or a divisor of it for more tasks).
@@ -103,6 +108,8 @@ class InverseRecord:
     tile_size: int | None = None
     excluded_pixels: int | None = None
     residual: float | None = None
+    spectral_uncertainty: float | None = None
+    spectral_products: int | None = None
 
     def replace(self, **changes) -> "InverseRecord":
         return dataclasses.replace(self, **changes)
@@ -119,10 +126,13 @@ class InverseRecord:
                 raise TypeError("no params")
             history = tuple(TermRecord.from_dict(h) for h in d.get("history") or ())
             opt_int = (lambda v: None if v is None else int(v))
+            opt_float = (lambda v: None if v is None else float(v))
             return cls(dict(d["params"]), opt_int(d.get("term")), opt_int(d.get("dir")),
-                       history, d.get("spectral_radius"), opt_int(d.get("exhausted_at")),
-                       opt_int(d.get("tile_size")), opt_int(d.get("excluded_pixels")),
-                       d.get("residual"))
+                       history, opt_float(d.get("spectral_radius")),
+                       opt_int(d.get("exhausted_at")), opt_int(d.get("tile_size")),
+                       opt_int(d.get("excluded_pixels")), opt_float(d.get("residual")),
+                       opt_float(d.get("spectral_uncertainty")),
+                       opt_int(d.get("spectral_products")))
         except (TypeError, ValueError, AttributeError) as exc:
             raise StoreError(f"damaged inverse record ({exc}); delete the store to start "
                              "over", path) from None
