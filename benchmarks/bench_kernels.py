@@ -72,7 +72,7 @@ def profile_spgemm(M, threshold, repeat):
 
     from bigT import kernels  # noqa: PLC0415
     from bigT.kernels import _csr_kernels as K  # noqa: PLC0415
-    from bigT.kernels.csr import _as_csr  # noqa: PLC0415
+    from bigT.kernels.csr import _as_csr, row_work  # noqa: PLC0415
 
     @njit(nogil=True)
     def setup_and_scatter(ap, aj, ax, bp, bj, bx, n_cols, scatter):
@@ -115,10 +115,10 @@ def profile_spgemm(M, threshold, repeat):
     setup_and_scatter(*args, False)
     n = M.shape[0]
     t_check = cpu(lambda: _as_csr(M, "A"))
-    t_work = cpu(lambda: K.row_work_internal(a.indptr, a.indices, a.indptr))
+    t_work = cpu(lambda: row_work(a.indptr, a.indices, a.indptr))
     t_setup = cpu(lambda: setup_and_scatter(*args, False))
     t_scatter = cpu(lambda: setup_and_scatter(*args, True)) - t_setup
-    t_kernel = cpu(lambda: K.spgemm_grouped_internal(0, n, *args, threshold, -1, 0.25, 1024))
+    t_kernel = cpu(lambda: K.spgemm_grouped_internal(0, n, *args, threshold, 0.25, 1024))
     t_total = cpu(lambda: kernels.spgemm(M, M, threshold=threshold, n_threads=1))
     t_scipy = cpu(lambda: M @ M)
     print("   profile, 1 thread, CPU seconds (process_time, best of %d):" % repeat)

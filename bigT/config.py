@@ -62,6 +62,10 @@ DEFAULT_BATCH = 64
 KERNEL_THREADS = None
 #: Row ranges per thread, cut to equal work, so one slow range does not idle a core.
 KERNEL_CHUNKS_PER_THREAD = 4
+#: Kernel calls with at most this many multiply-adds (products) or entries (the rest)
+#: run on numpy/scipy instead of numba (bigT.kernels._small): as fast at that size, and
+#: a run that only has such calls never imports numba nor compiles a kernel.
+KERNEL_NUMPY_MAX_WORK = 20_000
 #: Products with fewer multiply-adds than this run on the calling thread only.
 KERNEL_MIN_PARALLEL_WORK = 200_000
 #: spgemm emits a row by scanning its column span [lo, hi] of the dense accumulator

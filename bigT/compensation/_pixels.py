@@ -3,20 +3,35 @@
 ``PixelOrder.to_matrix`` / ``to_images`` do the same with three numpy passes each
 (gather, transpose, cast); at 384x512 and 64 frames those cost as much as a pass over X,
 so the hot path uses these kernels and keeps ``PixelOrder`` as the reference (tests
-compare the two).
+compare the two). Batches of at most ``config.KERNEL_NUMPY_MAX_WORK`` values take the
+numpy path, so compensating a small image never compiles a kernel.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from .. import config
+
+
+def _kernels():
+    """The compiled gather and scatter (numba imported here, on first use)."""
+    global _KERNELS
+    if _KERNELS is None:
+        from numba import njit
+
+        _KERNELS = (njit(nogil=True, cache=True)(_gather_py),
+                    njit(nogil=True, cache=True)(_scatter_py))
+    return _KERNELS
+
+
+_KERNELS = None
 
 #: Matrix rows handled per block: the (block, K) slab of the batch stays in L2.
 _BLOCK = 256
 
 
-@njit(nogil=True, cache=True)
-def _gather_internal(frames, perm, out):
+def _gather_py(frames, perm, out):
     n, k = out.shape
     for b0 in range(0, n, _BLOCK):
         b1 = min(b0 + _BLOCK, n)
@@ -26,8 +41,7 @@ def _gather_internal(frames, perm, out):
                 out[i, c] = src[perm[i]]
 
 
-@njit(nogil=True, cache=True)
-def _scatter_internal(Y, perm, lo, hi, do_lo, do_hi, out):
+def _scatter_py(Y, perm, lo, hi, do_lo, do_hi, out):
     n, k = Y.shape
     below = 0
     above = 0
@@ -52,7 +66,10 @@ def frames_to_matrix(frames: np.ndarray, order, dtype) -> np.ndarray:
     K = frames.shape[0]
     src = np.ascontiguousarray(frames.reshape(K, -1))
     out = np.empty((order.n, K), dtype=dtype)
-    _gather_internal(src, order.permutation, out)
+    if out.size <= config.KERNEL_NUMPY_MAX_WORK:
+        out[...] = src[:, order.permutation].T
+    else:
+        _kernels()[0](src, order.permutation, out)
     return out
 
 
@@ -63,7 +80,14 @@ def matrix_to_frames(Y: np.ndarray, order, clip=None) -> tuple[np.ndarray, int, 
     K = Y.shape[1]
     lo, hi = (None, None) if clip is None else clip
     out = np.empty((K, order.n), dtype=np.float64)
-    below, above = _scatter_internal(Y, order.permutation, 0.0 if lo is None else float(lo),
+    if out.size <= config.KERNEL_NUMPY_MAX_WORK:
+        V = Y.astype(np.float64).T
+        below = 0 if lo is None else int(np.count_nonzero(V < lo))
+        above = 0 if hi is None else int(np.count_nonzero(V > hi))
+        out[:, order.permutation] = V if lo is None and hi is None else np.clip(V, lo, hi)
+    else:
+        below, above = _kernels()[1](Y, order.permutation,
+                                     0.0 if lo is None else float(lo),
                                      0.0 if hi is None else float(hi), lo is not None,
                                      hi is not None, out)
     return out.reshape(K, *order.image_shape), int(below), int(above)

@@ -14,7 +14,7 @@ from .csr import (
     spgemm,
     spmm_dense,
 )
-from ._csr_kernels import GROUP as SPGEMM_GROUP
+from ._constants import GROUP as SPGEMM_GROUP
 
 __all__ = [
     "spgemm",

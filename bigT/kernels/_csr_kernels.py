@@ -17,11 +17,13 @@ import numba
 import numpy as np
 from numba import njit, types
 
-# The status codes of check_csr_internal.
-CSR_OK = 0
-CSR_BAD_INDPTR = 1
-CSR_INDEX_OUT_OF_RANGE = 2
-CSR_NOT_FINITE = 3
+from ._constants import (  # noqa: F401 (the wrappers read them from here too)
+    CSR_BAD_INDPTR,
+    CSR_INDEX_OUT_OF_RANGE,
+    CSR_NOT_FINITE,
+    CSR_OK,
+    GROUP,
+)
 
 
 @njit(nogil=True, cache=True)
@@ -70,25 +72,6 @@ def check_csr_internal(indptr, indices, data, n_cols):
 
 
 @njit(nogil=True, cache=True)
-def row_work_internal(a_indptr, a_indices, b_indptr):
-    """Multiply-adds of each row of A @ B (an upper bound on that row's nnz).
-
-    Returns
-    -------
-    (n_rows,) int64
-    """
-    n_rows = a_indptr.shape[0] - 1
-    work = np.zeros(n_rows, np.int64)
-    for i in range(n_rows):
-        w = 0
-        for p in range(a_indptr[i], a_indptr[i + 1]):
-            k = a_indices[p]
-            w += b_indptr[k + 1] - b_indptr[k]
-        work[i] = w
-    return work
-
-
-@njit(nogil=True, cache=True)
 def _grow(arr, used, need):
     """A copy of ``arr[:used]`` in a buffer of at least ``need`` (doubling)."""
     cap = max(need, 2 * arr.shape[0], 16)
@@ -98,31 +81,9 @@ def _grow(arr, used, need):
 
 
 @njit(nogil=True, cache=True)
-def _top_k_compact(indices, data, start, stop, top_k):
-    """Keep the ``top_k`` largest |data| of the sorted row ``[start, stop)``.
-
-    Ties in |v| go to the smaller column (stable sort of a column-sorted row), and the
-    kept entries stay in column order. Returns the row's new end.
-    """
-    if stop - start <= top_k:
-        return stop
-    mags = np.empty(stop - start, np.float64)
-    for t in range(stop - start):
-        mags[t] = -abs(data[start + t])
-    order = np.argsort(mags, kind="mergesort")
-    keep = np.sort(order[:top_k])
-    # keep is increasing and keep[t] >= t, so moving forward in place never overwrites
-    # an entry still to be read.
-    for t in range(top_k):
-        indices[start + t] = indices[start + keep[t]]
-        data[start + t] = data[start + keep[t]]
-    return start + top_k
-
-
-@njit(nogil=True, cache=True)
 def spgemm_rows_internal(
     r0, r1, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, n_cols,
-    threshold, top_k, dense_scan_ratio, capacity,
+    threshold, dense_scan_ratio, capacity,
 ):
     """Rows ``[r0, r1)`` of A @ B, pruned inside the row loop, in one pass.
 
@@ -144,8 +105,7 @@ def spgemm_rows_internal(
     An entry is kept when ``v != 0 and |v| >= threshold`` with v already rounded to
     the output dtype (so the test sees the value that is stored); exact zeros
     (cancellations) are dropped even at ``threshold = 0``, as scipy's product drops
-    them. Then, when ``top_k >= 0``, each row keeps its top_k largest |v| (ties to
-    the smaller column).
+    them. (A cap on the entries per row is a separate pass, ``top_k_internal``.)
 
     The result goes into buffers grown by doubling (no symbolic pass: a second pass
     would repeat all multiply-adds, and the pruned nnz is not known from structure).
@@ -160,8 +120,6 @@ def spgemm_rows_internal(
         Columns of B.
     threshold : float
         Absolute pruning threshold, >= 0.
-    top_k : int
-        Entries kept per row; -1 for all.
     dense_scan_ratio : float
         See above.
     capacity : int
@@ -244,15 +202,13 @@ def spgemm_rows_internal(
                 j = out_j[p]
                 out_v[p] = acc[j]
                 acc[j] = 0.0
-        if top_k >= 0:
-            pos = _top_k_compact(out_j, out_v, start, pos, top_k)
         row_nnz[ii] = pos - start
     return row_nnz, out_j, out_v
 
 
 @njit(nogil=True, cache=True)
-def prune_internal(indptr, indices, data, threshold, top_k):
-    """Drop |v| < threshold, then keep the top_k largest |v| per row (-1: all).
+def prune_internal(indptr, indices, data, threshold):
+    """Drop |v| < threshold and exact zeros.
 
     Returns ``(indptr, indices, data)`` of the result, new arrays of the input dtypes.
     """
@@ -262,15 +218,86 @@ def prune_internal(indptr, indices, data, threshold, top_k):
     out_v = np.empty(data.shape[0], data.dtype)
     pos = 0
     for i in range(n_rows):
-        start = pos
         for p in range(indptr[i], indptr[i + 1]):
             v = data[p]
             if v != 0 and abs(v) >= threshold:
                 out_j[pos] = indices[p]
                 out_v[pos] = v
                 pos += 1
-        if top_k >= 0:
-            pos = _top_k_compact(out_j, out_v, start, pos, top_k)
+        out_p[i + 1] = pos
+    return out_p, out_j[:pos].copy(), out_v[:pos].copy()
+
+
+@njit(nogil=True, cache=True)
+def _sift_down(heap, size, t):
+    """Restore the min-heap order of ``heap[:size]`` below position t."""
+    while True:
+        c = 2 * t + 1
+        if c >= size:
+            return
+        if c + 1 < size and heap[c + 1] < heap[c]:
+            c += 1
+        if heap[t] <= heap[c]:
+            return
+        heap[t], heap[c] = heap[c], heap[t]
+        t = c
+
+
+@njit(nogil=True, cache=True)
+def _kth_largest(mags, k):
+    """The k-th largest of ``mags`` (1 <= k <= len), by a size-k min-heap.
+
+    Hand-written rather than ``np.sort``: numba compiles its sorts for several
+    seconds, a cost every first run would pay for a feature most runs never use.
+    """
+    heap = mags[:k].copy()
+    for t in range(k // 2 - 1, -1, -1):
+        _sift_down(heap, k, t)
+    for t in range(k, mags.shape[0]):
+        if mags[t] > heap[0]:
+            heap[0] = mags[t]
+            _sift_down(heap, k, 0)
+    return heap[0]
+
+
+@njit(nogil=True, cache=True)
+def top_k_internal(indptr, indices, data, top_k):
+    """Keep each row's ``top_k`` largest |v| (ties to the smaller column), in column
+    order: every entry above the row's k-th largest |v|, then the first entries equal
+    to it, in column order, until top_k are kept.
+
+    Returns ``(indptr, indices, data)``, new arrays of the input dtypes.
+    """
+    n_rows = indptr.shape[0] - 1
+    out_p = np.zeros(n_rows + 1, indptr.dtype)
+    out_j = np.empty(indices.shape[0], indices.dtype)
+    out_v = np.empty(data.shape[0], data.dtype)
+    pos = 0
+    for i in range(n_rows):
+        start = indptr[i]
+        stop = indptr[i + 1]
+        if stop - start <= top_k:
+            for p in range(start, stop):
+                out_j[pos] = indices[p]
+                out_v[pos] = data[p]
+                pos += 1
+        else:
+            mags = np.empty(stop - start, np.float64)
+            for p in range(start, stop):
+                mags[p - start] = abs(np.float64(data[p]))
+            kth = _kth_largest(mags, top_k)
+            ties = top_k
+            for t in range(mags.shape[0]):
+                if mags[t] > kth:
+                    ties -= 1
+            for p in range(start, stop):
+                m = mags[p - start]
+                if m > kth or (m == kth and ties > 0):
+                    if m == kth:
+                        ties -= 1
+                    out_j[pos] = indices[p]
+                    out_v[pos] = data[p]
+                    pos += 1
         out_p[i + 1] = pos
     return out_p, out_j[:pos].copy(), out_v[:pos].copy()
 
@@ -463,9 +490,6 @@ BLOCK_SHIFT = 4
 #: the previous group's kept entries per row (measured: even at ~6x the plain scan
 #: ties; at ~12x the plain scan costs as much as the scatter).
 MARKED_SPAN_RATIO = 8
-#: Rows of A multiplied together by spgemm_grouped_internal: 8 float64 lanes are one
-#: cache line of the accumulator and one AVX-512 (two AVX2) fused multiply-adds.
-GROUP = 8
 
 
 def _group_scatter_py(ulist, nu, avals, b_indptr, b_indices, b_data, acc):
@@ -628,7 +652,7 @@ def _group_emit_marked(acc, touched, lo, hi, n_rows, threshold, cursor, out_j, o
 @njit(nogil=True, cache=True)
 def spgemm_grouped_internal(
     r0, r1, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, n_cols,
-    threshold, top_k, min_efficiency, capacity,
+    threshold, min_efficiency, capacity,
 ):
     """Rows ``[r0, r1)`` of A @ B, pruned, GROUP rows at a time.
 
@@ -741,8 +765,6 @@ def spgemm_grouped_internal(
                         out_j[start + t] = out_j[src + t]
                         out_v[start + t] = out_v[src + t]
                 pos = start + cnt
-                if top_k >= 0:
-                    pos = _top_k_compact(out_j, out_v, start, pos, top_k)
                 row_nnz[g0 - r0 + r] = pos - start
             prev_per_row = (pos - base) // (g1 - g0) + 1
         else:
@@ -767,7 +789,5 @@ def spgemm_grouped_internal(
                     out_j[pos] = j
                     if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
                         pos += 1
-                if top_k >= 0:
-                    pos = _top_k_compact(out_j, out_v, start, pos, top_k)
                 row_nnz[g0 - r0 + r] = pos - start
     return row_nnz, out_j, out_v

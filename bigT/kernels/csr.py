@@ -1,9 +1,12 @@
 """Checked wrappers over the CSR kernels: scipy.sparse in, ``csr_array`` out.
 
-Every wrapper validates its inputs (shapes, index ranges, finite values: one numba
-pass, always on), converts them to one index dtype and one float dtype, and calls the
-unchecked kernels of :mod:`bigT.kernels._csr_kernels`. Results are
-``scipy.sparse.csr_array`` with sorted, duplicate-free indices.
+Every wrapper validates its inputs (shapes, index ranges, finite values: one pass,
+always on), converts them to one index dtype and one float dtype, and calls the
+unchecked kernels of :mod:`bigT.kernels._csr_kernels`, or, below
+``config.KERNEL_NUMPY_MAX_WORK`` multiply-adds (entries), their numpy/scipy twins in
+:mod:`bigT.kernels._small`: numba is imported and its kernels compiled only when a run
+has work big enough to gain from them. Results are ``scipy.sparse.csr_array`` with
+sorted, duplicate-free indices.
 
 Dtypes: the result dtype is numpy's promotion of the inputs (float32 with float32 is
 float32; anything with float64 is float64; integers and bools are promoted to a float).
@@ -36,7 +39,8 @@ import scipy.sparse as sp
 
 from .. import config
 from ..errors import InvalidMatrixError, ShapeMismatchError
-from . import _csr_kernels as K
+from . import _small
+from ._constants import CSR_BAD_INDPTR, CSR_INDEX_OUT_OF_RANGE, CSR_NOT_FINITE, CSR_OK, GROUP
 
 INT32_MAX = np.iinfo(np.int32).max
 
@@ -53,6 +57,18 @@ __all__ = [
 
 
 # --- helpers -----------------------------------------------------------------------
+
+def _numba():
+    """The numba kernels, imported (and their cache loaded) on first use."""
+    from . import _csr_kernels
+
+    return _csr_kernels
+
+
+def _small_enough(work: int) -> bool:
+    """Below this many multiply-adds (or entries) numpy/scipy do the work."""
+    return work <= config.KERNEL_NUMPY_MAX_WORK
+
 
 _pools: dict[int, ThreadPoolExecutor] = {}
 _pools_lock = threading.Lock()
@@ -76,6 +92,19 @@ def _pool(n_threads):
             pool = ThreadPoolExecutor(n_threads, thread_name_prefix="bigT-kernel")
             _pools[n_threads] = pool
         return pool
+
+
+def row_work(a_indptr, a_indices, b_indptr) -> np.ndarray:
+    """Multiply-adds of each row of A @ B (an upper bound on that row's nnz).
+
+    Returns
+    -------
+    (n_rows,) int64
+    """
+    b_len = np.diff(b_indptr).astype(np.int64)
+    cum = np.zeros(len(a_indices) + 1, np.int64)
+    np.cumsum(b_len[a_indices], out=cum[1:])
+    return cum[a_indptr[1:]] - cum[a_indptr[:-1]]
 
 
 def _split_rows(work, n_chunks):
@@ -137,10 +166,10 @@ def _float_dtype(*dtypes, name="inputs"):
 
 
 _CSR_MESSAGES = {
-    K.CSR_BAD_INDPTR: "malformed CSR indptr (not starting at 0, decreasing, or not "
+    CSR_BAD_INDPTR: "malformed CSR indptr (not starting at 0, decreasing, or not "
     "ending at nnz) near row {where}",
-    K.CSR_INDEX_OUT_OF_RANGE: "column index out of range at position {where}",
-    K.CSR_NOT_FINITE: "NaN or Inf value at position {where}",
+    CSR_INDEX_OUT_OF_RANGE: "column index out of range at position {where}",
+    CSR_NOT_FINITE: "NaN or Inf value at position {where}",
 }
 
 
@@ -193,8 +222,9 @@ def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True):
     indptr = np.ascontiguousarray(indptr, dtype=idt)
     indices = np.ascontiguousarray(indices, dtype=idt)
     data = np.ascontiguousarray(data, dtype=fdt)
-    status, where, is_canonical = K.check_csr_internal(indptr, indices, data, n_cols)
-    if status != K.CSR_OK:
+    check = _small.check_csr if _small_enough(len(data)) else _numba().check_csr_internal
+    status, where, is_canonical = check(indptr, indices, data, n_cols)
+    if status != CSR_OK:
         raise InvalidMatrixError(f"{name}: " + _CSR_MESSAGES[status].format(where=where))
     if canonical and not is_canonical:
         C = sp.csr_array((data, indices, indptr), shape=(n_rows, n_cols), copy=True)
@@ -292,7 +322,8 @@ def spgemm(
         Malformed CSR, indices out of range, NaN/Inf values.
     """
     threshold, top_k = _check_threshold(threshold, top_k)
-    if method is None:
+    auto = method is None  # an explicit method asks for that numba kernel
+    if auto:
         method = "grouped"
     if method not in ("rows", "grouped"):
         raise ValueError(f"method must be 'rows' or 'grouped', got {method!r}")
@@ -323,8 +354,15 @@ def spgemm(
             (m, p), np.zeros(m + 1, idt), np.zeros(0, idt), np.zeros(0, fdt), index_dtype
         )
 
-    work = K.row_work_internal(a.indptr, a.indices, b.indptr)
+    work = row_work(a.indptr, a.indices, b.indptr)
     total_work = int(work.sum())
+    if auto and _small_enough(total_work):
+        indptr, indices, data = _small.spgemm(a, b, threshold, fdt)
+        if top_k >= 0:
+            indptr, indices, data = _small.top_k(indptr, indices, data, top_k)
+        out_idt = choose_index_dtype(max(m, p), int(indptr[-1]), index_dtype)
+        return _csr_result((m, p), indptr, indices, data, out_idt)
+    K = _numba()
     n_threads = _n_threads(n_threads)
     if total_work < config.KERNEL_MIN_PARALLEL_WORK:
         n_threads = 1
@@ -332,7 +370,7 @@ def spgemm(
     bounds = _split_rows(work, n_chunks)
     if method == "grouped":
         # Ranges start on multiples of GROUP so groups are the same whatever n_threads.
-        bounds = np.unique(np.minimum((bounds + K.GROUP - 1) // K.GROUP * K.GROUP, m))
+        bounds = np.unique(np.minimum((bounds + GROUP - 1) // GROUP * GROUP, m))
         kernel = K.spgemm_grouped_internal
         tuning = float(config.SPGEMM_GROUP_MIN_EFFICIENCY)
     else:
@@ -350,7 +388,7 @@ def spgemm(
         )
         return kernel(
             r0, r1, a.indptr, a.indices, a.data, b.indptr, b.indices, b.data, p,
-            threshold, top_k, tuning, cap,
+            threshold, tuning, cap,
         )
 
     pieces = _run_ranges(run, bounds, n_threads)
@@ -369,6 +407,8 @@ def spgemm(
         sizes = [int(pc[0].sum()) for pc in pieces]
         indices = np.concatenate([pc[1][:s] for pc, s in zip(pieces, sizes)])
         data = np.concatenate([pc[2][:s] for pc, s in zip(pieces, sizes)])
+    if top_k >= 0:
+        indptr, indices, data = K.top_k_internal(indptr, indices, data, top_k)
     return _csr_result((m, p), indptr, indices, data, out_idt)
 
 
@@ -437,7 +477,10 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
         target = out.reshape(m, k)
         if not (target.flags.c_contiguous and np.shares_memory(target, out)):
             target = np.ascontiguousarray(target).copy()
-    if m and k and indices.shape[0]:
+    if m and k and indices.shape[0] and _small_enough(indices.shape[0] * k):
+        statuses = [_small.spmm_dense(indptr, indices, data, X2, target)]
+    elif m and k and indices.shape[0]:
+        K = _numba()
         n_threads = _n_threads(n_threads)
         if indices.shape[0] * k < config.KERNEL_MIN_PARALLEL_WORK:
             n_threads = 1
@@ -451,17 +494,20 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
             bounds,
             n_threads,
         )
-        for status, where in statuses:
-            if status != K.CSR_OK:
-                what = {
-                    K.CSR_BAD_INDPTR: "malformed CSR indptr",
-                    K.CSR_INDEX_OUT_OF_RANGE: "column index out of range",
-                    K.CSR_NOT_FINITE: "NaN or Inf in A or in the rows of X it uses",
-                }[status]
-                msg = f"A @ X: {what} at row {where}"
-                if out is not None:
-                    msg += " (out is partly updated)"
-                raise InvalidMatrixError(msg)
+    else:
+        statuses = []
+    for status, where in statuses:
+        if status != CSR_OK:
+            what = {
+                CSR_BAD_INDPTR: "malformed CSR indptr",
+                CSR_INDEX_OUT_OF_RANGE: "column index out of range",
+                CSR_NOT_FINITE: "NaN or Inf in A or in the rows of X it uses",
+            }[status]
+            msg = f"A @ X: {what} at row {where}"
+            if out is not None:
+                msg += " (out is partly updated)"
+            raise InvalidMatrixError(msg)
+    if statuses:
         if out is not None and target is not result and not np.shares_memory(target, out):
             out[...] = target.reshape(out.shape)
     if out is None and vector:
@@ -492,10 +538,13 @@ def add_diag_scaled(A, d, B):
     idt = choose_index_dtype(max(max(A.shape), A.nnz, B.nnz), 0)
     a = _as_csr(A, "A", dtype=fdt, index_dtype=idt)
     b = _as_csr(B, "B", dtype=fdt, index_dtype=idt)
-    indptr, indices, data = K.add_diag_scaled_internal(
-        a.indptr, a.indices, a.data, np.ascontiguousarray(d, np.float64),
-        b.indptr, b.indices, b.data, np.zeros(0, fdt),
-    )
+    if _small_enough(a.nnz + b.nnz):
+        indptr, indices, data = _small.add_diag_scaled(a, d, b, fdt)
+    else:
+        indptr, indices, data = _numba().add_diag_scaled_internal(
+            a.indptr, a.indices, a.data, np.ascontiguousarray(d, np.float64),
+            b.indptr, b.indices, b.data, np.zeros(0, fdt),
+        )
     return _csr_result(a.shape, indptr, indices, data)
 
 
@@ -504,8 +553,12 @@ def scale_rows(A, d):
     d = _vector(d, A.shape[0] if sp.issparse(A) else -1, "d", "one factor per row")
     fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
     a = _as_csr(A, "A", dtype=fdt)
-    out = np.empty_like(a.data)
-    K.scale_rows_internal(a.indptr, a.data, np.ascontiguousarray(d, fdt), out)
+    d = np.ascontiguousarray(d, fdt)
+    if _small_enough(a.nnz):
+        out = a.data * d[_small.row_ids(a.indptr)]
+    else:
+        out = np.empty_like(a.data)
+        _numba().scale_rows_internal(a.indptr, a.data, d, out)
     return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
 
 
@@ -514,8 +567,12 @@ def scale_cols(A, d):
     d = _vector(d, A.shape[1] if sp.issparse(A) else -1, "d", "one factor per column")
     fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
     a = _as_csr(A, "A", dtype=fdt)
-    out = np.empty_like(a.data)
-    K.scale_cols_internal(a.indices, a.data, np.ascontiguousarray(d, fdt), out)
+    d = np.ascontiguousarray(d, fdt)
+    if _small_enough(a.nnz):
+        out = a.data * d[a.indices]
+    else:
+        out = np.empty_like(a.data)
+        _numba().scale_cols_internal(a.indices, a.data, d, out)
     return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
 
 
@@ -523,7 +580,12 @@ def diagonal(A):
     """The main diagonal of A, shape (min(m, n),), A's float dtype."""
     a = _as_csr(A, "A", canonical=False)
     out = np.zeros(min(a.shape), a.data.dtype)
-    K.diagonal_internal(a.indptr, a.indices, a.data, out)
+    if _small_enough(a.nnz):
+        rows = _small.row_ids(a.indptr)
+        on = rows == a.indices
+        np.add.at(out, rows[on], a.data[on])
+    else:
+        _numba().diagonal_internal(a.indptr, a.indices, a.data, out)
     return out
 
 
@@ -535,5 +597,13 @@ def prune(A, threshold=0.0, top_k=None):
     """
     threshold, top_k = _check_threshold(threshold, top_k)
     a = _as_csr(A, "A")
-    indptr, indices, data = K.prune_internal(a.indptr, a.indices, a.data, threshold, top_k)
+    if _small_enough(a.nnz):
+        indptr, indices, data = _small.prune(a.indptr, a.indices, a.data, threshold, a.shape)
+        if top_k >= 0:
+            indptr, indices, data = _small.top_k(indptr, indices, data, top_k)
+    else:
+        K = _numba()
+        indptr, indices, data = K.prune_internal(a.indptr, a.indices, a.data, threshold)
+        if top_k >= 0:
+            indptr, indices, data = K.top_k_internal(indptr, indices, data, top_k)
     return _csr_result(a.shape, indptr, indices, data)

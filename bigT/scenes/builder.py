@@ -46,6 +46,7 @@ from ..storage import open as open_store
 from ..storage.block_csr import atomic_write_json, group_json
 from ..storage.writer import check_replaceable, move_into_place, temporary_sibling
 from ..spectral import SpectralRadius, spectral_radius
+from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES  # noqa: F401 (re-exported)
 from . import geometry, radiosity
 
 #: The 4x4 transport of the paper's dihedral (eq. 34), true first bounce 1.75 I.
@@ -57,22 +58,8 @@ DIHEDRAL4_T = np.array([
 ])
 DIHEDRAL4_F = 1.75
 
-#: Density presets: (form-factor cut, T threshold). "exact" keeps every pair and every
-#: bounce (small scenes only: all n^2 pairs are tested).
-DENSITIES = {
-    "exact": (0.0, 0.0),
-    "sparse": (config.SCENE_SPARSE_FF_CUT, config.SCENE_SPARSE_THRESHOLD),
-    "dense": (config.SCENE_DENSE_FF_CUT, config.SCENE_DENSE_THRESHOLD),
-}
-
 GROUND_TRUTH = "ground_truth"
 SCENE_ATTR = "bigT_scene"
-
-SCENE_NAMES = ("dihedral4", "corner", "convex", "flat", "cornell", "hemispheres")
-
-#: Default image size of each scene; cornell's gives the paper's 5120 patches.
-DEFAULT_SIZES = {"corner": (96, 128), "convex": (96, 128), "flat": (96, 128),
-                 "cornell": (64, 80), "hemispheres": (96, 128)}
 
 
 @dataclass
@@ -468,14 +455,14 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_sibling(path)
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
     try:
         t0 = time.perf_counter()
         writer = BlockCSRWriter(tmp, (n, n), tile_size=tile_size, dtype=dtype, pixel_order=po)
         max_bounces = 0
-        for i in tqdm(range(writer.grid[0]), desc=f"{name}: T rows", unit="tile row",
-                      disable=None if progress is None else not progress, leave=False):
+        for i in progress_bar(range(writer.grid[0]), progress=progress,
+                              desc=f"{name}: T rows", unit="tile row"):
             r0, r1 = writer.tile_row_range(i)
             rows, k = radiosity.transport_rows(A, f, r0, r1, prune=prune, stop=stop,
                                                max_bounces=config.SCENE_MAX_BOUNCES, G=G)

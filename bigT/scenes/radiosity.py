@@ -109,10 +109,10 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
             trees[g] = (cKDTree(P.points[idx]), idx)
     rows, cols, vals = [], [], []
     total = 0
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
-    for i0 in tqdm(range(0, n, chunk), desc="form factors", unit="chunk", disable=progress is False
-                   if progress is not None else None, leave=False):
+    for i0 in progress_bar(range(0, n, chunk), progress=progress, desc="form factors",
+                           unit="chunk"):
         i1 = min(n, i0 + chunk)
         if cut == 0:
             i = np.repeat(np.arange(i0, i1), n)

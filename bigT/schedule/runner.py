@@ -18,6 +18,7 @@ import re
 import uuid
 
 import dask
+import dask.threaded
 from dask.callbacks import Callback
 
 from .. import config
@@ -28,12 +29,10 @@ from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
 
 
 def _bar(progress: bool, total: int, desc: str):
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
-    # delay: passes shorter than a second draw no bar; disable=None: off when stderr
-    # is not a terminal
-    return tqdm(total=total, desc=desc, unit="block", leave=False, delay=1.0,
-                disable=None if progress else True)
+    # delay: passes shorter than a second draw no bar
+    return progress_bar(progress=progress, total=total, desc=desc, unit="block", delay=1.0)
 
 
 class _Posttask(Callback):
@@ -80,7 +79,10 @@ class ThreadRunner:
         tasks = [call(spec, b, shared, dask_key_name=f"{spec.op}-{spec.pass_id}-{b.index}")
                  for b in blocks]
         with _bar(progress, len(tasks), desc or spec.op) as bar, _Posttask(bar):
-            return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
+            # the threaded scheduler's own function: a scheduler named by string makes
+            # dask import distributed (0.25 s) to look for a client first
+            return list(dask.compute(*tasks, scheduler=dask.threaded.get,
+                                     num_workers=self.workers))
 
     def end_pass(self, pass_id: str | None = None, forget=()) -> None:
         """Let go of a pass's shared items (all when None) and of cached rows of the

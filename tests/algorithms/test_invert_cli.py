@@ -115,3 +115,19 @@ def test_version_and_a_closed_pipe(tmp_path, make_store, capsys):
     proc.stdout.close()  # `bigT info T.zarr | head -0`: the reader is gone before a line
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141 and "Traceback" not in err and err == ""
+
+
+def test_a_small_inverse_never_imports_numba(tmp_path, make_store):
+    """Below config.KERNEL_NUMPY_MAX_WORK every kernel call takes its numpy twin, so a
+    first run on a fresh install compiles nothing (#12: it took 25 s cold)."""
+    import subprocess
+    import sys
+
+    T = make_store(random_dominant(16, seed=3), tile_size=8)
+    code = ("import sys; from bigT.cli import main; "
+            f"rc = main(['invert', {T.path.as_posix()!r}, '-o', {str(tmp_path / 'X.zarr')!r}, "
+            "'--no-progress']); "
+            "print('numba' in sys.modules, rc)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out[-2:] == ["False", "0"]

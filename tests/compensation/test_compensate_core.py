@@ -228,9 +228,13 @@ def test_bad_image_shape_is_image_error(small_scene, tmp_path):
         compensate(X, np.full((s["H"], s["W"]), np.nan))
 
 
+@pytest.mark.parametrize("limit", [-1, 10**18], ids=["numba", "numpy"])
 @pytest.mark.parametrize("order", ["row-major", "tile-major"])
-def test_pixel_kernels_match_pixel_order(order):
+def test_pixel_kernels_match_pixel_order(order, limit, monkeypatch):
+    from bigT import config
     from bigT.compensation._pixels import frames_to_matrix, matrix_to_frames
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", limit)
     from bigT.storage.pixel_order import PixelOrder
 
     po = PixelOrder((13, 21), order, (8, 8))  # ragged image tiles

@@ -89,7 +89,7 @@ def _dense64(A):
 
 
 @SETTINGS
-@given(product_pair(), st.sampled_from(["rows", "grouped"]), st.sampled_from([1, 2]))
+@given(product_pair(), st.sampled_from([None, "rows", "grouped"]), st.sampled_from([1, 2]))
 def test_spgemm_matches_scipy(pair, method, n_threads):
     A, B = pair
     C = spgemm(A, B, method=method, n_threads=n_threads)
@@ -104,7 +104,7 @@ def test_spgemm_matches_scipy(pair, method, n_threads):
 
 
 @SETTINGS
-@given(product_pair(dyadic=True), st.sampled_from(["rows", "grouped"]), st.integers(0, 200))
+@given(product_pair(dyadic=True), st.sampled_from([None, "rows", "grouped"]), st.integers(0, 200))
 def test_spgemm_threshold_equals_scipy_then_prune(pair, method, t64):
     A, B = pair
     # Products of k/8 values sum to multiples of 1/64 (exactly, in either dtype): a
@@ -124,7 +124,7 @@ def test_spgemm_threshold_zero_is_scipys_pattern(pair):
     A, B = pair
     ref = sp.csr_array(A @ B)
     ref.eliminate_zeros()
-    for method in ("rows", "grouped"):
+    for method in (None, "rows", "grouped"):
         C = spgemm(A, B, method=method)
         assert C.nnz == ref.nnz
         np.testing.assert_array_equal(C.toarray(), ref.toarray())
@@ -143,7 +143,7 @@ def _top_k_reference(R, mask, k):
 
 @SETTINGS
 @given(product_pair(dyadic=True), st.integers(1, 6), st.sampled_from([0.0, 0.5 / 64]),
-       st.sampled_from(["rows", "grouped"]))
+       st.sampled_from([None, "rows", "grouped"]))
 def test_spgemm_top_k(pair, k, threshold, method):
     A, B = pair
     C = spgemm(A, B, threshold=threshold, top_k=k, method=method)
@@ -174,7 +174,7 @@ def test_spgemm_large_work_uses_threads_and_matches():
                           offsets=list(range(-20, 21)), format="csr")
     for M in (A, sp.csr_array(band), sp.csr_array(A + band)):
         ref = _dense64(M) @ _dense64(M)
-        for method in ("rows", "grouped"):
+        for method in (None, "rows", "grouped"):
             C = spgemm(M, M, method=method, n_threads=2, threshold=1e-3)
             np.testing.assert_allclose(
                 C.toarray(), np.where(np.abs(ref) >= 1e-3, ref, 0), rtol=1e-12, atol=0
@@ -353,7 +353,7 @@ def test_spgemm_wide_sparse_rows():
     A = sp.random_array((200, 3000), density=0.001, format="csr", rng=rng)
     B = sp.random_array((3000, 5000), density=0.0006, format="csr", rng=rng)
     ref = _dense64(A) @ _dense64(B)
-    for method in ("rows", "grouped"):
+    for method in (None, "rows", "grouped"):
         for threshold in (0.0, 0.05):
             C = spgemm(A, B, method=method, threshold=threshold)
             _assert_canonical(C)
