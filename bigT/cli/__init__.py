@@ -9,6 +9,7 @@ hierarchy are printed on one line to stderr with exit status 2, no traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
@@ -66,7 +67,27 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue
         module.register(sub)
+    for command in sub.choices.values():
+        command.add_argument("-q", "--quiet", action="store_true",
+                             help="print nothing but errors and warnings: no progress "
+                             "bars, no summary (the outputs are written as usual)")
     return parser
+
+
+@contextlib.contextmanager
+def _quieted(args):
+    """With ``--quiet``: progress off and standard output discarded while the command
+    runs (errors and warnings go to standard error as always; ``info -q`` answers by
+    its exit status alone, as ``grep -q`` does)."""
+    if not getattr(args, "quiet", False):
+        yield
+        return
+    if hasattr(args, "no_progress"):
+        args.no_progress = True
+    if hasattr(args, "progress"):
+        args.progress = False
+    with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink):
+        yield
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        with _quieted(args):
+            return int(args.func(args) or 0)
     except BigTError as exc:
         print(cli_message(f"bigT {args.command}: error: {exc}"), file=sys.stderr)
         return 2

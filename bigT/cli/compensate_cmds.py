@@ -163,12 +163,12 @@ def run_compensate(args) -> int:
     sums = dict(err=0.0, err0=0.0, ref=0.0)
     flat = []  # (image fl. without, with, scan line without, with) for constant targets
     first = None
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
     t_comp = 0.0
     t0 = time.perf_counter()
-    with tqdm(total=len(source), desc="compensate", unit="frame",
-              disable=None if args.progress else True) as bar, \
+    with progress_bar(progress=args.progress, total=len(source), desc="compensate",
+                      unit="frame", leave=True) as bar, \
             scheduler_runner(args.scheduler) as runner:
         if runner is not None:
             print(f"  running on {runner.describe()}")
