@@ -29,8 +29,9 @@ def register(subparsers) -> None:
                    help="rows/cols of one matrix tile (default "
                         f"{config.DEFAULT_TILE_SIZE})")
     p.add_argument("--var", default=None, help="variable of a .mat file")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
-                   help="value type of the store (default %(default)s)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default=None,
+                   help="value type of the store (default: the input's, float32 for "
+                        "integer values; float32 halves the store of a float64 input)")
     p.add_argument("--image-shape", default=None, metavar="HxW",
                    help="the matrix maps HxW images (numbered row-major in IN)")
     p.add_argument("--pixel-order", choices=("row-major", "tile-major"), default="row-major",

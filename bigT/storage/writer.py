@@ -483,6 +483,11 @@ def _write_tile(tdir: Path, indptr, indices, data, level) -> None:
     fmt.write_array_files(tdir, "data", data, fmt.FILL_FLOAT, level)
 
 
+def _stored_dtype(dtype) -> str:
+    """The store dtype that keeps values of ``dtype``: float64 stays float64."""
+    return "float64" if np.dtype(dtype) == np.float64 else "float32"
+
+
 def _as_checked_csr(A, path, require_square: bool) -> sp.csr_array:
     """Validate ``A`` whole before anything is written."""
     if sp.issparse(A):
@@ -526,7 +531,8 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     tile_size : int, optional
         Default ``config.DEFAULT_TILE_SIZE``.
     dtype : {"float32", "float64"}, optional
-        Default float32.
+        Default: A's own float dtype (float32 for integer or boolean values), so float64
+        is never rounded unless asked for.
     image_shape : (H, W), optional
         The matrix maps H x W images (then it must be square with n = H W).
     pixel_order : {"row-major", "tile-major"}
@@ -547,12 +553,12 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     BlockCSR
     """
     path = Path(os.fspath(path))
-    dt = _check_dtype("float32" if dtype is None else dtype, path)
     if input_order not in ("row-major", "matrix"):
         raise ValueError(f"input_order must be 'row-major' or 'matrix', got {input_order!r}")
     if pixel_order not in PIXEL_ORDERS:
         raise ValueError(f"pixel_order must be one of {PIXEL_ORDERS}, got {pixel_order!r}")
     A = _as_checked_csr(A, path, require_square or image_shape is not None)
+    dt = _check_dtype(_stored_dtype(A.dtype) if dtype is None else dtype, path)
     po = None
     if image_shape is not None:
         kw = {} if image_tile is None else {"image_tile": tuple(image_tile)}

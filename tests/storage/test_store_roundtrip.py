@@ -93,7 +93,7 @@ def test_all_empty_matrix(tmp_path):
     A = sp.csr_array((30, 20), dtype=np.float64)
     S = from_scipy(A, tmp_path / "e.zarr", tile_size=7)
     assert S.nnz == 0 and S.n_tiles_stored == 0
-    _check_against(S, _ref(A, "float32"))
+    _check_against(S, _ref(A, "float64"))  # float64 in, float64 stored
     assert S.info()["zero_diagonal"] == 20
 
 
@@ -196,3 +196,11 @@ def test_redirect_versioned_store(tmp_path):
     assert open_store(outer / "inner").nnz == sp.csr_array(A0).astype(np.float32).nnz
     with pytest.raises(StoreError, match="another redirect"):
         open_store(outer)
+
+
+@pytest.mark.parametrize("given, stored", [(np.float64, "float64"), (np.float32, "float32"),
+                                           (np.int64, "float32"), (bool, "float32")])
+def test_from_scipy_keeps_the_float_dtype_unless_told(tmp_path, given, stored):
+    A = sp.csr_array(np.array([[1, 0], [0, 1]], dtype=given))
+    assert from_scipy(A, tmp_path / "a.zarr").dtype == np.dtype(stored)
+    assert from_scipy(A, tmp_path / "b.zarr", dtype="float32").dtype == np.float32
