@@ -104,3 +104,32 @@ class ProcessCluster:
     def __exit__(self, *exc):
         self.stop()
         return False
+
+
+def clustered_spectrum(seed: int, top: float, blocks: int = 100, size: int = 20,
+                       low: float = 0.9, high: float = 0.99):
+    """A nonnegative block-diagonal N with zero diagonal whose spectrum crowds the top:
+    every block's Perron root is drawn from [low, high] but one, which is ``top``.
+
+    The spectrum that fools power iteration (its estimate creeps up from below): with
+    the defaults, 30 steps read 0.99 for a radius of 1.02. ``T = I + N`` is then a
+    transport with F = diag(T) = I and M = I - T F^-1 = -N.
+
+    Returns
+    -------
+    N : scipy.sparse.csr_array, shape (blocks * size, blocks * size)
+    rho : float, its spectral radius (max(top, the others))
+    """
+    import numpy as np
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(seed)
+    radii = rng.uniform(low, high, blocks)
+    radii[rng.integers(blocks)] = top
+    parts = []
+    for r in radii:
+        B = rng.uniform(0, 1, (size, size))
+        np.fill_diagonal(B, 0)
+        parts.append(B * (r / max(abs(np.linalg.eigvals(B)))))
+    return sp.csr_array(sp.block_diag(parts)), float(radii.max())
+

@@ -6,24 +6,10 @@ import math
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from bigT import config
 from bigT.spectral import spectral_radius
-
-
-def clustered_blocks(seed, top, blocks=100, size=20, low=0.9, high=0.99):
-    """N >= 0, block diagonal: every block's Perron root drawn from [low, high] but one,
-    which is ``top``; returns (N, exact rho)."""
-    rng = np.random.default_rng(seed)
-    radii = rng.uniform(low, high, blocks)
-    radii[rng.integers(blocks)] = top
-    parts = []
-    for r in radii:
-        B = rng.uniform(0, 1, (size, size))
-        np.fill_diagonal(B, 0)
-        parts.append(B * (r / max(abs(np.linalg.eigvals(B)))))
-    return sp.csr_array(sp.block_diag(parts)), float(radii.max())
+from bigT.testing import clustered_spectrum
 
 
 def test_dense_path_is_every_eigenvalue():
@@ -39,7 +25,7 @@ def test_dense_path_is_every_eigenvalue():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_arnoldi_finds_the_top_of_a_cluster(top, seed):
     """The issue's reproducer: 2000 unknowns, 100 blocks with radii near 1, one above."""
-    N, exact = clustered_blocks(seed, top)
+    N, exact = clustered_spectrum(seed, top)
     rho = spectral_radius(lambda V: -(N @ V), N.shape[0], seed=seed)
     assert rho.method == "arnoldi" and rho.converged
     assert abs(rho.value - exact) <= max(rho.uncertainty, 1e-9)
@@ -67,7 +53,7 @@ def test_only_the_active_unknowns_count():
 
 
 def test_a_budget_too_small_is_not_converged_and_uncertain():
-    N, _ = clustered_blocks(0, 1.02)
+    N, _ = clustered_spectrum(0, 1.02)
     rho = spectral_radius(lambda V: N @ V, N.shape[0], max_products=20)
     assert not rho.converged and math.isinf(rho.uncertainty) and not rho.upper < 1
     assert "not converged" in rho.describe()

@@ -207,15 +207,21 @@ def spgemm_rows_internal(
 
 
 @njit(nogil=True, cache=True)
+def _empty_like_csr(indptr, indices, data):
+    """Output arrays for a subset of a CSR matrix's entries: indptr zeroed, indices and
+    data as long as the input's (a filter keeps at most all of them)."""
+    return (np.zeros(indptr.shape[0], indptr.dtype), np.empty(indices.shape[0], indices.dtype),
+            np.empty(data.shape[0], data.dtype))
+
+
+@njit(nogil=True, cache=True)
 def prune_internal(indptr, indices, data, threshold):
     """Drop |v| < threshold and exact zeros.
 
     Returns ``(indptr, indices, data)`` of the result, new arrays of the input dtypes.
     """
     n_rows = indptr.shape[0] - 1
-    out_p = np.zeros(n_rows + 1, indptr.dtype)
-    out_j = np.empty(indices.shape[0], indices.dtype)
-    out_v = np.empty(data.shape[0], data.dtype)
+    out_p, out_j, out_v = _empty_like_csr(indptr, indices, data)
     pos = 0
     for i in range(n_rows):
         for p in range(indptr[i], indptr[i + 1]):
@@ -269,9 +275,7 @@ def top_k_internal(indptr, indices, data, top_k):
     Returns ``(indptr, indices, data)``, new arrays of the input dtypes.
     """
     n_rows = indptr.shape[0] - 1
-    out_p = np.zeros(n_rows + 1, indptr.dtype)
-    out_j = np.empty(indices.shape[0], indices.dtype)
-    out_v = np.empty(data.shape[0], data.dtype)
+    out_p, out_j, out_v = _empty_like_csr(indptr, indices, data)
     pos = 0
     for i in range(n_rows):
         start = indptr[i]

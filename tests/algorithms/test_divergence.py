@@ -9,22 +9,16 @@ import scipy.sparse as sp
 import bigT
 from bigT.algorithms import stratified
 from bigT.spectral import SpectralRadius
+from bigT.testing import clustered_spectrum
 
 from inverse_helpers import dense, dense_stratified
 
 
-def block_transport(seed, top, blocks, size=20, low=0.9, high=0.99):
-    """T = I + N, N >= 0 block diagonal with zero diagonal: M = I - T diag(T)^-1 = -N,
-    whose radius is ``top`` (one block) above the others' in [low, high]."""
-    rng = np.random.default_rng(seed)
-    radii = rng.uniform(low, high, blocks)
-    radii[rng.integers(blocks)] = top
-    parts = []
-    for r in radii:
-        B = rng.uniform(0, 1, (size, size))
-        np.fill_diagonal(B, 0)
-        parts.append(np.eye(size) + B * (r / max(abs(np.linalg.eigvals(B)))))
-    return sp.csr_array(sp.block_diag(parts))
+def block_transport(seed, top, blocks, **kw):
+    """T = I + N (bigT.testing.clustered_spectrum): M = I - T diag(T)^-1 = -N, whose
+    radius is ``top``, with the other blocks' radii crowding under it."""
+    N, _ = clustered_spectrum(seed, top, blocks, **kw)
+    return sp.csr_array(sp.identity(N.shape[0]) + N)
 
 
 @pytest.mark.parametrize("seed", range(6))
