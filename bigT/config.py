@@ -37,9 +37,11 @@ SPECTRAL_RADIUS_NCV = 20
 SPECTRAL_RADIUS_RTOL = 1e-4
 #: and the operator products after which it gives up (an uncertain estimate).
 SPECTRAL_RADIUS_MAX_PRODUCTS = 600
-#: A term whose residual estimate exceeds the previous term's by this factor stops the
-#: run (the series diverges); the same probes are used at every term.
-RESIDUAL_GROWTH = 1.01
+#: A term whose residual estimate grew from the previous term's and exceeds the smallest
+#: one so far by this factor stops the run (the series diverges). Not any growth: a
+#: convergent series with a non-normal M (rho < 1 <= ||M||) or at its pruning floor may
+#: grow for a term or two, by 40 % measured; a diverging one grows without end.
+RESIDUAL_GROWTH = 2.0
 
 #: A pass has at least this many row blocks (tasks) per thread of the scheduler: the
 #: term stores' tile size is T's, halved until it gives that many (a cluster's threads

@@ -66,8 +66,8 @@ class SpectralRadius:
         if self.method == "zero":
             return "0 (no pixels)"
         if not self.converged:
-            return (f"about {self.value:.4f} (not converged after {self.products} "
-                    "products: uncertain)")
+            return (f"undetermined (ARPACK did not converge in {self.products} products"
+                    + ("" if math.isnan(self.value) else f"; at least {self.value:.4f}") + ")")
         return (f"{self.value:.4f} +- {self.uncertainty:.1e} "
                 f"({self.method}, {self.products} products)")
 
@@ -108,10 +108,12 @@ def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = Non
         V[idx] = V_active
         return np.asarray(apply(V), dtype=np.float64)[idx]
 
-    if m <= config.SPECTRAL_RADIUS_DENSE_MAX:
+    if m <= max(config.SPECTRAL_RADIUS_DENSE_MAX, 3):  # ARPACK needs k < m - 1
         return _dense(apply_active, m)
-    return _arnoldi(apply_active, m, rtol or config.SPECTRAL_RADIUS_RTOL,
-                    max_products or config.SPECTRAL_RADIUS_MAX_PRODUCTS, seed)
+    return _arnoldi(apply_active, m,
+                    config.SPECTRAL_RADIUS_RTOL if rtol is None else rtol,
+                    config.SPECTRAL_RADIUS_MAX_PRODUCTS if max_products is None
+                    else max_products, seed)
 
 
 def _dense(apply_active: BlockProduct, m: int) -> SpectralRadius:
@@ -125,9 +127,14 @@ def _dense(apply_active: BlockProduct, m: int) -> SpectralRadius:
 
 def _arnoldi(apply_active: BlockProduct, m: int, rtol: float, max_products: int,
              seed: int) -> SpectralRadius:
-    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigs
+    from scipy.sparse.linalg import ArpackError, ArpackNoConvergence, LinearOperator, eigs
 
-    count = [0]
+    v0 = np.random.default_rng(seed).standard_normal(m)
+    if not np.any(apply_active(v0[:, None])):
+        # M v0 = 0 for a random v0: M = 0 (convex or flat scenes: no interreflection),
+        # where ARPACK stops on a zero Krylov vector
+        return SpectralRadius(0.0, 0.0, 1, "arnoldi")
+    count = [1]
 
     def matvec(x):
         count[0] += 1
@@ -136,18 +143,18 @@ def _arnoldi(apply_active: BlockProduct, m: int, rtol: float, max_products: int,
     k = min(config.SPECTRAL_RADIUS_RITZ, m - 2)
     ncv = min(m, max(2 * k + 1, config.SPECTRAL_RADIUS_NCV))
     op = LinearOperator((m, m), matvec=matvec, dtype=np.float64)
-    v0 = np.random.default_rng(seed).standard_normal(m)
     restarts = max(1, max_products // max(1, ncv - k))
     try:
         lam, vec = eigs(op, k=k, which="LM", ncv=ncv, tol=rtol, v0=v0, maxiter=restarts)
     except ArpackNoConvergence as exc:
-        lam, vec = exc.eigenvalues, exc.eigenvectors
-        if len(lam) == 0:
-            return SpectralRadius(math.nan, math.inf, count[0], "arnoldi", converged=False)
-        value, _ = _largest(lam, vec, apply_active)
-        return SpectralRadius(value, math.inf, count[0] + 1, "arnoldi", converged=False)
+        # the largest modulus converged, if any, is only a lower bound: rho stays unknown
+        lam = exc.eigenvalues
+        value = float(np.abs(lam).max()) if len(lam) else math.nan
+        return SpectralRadius(value, math.inf, count[0], "arnoldi", converged=False)
+    except ArpackError:  # a breakdown ARPACK does not recover from: unknown as well
+        return SpectralRadius(math.nan, math.inf, count[0], "arnoldi", converged=False)
     value, residual = _largest(lam, vec, apply_active)
-    return SpectralRadius(value, residual, count[0] + 1, "arnoldi")
+    return SpectralRadius(value, residual, count[0] + 2, "arnoldi")
 
 
 def _largest(lam: np.ndarray, vec: np.ndarray, apply_active: BlockProduct):

@@ -56,4 +56,4 @@ def test_a_budget_too_small_is_not_converged_and_uncertain():
     N, _ = clustered_spectrum(0, 1.02)
     rho = spectral_radius(lambda V: N @ V, N.shape[0], max_products=20)
     assert not rho.converged and math.isinf(rho.uncertainty) and not rho.upper < 1
-    assert "not converged" in rho.describe()
+    assert "undetermined" in rho.describe()

@@ -53,8 +53,10 @@ T (X z) is computed as u - M u with u = F X z, the same T on the kept pixels.
 Divergence: before term 0, rho(M) is computed by :func:`bigT.spectral.spectral_radius`
 (Arnoldi, with the Ritz residual as its uncertainty) and the run is refused unless
 rho + uncertainty < 1. As a second line, the residuals are estimated with the same
-probes at every term, and a term whose residual exceeds the previous one's by
-``config.RESIDUAL_GROWTH`` is not published: the run stops with the last good term held.
+probes at every term, and a term whose residual grew and exceeds the smallest so far
+``config.RESIDUAL_GROWTH`` (2) times is not published: the run stops with the last good
+term held. (Not any growth: with a non-normal M, rho < 1 <= ||M||, or at the pruning
+floor, a convergent series may grow for a term.)
 ``force`` skips both checks.
 
 Out of core and resumable: the inverse store ``out`` is a versioned bigT store
@@ -445,7 +447,9 @@ class _Engine:
         """rho(M), estimated once per store (kept in the record); a series that may
         diverge (rho + its uncertainty >= 1) is refused unless forced."""
         rec = self.record
-        if rec.spectral_radius is None:
+        # a record without an uncertainty was made by the older power iteration, which
+        # reads low on crowded spectra: estimated again
+        if rec.spectral_radius is None or rec.spectral_uncertainty is None:
             rho = spectral_radius(self._apply_M, self.T.shape[0], self.fb.active,
                                   seed=self.opts.seed)
             if rho.converged:  # else estimated anew on the next run
@@ -453,8 +457,7 @@ class _Engine:
                                        spectral_uncertainty=rho.uncertainty,
                                        spectral_products=rho.products))
         else:
-            # a store written before uncertainties were recorded has none
-            rho = SpectralRadius(rec.spectral_radius, rec.spectral_uncertainty or 0.0,
+            rho = SpectralRadius(rec.spectral_radius, rec.spectral_uncertainty,
                                  rec.spectral_products or 0, "recorded")
         if not rho.upper < 1 and not self.opts.force:
             raise DivergenceError(
@@ -594,14 +597,15 @@ class _Engine:
         self.record = record
 
     def _check_residual_falls(self, k: int, residual: float) -> None:
-        """Refuse term k (unless forced) when its residual exceeds the held term's by
-        more than ``config.RESIDUAL_GROWTH``: the series diverges, whatever the
-        spectral radius estimate said. The held term stays published."""
-        h = self.record.history
-        if self.opts.force or not h or h[-1].residual is None:
+        """Refuse term k (unless forced) when its residual grew from the held term's and
+        exceeds the smallest so far ``config.RESIDUAL_GROWTH`` times: the series
+        diverges, whatever the spectral radius estimate said. The held term stays
+        published."""
+        h = [r for r in self.record.history if r.residual is not None]
+        if self.opts.force or not h:
             return
         before = h[-1].residual
-        if residual > before * config.RESIDUAL_GROWTH:
+        if residual > before and residual > config.RESIDUAL_GROWTH * min(r.residual for r in h):
             raise DivergenceError(
                 f"the residual grew from {before:.3e} at term {h[-1].term} to {residual:.3e} "
                 f"at term {k}: the series diverges (spectral radius estimate "

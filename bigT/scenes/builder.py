@@ -174,9 +174,9 @@ class Scene:
             f"  T: {s['nnz_T']} nonzeros ({s['nnz_T'] / s['n']:.1f} per row), "
             f"A: {s['nnz_A']} ({s['nnz_A'] / s['n']:.1f} per row), up to {s['bounces']} "
             f"bounces per row",
-            f"  spectral radius of M = I - T diag(T)^-1: {s['spectral_radius']:.4f}"
+            f"  spectral radius of M = I - T diag(T)^-1: {_radius(s['spectral_radius'])}"
             f"{_uncertainty(s.get('spectral_radius_uncertainty'))}; "
-            f"of A: {s['spectral_radius_A']:.4f}"
+            f"of A: {_radius(s['spectral_radius_A'])}"
             f"{_uncertainty(s.get('spectral_radius_A_uncertainty'))}",
             "  bounce shares of the light of a white image (adding up to 100%): "
             + ", ".join(f"{100 * v:.3g}%" for v in s["bounce_shares"]),
@@ -276,6 +276,15 @@ def _add_noise(rows: sp.csr_array, noise: float, floor: float, rng) -> sp.csr_ar
     return rows
 
 
+def _finite(value: float) -> float | None:
+    """JSON has no inf or NaN: an undetermined radius is stored as null."""
+    return float(value) if math.isfinite(value) else None
+
+
+def _radius(value) -> str:
+    return "undetermined" if value is None else f"{value:.4f}"
+
+
 def _uncertainty(value) -> str:
     """`` +- 1.2e-09`` (Ritz residual of the ground truth), or nothing for older scenes."""
     return "" if value is None else f" +- {value:.1e}"
@@ -289,8 +298,13 @@ def _spectral_radius_T(T, d) -> SpectralRadius:
     lit = d > 0
     if _csr_bytes(T.nnz, T.shape[0]) <= config.SCENE_IN_MEMORY_BYTES:
         T = T.to_scipy()  # ARPACK's products then skip reading and decompressing tiles
-    return spectral_radius(lambda V: V - T @ (V * inv[:, None]), T.shape[0], lit,
-                           rtol=config.SCENE_SPECTRAL_RTOL)
+    def minus_M(V):
+        # (T - diag(d)) diag(d)^-1 V: the diagonal cancels exactly (V - T diag(d)^-1 V
+        # left 1e-16 of rounding on a diagonal T)
+        W = V * inv[:, None]
+        return T @ W - d[:, None] * W
+
+    return spectral_radius(minus_M, T.shape[0], lit, rtol=config.SCENE_SPECTRAL_RTOL)
 
 
 def _csr_bytes(nnz: int, n: int) -> int:
@@ -494,9 +508,9 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
             "noise": noise, "noise_floor": floor, "blur": blur, "seed": int(seed),
             "dtype": str(T.dtype),
             "nnz_T": int(T.nnz), "nnz_A": int(A.nnz), "bounces": int(max_bounces),
-            "spectral_radius": rho_M.value, "spectral_radius_A": rho_A.value,
-            "spectral_radius_uncertainty": rho_M.uncertainty,
-            "spectral_radius_A_uncertainty": rho_A.uncertainty,
+            "spectral_radius": _finite(rho_M.value), "spectral_radius_A": _finite(rho_A.value),
+            "spectral_radius_uncertainty": _finite(rho_M.uncertainty),
+            "spectral_radius_A_uncertainty": _finite(rho_A.uncertainty),
             "bounce_shares": shares, "exact": bool(exact),
             "seconds": 0.0, "seconds_form_factors": seconds_ff, "seconds_T": seconds_T,
             "seconds_stats": seconds_stats,
@@ -509,7 +523,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     scene = load(path)
     if preview:
         _preview(preview_path(path), po.to_images(T1), f"{name} {H}x{W}: T 1, "
-                 f"rho(M) = {rho_M.value:.3f}")
+                 f"rho(M) = {_radius(rho_M.value)}")
     return scene
 
 

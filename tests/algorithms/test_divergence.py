@@ -55,3 +55,23 @@ def test_a_growing_residual_stops_the_run_and_keeps_the_last_good_term(tmp_path,
     # forced, the same run goes on past it
     rep = bigT.stratified_inverse(T, X, terms=kept + 2, prune=0, progress=False, force=True)
     assert rep.terms == kept + 2
+
+
+def test_no_interreflection_has_radius_zero_beyond_the_dense_path(tmp_path):
+    """M = 0 with more unknowns than the dense path takes: ARPACK would stop on a zero
+    Krylov vector; the estimate is 0 and the run goes on."""
+    n = 300
+    T = bigT.from_scipy(sp.diags(np.linspace(1, 2, n)).tocsr(), tmp_path / "T.zarr",
+                        tile_size=128, dtype="float64")
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=0, progress=False)
+    assert rep.spectral_radius == 0 and rep.spectral_uncertainty == 0
+
+
+def test_a_non_normal_series_that_grows_once_is_not_stopped(tmp_path):
+    """rho(M) = 0.447 but ||M|| = 2: the residual of M^(k+1) grows at term 2
+    (0.200 -> 0.283) before it falls; the series converges and must run."""
+    A = np.array([[1.0, 2.0], [0.1, 1.0]])
+    T = bigT.from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=2, dtype="float64")
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=8, prune=0, progress=False)
+    assert rep.terms == 8
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense_stratified(A, 8), rtol=1e-12)

@@ -265,3 +265,10 @@ def test_preview_scan_lines_differ():
     assert min(np.linalg.norm(a - b) for i, a in enumerate(profiles)
                for b in profiles[i + 1:]) > 0
     assert distinct_rows(np.ones((5, 4)), 3) == [2]  # identical rows: one line says it all
+
+
+@pytest.mark.parametrize("name", ["convex", "flat"])
+def test_scenes_without_interreflection_build_beyond_the_dense_path(tmp_path, name):
+    """A = 0 and more pixels than the dense eigenvalue path: the radii are 0."""
+    sc = scenes.make(name, (24, 32), tmp_path / "s.zarr", preview=False)
+    assert sc.spectral_radius == 0 and sc.summary["spectral_radius_A"] == 0
