@@ -67,7 +67,7 @@ def frames_to_matrix(frames: np.ndarray, order, dtype) -> np.ndarray:
     src = np.ascontiguousarray(frames.reshape(K, -1))
     out = np.empty((order.n, K), dtype=dtype)
     if out.size <= config.KERNEL_NUMPY_MAX_WORK:
-        out[...] = src[:, order.permutation].T
+        out[...] = order.to_matrix(frames).reshape(order.n, K)  # the numpy reference
     else:
         _kernels()[0](src, order.permutation, out)
     return out
@@ -81,10 +81,12 @@ def matrix_to_frames(Y: np.ndarray, order, clip=None) -> tuple[np.ndarray, int, 
     lo, hi = (None, None) if clip is None else clip
     out = np.empty((K, order.n), dtype=np.float64)
     if out.size <= config.KERNEL_NUMPY_MAX_WORK:
-        V = Y.astype(np.float64).T
+        V = Y.astype(np.float64)
         below = 0 if lo is None else int(np.count_nonzero(V < lo))
         above = 0 if hi is None else int(np.count_nonzero(V > hi))
-        out[:, order.permutation] = V if lo is None and hi is None else np.clip(V, lo, hi)
+        if lo is not None or hi is not None:
+            V = np.clip(V, lo, hi)
+        out[...] = order.to_images(V).reshape(K, order.n)  # the numpy reference
     else:
         below, above = _kernels()[1](Y, order.permutation,
                                      0.0 if lo is None else float(lo),

@@ -86,6 +86,23 @@ def top_k(indptr, indices, data, k: int):
     return out_p, indices[keep], data[keep]
 
 
+def scale_rows(indptr, data, d):
+    """``scale_rows_internal``: d[i] * data[p] for p in row i, a new array."""
+    return data * d[row_ids(indptr)]
+
+
+def scale_cols(indices, data, d):
+    """``scale_cols_internal``: data[p] * d[indices[p]], a new array."""
+    return data * d[indices]
+
+
+def diagonal(indptr, indices, data, out):
+    """``diagonal_internal``: out[i] += A[i, i] (duplicates summed, any row order)."""
+    rows = row_ids(indptr)
+    on = rows == indices
+    np.add.at(out, rows[on], data[on])
+
+
 def add_diag_scaled(a, d, b, dtype):
     """``add_diag_scaled_internal``: A + diag(d) B, exact zeros dropped."""
     B = _csr64(b.shape, b.indptr, b.indices, b.data)

@@ -555,7 +555,7 @@ def scale_rows(A, d):
     a = _as_csr(A, "A", dtype=fdt)
     d = np.ascontiguousarray(d, fdt)
     if _small_enough(a.nnz):
-        out = a.data * d[_small.row_ids(a.indptr)]
+        out = _small.scale_rows(a.indptr, a.data, d)
     else:
         out = np.empty_like(a.data)
         _numba().scale_rows_internal(a.indptr, a.data, d, out)
@@ -569,7 +569,7 @@ def scale_cols(A, d):
     a = _as_csr(A, "A", dtype=fdt)
     d = np.ascontiguousarray(d, fdt)
     if _small_enough(a.nnz):
-        out = a.data * d[a.indices]
+        out = _small.scale_cols(a.indices, a.data, d)
     else:
         out = np.empty_like(a.data)
         _numba().scale_cols_internal(a.indices, a.data, d, out)
@@ -581,9 +581,7 @@ def diagonal(A):
     a = _as_csr(A, "A", canonical=False)
     out = np.zeros(min(a.shape), a.data.dtype)
     if _small_enough(a.nnz):
-        rows = _small.row_ids(a.indptr)
-        on = rows == a.indices
-        np.add.at(out, rows[on], a.data[on])
+        _small.diagonal(a.indptr, a.indices, a.data, out)
     else:
         _numba().diagonal_internal(a.indptr, a.indices, a.data, out)
     return out
