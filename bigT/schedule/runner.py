@@ -16,6 +16,7 @@ import logging
 import os
 import re
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 
 import dask
 import dask.threaded
@@ -78,11 +79,17 @@ class ThreadRunner:
         call = dask.delayed(run_block, pure=False)
         tasks = [call(spec, b, shared, dask_key_name=f"{spec.op}-{spec.pass_id}-{b.index}")
                  for b in blocks]
-        with _bar(progress, len(tasks), desc or spec.op) as bar, _Posttask(bar):
-            # the threaded scheduler's own function: a scheduler named by string makes
-            # dask import distributed (0.25 s) to look for a client first
-            return list(dask.compute(*tasks, scheduler=dask.threaded.get,
-                                     num_workers=self.workers))
+        pool = ThreadPoolExecutor(self.workers, thread_name_prefix="bigT-task")
+        try:
+            with _bar(progress, len(tasks), desc or spec.op) as bar, _Posttask(bar):
+                # the threaded scheduler's own function: a scheduler named by string
+                # makes dask import distributed (0.25 s) to look for a client first
+                return list(dask.compute(*tasks, scheduler=dask.threaded.get, pool=pool))
+        finally:
+            # dask raises at a task's first failure while the others still run: they
+            # finish (or are cancelled) before the caller goes on, so no thread of a
+            # failed run writes into a store the caller may clean or resume
+            pool.shutdown(wait=True, cancel_futures=True)
 
     def end_pass(self, pass_id: str | None = None, forget=()) -> None:
         """Let go of a pass's shared items (all when None) and of cached rows of the

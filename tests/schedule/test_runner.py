@@ -180,3 +180,31 @@ def test_a_rerun_task_whose_rows_are_written_recomputes_nothing(tmp_path):
     assert (stats.nnz_P, stats.nnz_X) == (A[16:32].nnz, A[16:32].nnz)
     with pytest.raises(bigT.BigTError, match="rows 0:16.*recomputed"):
         run_block(spec, RowBlock(0, 0, 16), {})  # row 0 is not written: the task runs
+
+
+def test_a_failed_pass_returns_only_after_its_other_tasks(monkeypatch):
+    """dask raises at the first failing task; the runner waits for the tasks still
+    running, so none of them writes into a store after the caller went on (to clean
+    it, or to resume it)."""
+    import threading
+    import time
+
+    from bigT.schedule import runner as runner_module
+
+    finished = []
+    started = threading.Barrier(2, timeout=5)
+
+    def fake_run_block(spec, block, shared):
+        started.wait()  # both tasks run at once
+        if block.index == 0:
+            raise RuntimeError("task 0 failed")
+        time.sleep(0.3)
+        finished.append(block.index)
+        return block.index
+
+    monkeypatch.setattr(runner_module, "run_block", fake_run_block)
+    spec = PassSpec(op="test", term=0, task=None, T="", first_bounce="", zero_diagonal=(),
+                    n=2, block_rows=1, dtype="float64", memory=None)
+    with pytest.raises(RuntimeError, match="task 0 failed"):
+        ThreadRunner(2).map(spec, row_blocks(2, 1), {})
+    assert finished == [1]
