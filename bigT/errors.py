@@ -69,6 +69,11 @@ class DiskFullError(BigTError):
     """The disk filled while writing; what was complete before is kept."""
 
 
+class OutputError(BigTError):
+    """An output file that cannot be written (read-only file system, no permission, a
+    folder where a file is asked); whatever was at its path before is left as it was."""
+
+
 class TaskError(BigTError):
     """A task of a pass failed for a reason outside bigT's own checks (a bug, a lost
     file, a dead worker); the message names the pass, the rows and the cause."""
@@ -81,3 +86,21 @@ class SchedulerError(BigTError):
 
 class MemoryLimitWarning(UserWarning):
     """A memory limit may be exceeded: something the plan cannot bound has grown."""
+
+
+def short_reason(exc: BaseException, path: str | os.PathLike | None = None) -> str:
+    """A foreign exception as a clause of a one-line bigT message: its type and the
+    first sentence of its text, the path (which the bigT error names itself) replaced
+    by "the file", at most 120 characters.
+
+    Parameters
+    ----------
+    exc : the exception a reader (numpy, scipy, imageio, zarr) raised
+    path : the file it was reading, optional
+    """
+    text = str(exc)
+    if path is not None:
+        text = text.replace(os.fspath(path), "the file")
+    text = " ".join(text.split(". ")[0].split()).rstrip(".")
+    text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return text if len(text) <= 120 else text[:117] + "..."

@@ -32,7 +32,8 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from .errors import ImageError
+from .atomic import atomic_output
+from .errors import ImageError, short_reason
 
 #: File name suffixes read as images (lower case).
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
@@ -145,8 +146,8 @@ def read_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> n
         raise ImageError("no such file", path) from None
     except ImageError:
         raise
-    except Exception as exc:  # imageio/pillow raise many types on a damaged file
-        raise ImageError(f"cannot read the image: {exc}", path) from exc
+    except Exception as exc:  # imageio/pillow/numpy raise many types on a damaged file
+        raise ImageError(f"cannot read the image ({short_reason(exc, path)})", path) from None
     return check_image(raw, path, shape)
 
 
@@ -165,21 +166,24 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None 
     if image.ndim != 2:
         raise ImageError(f"write_image takes one (H, W) image, got shape {image.shape}", path)
     suffix = path.suffix.lower()
-    path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".npy":
-        np.save(path, image.astype(np.float32))
-        return path
-    if suffix in (".tif", ".tiff"):
-        _iio_call("imwrite", path, image.astype(np.float32))
+        pixels = image.astype(np.float32)
+    elif suffix in (".tif", ".tiff"):
+        pixels = image.astype(np.float32)
     elif suffix == ".png":
         bits = DEFAULT_PNG_BITS if bits is None else int(bits)
         if bits not in (8, 16):
             raise ImageError(f"PNG bit depth must be 8 or 16, got {bits}", path)
         top = 255 if bits == 8 else 65535
         scaled = np.rint(np.clip(np.nan_to_num(image), 0.0, 1.0) * top)
-        _iio_call("imwrite", path, scaled.astype(np.uint8 if bits == 8 else np.uint16))
+        pixels = scaled.astype(np.uint8 if bits == 8 else np.uint16)
     else:
         raise ImageError(f"unknown image format {suffix!r} (use {', '.join(IMAGE_SUFFIXES)})", path)
+    with atomic_output(path, "the image") as tmp:
+        if suffix == ".npy":
+            np.save(tmp, pixels)
+        else:
+            _iio_call("imwrite", tmp, pixels)
     return path
 
 

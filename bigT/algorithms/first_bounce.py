@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import InvalidMatrixError, ShapeMismatchError
+from ..errors import InvalidMatrixError, ShapeMismatchError, short_reason
 
 
 @dataclass(frozen=True)
@@ -75,6 +75,54 @@ def _refuse_nonpositive(f: np.ndarray, active: np.ndarray, what: str, path) -> N
         "diagonal: fix the measurement, or pass first_bounce='identity' or a vector", path)
 
 
+def load_first_bounce(path) -> np.ndarray:
+    """The vector of a ``--first-bounce`` file: a ``.npy`` of real numbers.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    ndarray
+        As stored (any shape; the caller checks the length).
+
+    Raises
+    ------
+    InvalidMatrixError
+        A missing, truncated or garbage file, a ``.npz`` archive, pickled objects, or
+        values that are not real numbers (strings, complex); the message names the file.
+    """
+    try:
+        f = np.load(os.fspath(path), allow_pickle=False)
+    except FileNotFoundError:
+        raise InvalidMatrixError("no such file (first_bounce needs a .npy vector)",
+                                 path) from None
+    except Exception as exc:  # numpy raises ValueError, EOFError, OSError... on garbage
+        raise InvalidMatrixError(f"cannot read as a .npy vector ({short_reason(exc, path)})",
+                                 path) from None
+    if not isinstance(f, np.ndarray):  # np.load opens a .npz as an archive of arrays
+        f.close()
+        raise InvalidMatrixError("is a .npz archive; first_bounce takes a .npy file "
+                                 "holding one vector (numpy.save)", path)
+    if f.dtype.kind not in "biuf":
+        raise InvalidMatrixError(f"holds values of dtype {f.dtype}, not real numbers", path)
+    return f
+
+
+def _check_reciprocal(f: np.ndarray, active: np.ndarray, dtype, what: str, path) -> None:
+    """InvalidMatrixError when 1/f overflows ``dtype`` (an entry below 1/max: a
+    subnormal float32 diagonal, for one): F^-1 would hold Inf."""
+    dtype = np.dtype(dtype) if np.dtype(dtype).kind == "f" else np.dtype(np.float64)
+    small = np.flatnonzero(active & (np.abs(f) < 1.0 / np.finfo(dtype).max) & (f != 0))
+    if len(small):
+        i = small[0]
+        raise InvalidMatrixError(
+            f"{what} has {len(small)} entries too small for {dtype.name} (first at index "
+            f"{i}, value {f[i]:.3g}): F^-1 = 1/{what} overflows; scale T (its inverse "
+            "scales exactly) or store it as float64", path)
+
+
 def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     """Turn ``first_bounce=`` into F.
 
@@ -95,20 +143,16 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     """
     n = T.shape[0]
     d = np.asarray(T.diagonal(), dtype=np.float64)
+    source = None  # the --first-bounce file, named in the errors about its vector
     if isinstance(spec, (str, os.PathLike)) and str(spec) not in ("diag", "identity"):
-        spec = np.load(os.fspath(spec))
+        source = os.fspath(spec)
+        spec = load_first_bounce(source)
     if isinstance(spec, str):
         kind = spec
         f = d.copy() if kind == "diag" else np.ones(n)
     else:
         kind = "vector"
-        f = np.asarray(spec, dtype=np.float64).ravel()
-        if f.shape != (n,):
-            raise ShapeMismatchError(f"first_bounce has {f.size} entries, T has {n} rows")
-        if not np.isfinite(f).all():
-            bad = np.flatnonzero(~np.isfinite(f))
-            raise InvalidMatrixError(f"first_bounce has {len(bad)} non-finite entries, "
-                                     f"the first at index {bad[0]}")
+        f = _as_vector(spec, n, source)
     if np.isnan(d).any():
         bad = np.flatnonzero(np.isnan(d))
         raise InvalidMatrixError(f"T's diagonal has {len(bad)} NaN entries, the first at "
@@ -117,14 +161,33 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     excluded = _empty_rows_and_cols(T, zero_diag) if len(zero_diag) else zero_diag
     active = np.ones(n, dtype=bool)
     active[excluded] = False
+    what, where = (("T's diagonal", getattr(T, "path", None)) if kind == "diag"
+                   else ("first_bounce", source))
     if kind != "identity":
-        _refuse_nonpositive(f, active, "T's diagonal" if kind == "diag" else "first_bounce",
-                            getattr(T, "path", None))
+        _refuse_nonpositive(f, active, what, where)
+        _check_reciprocal(f, active, getattr(T, "dtype", np.float64), what, where)
     f = np.where(active, f, 0.0)
     finv = np.zeros(n)
     finv[active] = 1.0 / f[active]
     digest = hashlib.sha1(np.ascontiguousarray(f).tobytes()).hexdigest()[:16]
     return FirstBounce(kind, f, finv, active, int(len(excluded)), digest)
+
+
+def _as_vector(spec, n: int, source) -> np.ndarray:
+    """``spec`` as an (n,) float64 vector of finite numbers; errors name ``source`` (the
+    file it was read from, None for an array)."""
+    try:
+        f = np.asarray(spec, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise InvalidMatrixError("first_bounce must hold real numbers", source) from None
+    if f.shape != (n,):
+        raise ShapeMismatchError(f"first_bounce has {f.size} entries, T has {n} rows",
+                                 source)
+    if not np.isfinite(f).all():
+        bad = np.flatnonzero(~np.isfinite(f))
+        raise InvalidMatrixError(f"first_bounce has {len(bad)} non-finite entries, "
+                                 f"the first at index {bad[0]}", source)
+    return f
 
 
 def recover_first_bounce(X) -> np.ndarray:

@@ -351,11 +351,14 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite)
     memory_limit = parse_bytes(memory_limit)
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
+    engine = None
     try:
         engine = _Engine(T, out, series, runner, opts, first_bounce, memory_limit)
         return engine.run(t_start)
     finally:
         _let_go(runner, T, out)
+        if engine is not None:
+            engine.store.close()
 
 
 def _let_go(runner, T, out) -> None:
@@ -441,6 +444,8 @@ class _Engine:
                 shutil.rmtree(self.store.path, ignore_errors=True)
             raise
         stopped = self._extend(resumed_from)
+        if self.record.dir is not None:
+            self.store.clean(keep={self.record.dir})  # terms readers held when dropped
         return self._report(stopped, resumed_from, t_rho, time.perf_counter() - t_start, rho)
 
     def _spectral_radius(self) -> SpectralRadius:
@@ -516,8 +521,9 @@ class _Engine:
                 return reason
             stats += self._run_pass(p, k)
         self._finish_term(k, stats, t0)
-        self.store.drop_term(held)
+        # the caches let go of the held term first: their open stores hold its lease
         self.runner.end_pass(None, forget=(str(self.store.path / term_dir(held)),))
+        self.store.drop_term(held)
         return None
 
     def _exhausted(self, p: Pass, held: int) -> str | None:

@@ -2,16 +2,24 @@
 
 Each group of sub-commands lives in its own module with a ``register(subparsers)``
 function that adds its parsers and sets ``func`` to a callable taking the parsed
-arguments and returning an exit status. Errors from the :class:`bigT.BigTError`
-hierarchy are printed on one line to stderr with exit status 2, no traceback.
+arguments and returning an exit status.
+
+:func:`main` is the one boundary between the library's exceptions and the user: a bad
+option (argparse, checked by the types of :mod:`bigT.cli._argtypes` before anything is
+read), an error of the :class:`bigT.BigTError` hierarchy, and an ``OSError`` (full disk,
+read-only file system, no permission, a file where a folder is needed, ...) each become
+one line on stderr, ``bigT CMD: error: [FILE: ]what happened``, and exit status 2, with
+no traceback. Anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import importlib
 import os
+import re
 import sys
 
 from ..errors import BigTError
@@ -30,19 +38,84 @@ CLI_WORDING = (
     ("resume writing with resume=True", "rerun the command that wrote it"),
     ("resume with resume=True", "rerun the same command to resume"),
     ("memory_limit", "--memory-limit"),
+    ("dtype='float64'", "--dtype float64"),
 )
 
 
+#: A hidden sibling that a writer builds in and renames into place (bigT.storage's
+#: ``.T.zarr.<pid>.<hex>.partial`` and ``.old``, ``.zarr.json.<pid>.<hex>.tmp``,
+#: bigT.atomic's ``.out.<pid>.<hex>.tmp.npz``, a row's ``.3.<hex>.partial``): the user
+#: never named it, so errors name the path it stands for.
+_TEMPORARY = re.compile(r"(?<![^\s/(])\.(?P<name>[^\s/]+?)(?:\.\d+)?\.[0-9a-f]{6,}"
+                        r"\.(?:tmp|partial|old)(?P<suffix>\.\w+)?(?=[\s/:;,)]|$)")
+
+
 def cli_message(message: str) -> str:
-    """``message`` on one line, in the command line's words (:data:`CLI_WORDING`)."""
+    """``message`` on one line, in the command line's words (:data:`CLI_WORDING`), with
+    each hidden temporary sibling replaced by the path it stands for."""
     for python, flag in CLI_WORDING:
         message = message.replace(python, flag)
+    message = _TEMPORARY.sub(lambda m: m["name"] + (m["suffix"] or ""), message)
     return message.replace("\n", " ")
+
+
+_RERUN = ("completed work is kept: free space and rerun the same command; invert resumes "
+          "where it stopped")
+
+#: What the user can do about an OSError, by errno; the strerror says what happened.
+OS_ERROR_HINTS = {
+    errno.ENOSPC: _RERUN,
+    getattr(errno, "EDQUOT", errno.ENOSPC): _RERUN,  # quota: not on every platform
+    errno.EROFS: "choose an output on a writable disk",
+    errno.EACCES: "check the permissions of the file and its folder",
+    errno.EPERM: "check the permissions of the file and its folder",
+    errno.EISDIR: "a file is needed here: choose a file name",
+    errno.ENOTDIR: "a part of the path is a file where a folder is needed",
+    errno.EEXIST: "choose another path, or remove it",
+    errno.ENOTEMPTY: "choose another path, or empty the folder",
+    errno.EMFILE: "raise the limit with ulimit -n and rerun",
+}
+
+
+def os_error_message(exc: OSError) -> str:
+    """``FILE: what happened (what to do)`` for an OSError that reached the command line.
+
+    Parameters
+    ----------
+    exc : OSError
+        With ``filename`` (and ``filename2`` for a rename) when the system call named one.
+
+    Returns
+    -------
+    str
+        One line, the file first as in :class:`~bigT.BigTError` messages; the hint of
+        :data:`OS_ERROR_HINTS` in parentheses.
+    """
+    what = exc.strerror or str(exc) or type(exc).__name__
+    hint = OS_ERROR_HINTS.get(exc.errno)
+    text = f"{what} ({hint})" if hint else what
+    names = [str(os.fspath(n)) for n in (exc.filename, exc.filename2) if n is not None]
+    return f"{' -> '.join(names)}: {text}" if names else text
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error: ``bigT CMD: error: argument --opt: what is
+    wrong (bigT CMD --help)``, exit status 2 (argparse's own prints the whole usage
+    first, which buries the line that says what is wrong). Sub-command parsers are
+    made of this class too (``add_subparsers`` uses the parent's class)."""
+
+    def error(self, message: str):
+        if message.endswith("expected one argument"):
+            # argparse takes '--memory-limit -5GiB' for two options
+            message += " (a value that starts with '-' is written --option=VALUE)"
+        self.exit(2, f"{self.prog}: error: {cli_message(message)} (see {self.prog} --help)\n")
+
 
 # Modules that contribute sub-commands, in the order their help is listed.
 COMMAND_MODULES = (
     "bigT.cli.demo_cmd",       # demo
     "bigT.cli.store_cmds",     # convert, export, info
+    "bigT.cli.verify_cmd",     # verify
     "bigT.cli.scene_cmd",      # scene
     "bigT.cli.invert_cmd",     # invert
     "bigT.cli.compensate_cmds",  # compensate, relight, bounces
@@ -50,7 +123,7 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bigT",
         description="Out-of-core stratified inversion of light-transport matrices "
         "stored as zarr v3 block-CSR.",
@@ -90,9 +163,28 @@ def _quieted(args):
         yield
 
 
+def _error(args, message: str) -> int:
+    print(cli_message(f"bigT {args.command}: error: {message}"), file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run ``bigT`` with ``argv`` (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 on success; 2 for a bad input of any kind (one line on stderr); 130 when
+        interrupted; 141 when the reader of stdout went away. ``--help`` and
+        ``--version`` exit through ``SystemExit(0)`` as argparse has them.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        if exc.code == 2:  # a bad option, already reported on one line by _Parser
+            return 2
+        raise
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -100,14 +192,15 @@ def main(argv: list[str] | None = None) -> int:
         with _quieted(args):
             return int(args.func(args) or 0)
     except BigTError as exc:
-        print(cli_message(f"bigT {args.command}: error: {exc}"), file=sys.stderr)
-        return 2
+        return _error(args, str(exc))
     except BrokenPipeError:
         # the reader went away (`bigT info X.zarr | head`): not an error of ours; point
         # stdout at /dev/null so the interpreter's final flush does not complain
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141  # 128 + SIGPIPE, what a shell reports for a writer cut off
+    except OSError as exc:  # after BrokenPipeError, an OSError too
+        return _error(args, os_error_message(exc))
     except KeyboardInterrupt:
         print(f"bigT {args.command}: interrupted; finished work on disk is kept",
               file=sys.stderr)

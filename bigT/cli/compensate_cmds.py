@@ -13,7 +13,15 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
-from ..errors import BigTError, ImageError
+from ..errors import ImageError
+from ._argtypes import clip_range, integer, scheduler_address
+
+#: Largest K of ``bigT bounces``. Each bounce costs one streamed pass over X, one
+#: (H, W) float64 image held in memory and one file; the remainder T l - sum b_k holds
+#: all light beyond K, so a small K loses nothing. 64 is far past any useful K (the
+#: paper separates 4-5; bounce k decays like rho^k, and rho^64 < 1e-6 for rho < 0.8)
+#: while keeping a mistyped K (100000: 10 GB and 100,000 files) from running away.
+MAX_BOUNCES = 64
 
 
 def register(sub) -> None:
@@ -29,24 +37,25 @@ def register(sub) -> None:
     p.add_argument("--simulate", metavar="T.zarr",
                    help="also compute and write what the camera sees (T l_in), with error, "
                    "fluctuation, a side-by-side PNG and a scan-line plot")
-    p.add_argument("--clip", default="0,1",
+    p.add_argument("--clip", type=clip_range, default="0,1",
                    help="projector range LO,HI ('0,' clips below only, as the paper's f_+; "
                    "'none' for no clipping); default 0,1")
-    p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH,
+    p.add_argument("--batch", type=integer(1), default=config.DEFAULT_BATCH,
                    help=f"frames per pass over the matrix (default {config.DEFAULT_BATCH})")
     p.add_argument("--path", choices=("explicit", "matrix-free", "auto"), default="auto",
                    help="explicit X, matrix-free series with T, or the cheaper (default auto)")
     p.add_argument("--matrix-free", dest="matrix_free", metavar="T.zarr",
                    help="transport for the matrix-free path (default: the --simulate store)")
-    p.add_argument("--terms", type=int, default=None,
+    p.add_argument("--terms", type=integer(0), default=None,
                    help="series terms n of the matrix-free path (default: X's, else "
                    f"{config.DEFAULT_COMPENSATION_TERMS})")
     p.add_argument("--bits", type=int, choices=(8, 16), default=None,
                    help="PNG bit depth of the outputs (default: that of each input PNG)")
-    p.add_argument("--cache-mb", dest="cache_mb", type=int, default=None,
+    p.add_argument("--cache-mb", dest="cache_mb", type=integer(0), default=None,
                    help="MiB of decoded matrix tiles kept between batches (default "
                    f"{config.COMPENSATE_CACHE_BYTES >> 20}; 0: re-read every pass)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
+    p.add_argument("--scheduler", type=scheduler_address, default=None,
+                   metavar="ADDRESS|local:N",
                    help="run the passes on a dask cluster: a scheduler address, or local:N "
                    "for N worker processes started for this command (default: local threads)")
     p.add_argument("--no-progress", dest="progress", action="store_false",
@@ -58,11 +67,12 @@ def register(sub) -> None:
     p.add_argument("T", help="transport store (T.zarr)")
     p.add_argument("input", help="projector image or folder of frames")
     p.add_argument("-o", "--output", required=True, help="output image file or folder")
-    p.add_argument("--batch", type=int, default=config.DEFAULT_BATCH,
+    p.add_argument("--batch", type=integer(1), default=config.DEFAULT_BATCH,
                    help=f"frames per pass over T (default {config.DEFAULT_BATCH})")
     p.add_argument("--bits", type=int, choices=(8, 16), default=None,
                    help="PNG bit depth of the outputs (default: that of each input PNG)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
+    p.add_argument("--scheduler", type=scheduler_address, default=None,
+                   metavar="ADDRESS|local:N",
                    help="run the passes on a dask cluster: a scheduler address, or local:N "
                    "for N worker processes started for this command (default: local threads)")
     p.add_argument("--no-progress", dest="progress", action="store_false",
@@ -78,7 +88,8 @@ def register(sub) -> None:
     p.add_argument("T", help="transport store (T.zarr)")
     p.add_argument("X", help="inverse store (X.zarr), as exact as possible")
     p.add_argument("input", help="projector image l (png/tif/npy)")
-    p.add_argument("--bounces", type=int, default=4, help="K, the last bounce kept (default 4)")
+    p.add_argument("--bounces", type=integer(0, MAX_BOUNCES), default=4,
+                   help=f"K, the last bounce kept, 0 to {MAX_BOUNCES} (default 4)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--format", choices=("tif", "npy", "png"), default="tif",
                    help="image format of the parts (tif/npy keep floats; default tif)")
@@ -88,19 +99,6 @@ def register(sub) -> None:
 
 
 # --- helpers ----------------------------------------------------------------------------
-
-def _parse_clip(text: str):
-    if text.strip().lower() in ("none", "off", ""):
-        return None
-    try:
-        lo, hi = (s.strip() for s in text.split(","))
-        clip = (float(lo) if lo else None, float(hi) if hi else None)
-    except ValueError:
-        raise BigTError(f"--clip must be LO,HI (e.g. 0,1 or 0,) or 'none', got {text!r}") from None
-    if clip[0] is not None and clip[1] is not None and clip[0] >= clip[1]:
-        raise BigTError(f"--clip needs LO < HI, got {text!r}")
-    return clip
-
 
 def _sibling(path: Path, tag: str, suffix: str | None = None) -> Path:
     """``out.png`` -> ``out_<tag>.png`` (``suffix`` to change it); ``dir`` -> ``dir_<tag>``."""
@@ -129,9 +127,7 @@ def run_compensate(args) -> int:
                                      to_frames, to_vectors)
     from ..images import ImageSink, ImageSource
 
-    clip = _parse_clip(args.clip)
-    if args.batch < 1:
-        raise BigTError(f"--batch must be >= 1, got {args.batch}")
+    clip = args.clip
     X = None if args.X == "-" else as_store(args.X, "X")
     S = None if args.simulate is None else as_store(args.simulate, "T")
     Tm = as_store(args.matrix_free, "T") if args.matrix_free else S
@@ -287,6 +283,10 @@ def run_bounces(args) -> int:
     X = as_store(args.X, "X")
     if Path(args.input).is_dir():
         raise ImageError("bounces takes one image, not a folder", args.input)
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():  # refused now, not after the passes
+        raise ImageError("is a file; bounces writes a folder of images: choose a folder",
+                         out)
     image = read_image(args.input, _image_shape(T))
     print(f"bigT bounces: {args.input}, K = {args.bounces}")
     print("  " + _describe(T, "T"))
@@ -295,7 +295,6 @@ def run_bounces(args) -> int:
     parts = separate_bounces(T, X, image, args.bounces, progress=args.progress)
     dt = time.perf_counter() - t0
     shares = bounce_shares(parts)
-    out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     names = [f"bounce_{k}" for k in range(args.bounces + 1)] + ["remainder"]
     print(f"  {args.bounces + 1} bounce(s) + remainder in {dt:.2f} s; share of the total T l "

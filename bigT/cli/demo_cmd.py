@@ -19,6 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_output
+from ._argtypes import image_size, integer, number
+
 #: Defaults of the demo: a scene that builds, inverts and compensates in about a minute
 #: on a 2-core machine.
 DEMO_SIZE = (192, 256)
@@ -38,11 +41,12 @@ def register(subparsers) -> None:
                     "a constant image, bounce separation, and a report (report.md + PNGs).")
     p.add_argument("--dir", default="bigT-demo", help="output folder (default %(default)s; "
                    "its previous demo outputs are replaced)")
-    p.add_argument("--size", default=f"{DEMO_SIZE[0]}x{DEMO_SIZE[1]}", metavar="HxW",
+    p.add_argument("--size", type=image_size, default=f"{DEMO_SIZE[0]}x{DEMO_SIZE[1]}",
+                   metavar="HxW",
                    help="projector size of the synthetic corner scene (default %(default)s)")
-    p.add_argument("--terms", type=int, default=DEMO_TERMS,
+    p.add_argument("--terms", type=integer(0), default=DEMO_TERMS,
                    help="series terms n of the inverse T_n^-1 (default %(default)s)")
-    p.add_argument("--prune", type=float, default=None,
+    p.add_argument("--prune", type=number(0), default=None,
                    help="prune threshold of the inverse (default: bigT invert's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=demo_cmd)
@@ -75,8 +79,23 @@ class _Tee(io.TextIOBase):
             st.flush()
 
 
+class _StepFailed(Exception):
+    """A demo step's command failed; it has printed its one-line error already, so the
+    demo stops with its status and adds no second line."""
+
+    def __init__(self, status: int):
+        super().__init__(status)
+        self.status = status
+
+
 def _step(title: str, argv: list[str], log: list) -> None:
-    """Run ``bigT <argv>`` in this process, echoing and recording what it prints."""
+    """Run ``bigT <argv>`` in this process, echoing and recording what it prints.
+
+    Raises
+    ------
+    _StepFailed
+        With the command's exit status when it is not 0.
+    """
     from . import main
 
     print(f"\n== {title}\n$ bigT {' '.join(argv)}", flush=True)
@@ -85,9 +104,7 @@ def _step(title: str, argv: list[str], log: list) -> None:
     with contextlib.redirect_stdout(_Tee(sys.stdout, buf)):
         status = main(argv)
     if status:
-        from ..errors import BigTError
-
-        raise BigTError(f"demo step '{title}' failed with status {status}")
+        raise _StepFailed(status)
     log.append((title, "bigT " + " ".join(argv), buf.getvalue(), time.perf_counter() - t0))
 
 
@@ -128,12 +145,18 @@ def _clear_previous_demo(out: Path) -> None:
 
 
 def demo_cmd(args) -> int:
+    try:
+        return _run_demo(args)
+    except _StepFailed as exc:
+        return exc.status
+
+
+def _run_demo(args) -> int:
     from ..images import write_image
     from ..scenes import load
     from ..storage import open as open_store
-    from .store_cmds import _image_shape
 
-    H, W = _image_shape(args.size)
+    H, W = args.size
     out = Path(args.dir)
     _clear_previous_demo(out)
     quiet = ["--no-progress"] if args.no_progress else []
@@ -204,5 +227,6 @@ def _write_report(out: Path, scene, log, total: float) -> Path:
             rel = Path(path).resolve().relative_to(out.resolve())
             lines += [f"**{caption}**", "", f"![{caption}]({rel.as_posix()})", ""]
     report = out / "report.md"
-    report.write_text("\n".join(lines))
+    with atomic_output(report, "the demo report") as tmp:
+        tmp.write_text("\n".join(lines))
     return report

@@ -6,6 +6,7 @@ import json
 import os
 
 from .. import config
+from ._argtypes import integer, memory_size, number, scheduler_address
 
 TERMS_HELP = (
     "series terms n: the store holds T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k (paper eq. "
@@ -27,25 +28,26 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="X.zarr",
                    help="the inverse store (created, or resumed when it holds the same "
                         "T and parameters)")
-    p.add_argument("--terms", type=int, default=4, help=TERMS_HELP)
-    p.add_argument("--prune", type=float, default=config.DEFAULT_PRUNE,
+    p.add_argument("--terms", type=integer(0), default=4, help=TERMS_HELP)
+    p.add_argument("--prune", type=number(0), default=config.DEFAULT_PRUNE,
                    help="drop entries below this (absolute, on the dimensionless terms "
                         "M^k) inside each product (default %(default)g)")
-    p.add_argument("--tol", type=float, default=None,
+    p.add_argument("--tol", type=number(0), default=None,
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
     p.add_argument("--method", choices=tuple(METHODS), default="power",
                    help="; ".join(f"{m.name}: {m.help}" for m in METHODS.values()))
     p.add_argument("--first-bounce", default="diag", metavar="diag|identity|FILE.npy",
                    help="F: diag(T) (default), identity (the naive choice), or a .npy vector "
                         "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS|local:N",
+    p.add_argument("--scheduler", type=scheduler_address, default=None,
+                   metavar="ADDRESS|local:N",
                    help="run the tasks on a dask cluster: a scheduler address "
                         "(tcp://HOST:PORT; T and the output must be at the same paths on "
                         "every worker), or local:N to start N worker processes for this "
                         "run (default: local threads)")
-    p.add_argument("--workers", type=int, default=2,
+    p.add_argument("--workers", type=integer(1), default=2,
                    help="threads of the local scheduler (default %(default)s)")
-    p.add_argument("--memory-limit", default=None, metavar="SIZE",
+    p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
                    help="bound the resident memory of the process running the tasks, e.g. "
                         "2GiB (with local:N, of the N workers together; a cluster's workers "
                         "also keep their own limits): what a process already holds is "
@@ -66,12 +68,15 @@ def register(subparsers) -> None:
 def invert_cmd(args) -> int:
     from ..algorithms import stratified_inverse
 
+    from ..errors import BigTError
+
     fb = args.first_bounce
     if fb not in ("diag", "identity") and not os.path.exists(fb):
-        from ..errors import BigTError
-
-        raise BigTError(f"--first-bounce: {fb!r} is neither diag, identity nor a .npy file",
+        raise BigTError("--first-bounce is neither diag, identity nor an existing .npy file",
                         fb)
+    if args.json and os.path.isdir(args.json):  # refused now, not after the whole run
+        raise BigTError("is a folder; the --json report is a file: choose a file name",
+                        args.json)
     report = stratified_inverse(
         args.T, args.output, terms=args.terms, prune=args.prune, tol=args.tol,
         first_bounce=fb, method=args.method, scheduler=args.scheduler,
@@ -80,6 +85,8 @@ def invert_cmd(args) -> int:
     print(report.table())
     print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report.to_dict(), f, indent=1, default=str)
+        from ..atomic import atomic_output
+
+        with atomic_output(args.json, "the JSON report") as tmp:
+            tmp.write_text(json.dumps(report.to_dict(), indent=1, default=str))
     return 0

@@ -5,14 +5,7 @@ from __future__ import annotations
 import json
 
 from .. import config
-from .store_cmds import _image_shape
-
-
-def _density(text: str):
-    try:
-        return float(text)
-    except ValueError:
-        return text
+from ._argtypes import density, image_size, integer, number
 
 
 def register(subparsers) -> None:
@@ -26,27 +19,28 @@ def register(subparsers) -> None:
                     "the store's ground_truth/ group and a preview PNG of T 1 beside it. "
                     "dihedral4 is the paper's 4x4 example (eq. 34).")
     p.add_argument("name", choices=SCENE_NAMES)
-    p.add_argument("--size", type=_image_shape, default=None, metavar="HxW",
+    p.add_argument("--size", type=image_size, default=None, metavar="HxW",
                    help="image size (default: 96x128; cornell 64x80 = 5120 patches)")
     p.add_argument("-o", "--output", required=True, metavar="T.zarr",
                    help="the transport store to write (with its ground truth)")
-    p.add_argument("--albedo", type=float, default=0.6, help="Lambertian albedo in [0, 1)")
-    p.add_argument("--density", type=_density, default=None,
+    p.add_argument("--albedo", type=number(0, 1, lo_open=True, hi_open=True), default=0.6,
+                   help="Lambertian albedo in (0, 1) (default %(default)s)")
+    p.add_argument("--density", type=density(DENSITIES), default=None,
                    metavar="|".join(DENSITIES) + "|CUT",
                    help="preset of (form-factor cut, threshold), or a form-factor cut; "
                         "default exact up to 1024 pixels, sparse beyond")
-    p.add_argument("--ff-cut", type=float, default=None,
+    p.add_argument("--ff-cut", type=number(0), default=None,
                    help="drop patch pairs whose form factor is below this (sparsity of A)")
-    p.add_argument("--threshold", type=float, default=None,
+    p.add_argument("--threshold", type=number(0), default=None,
                    help="truncate T: entries and bounces below this are dropped (0: exact)")
-    p.add_argument("--noise", type=float, default=0.0, help="std of additive camera noise")
-    p.add_argument("--noise-floor", type=float, default=None,
+    p.add_argument("--noise", type=number(0), default=0.0, help="std of additive camera noise")
+    p.add_argument("--noise-floor", type=number(0), default=None,
                    help="entries below this are dropped after the noise (default 3 x noise)")
-    p.add_argument("--blur", type=float, default=0.0,
+    p.add_argument("--blur", type=number(0), default=0.0,
                    help="projector defocus: Gaussian std in pixels (0: none)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=integer(0), default=0,
                    help="seed of the noise (default %(default)s)")
-    p.add_argument("--tile-size", type=int, default=None,
+    p.add_argument("--tile-size", type=integer(1), default=None,
                    help=f"rows/cols of one matrix tile (default {config.DEFAULT_TILE_SIZE})")
     p.add_argument("--pixel-order", choices=("tile-major", "row-major"), default="tile-major",
                    help="pixel order of the store (default %(default)s)")

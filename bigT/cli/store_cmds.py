@@ -3,18 +3,10 @@
 from __future__ import annotations
 
 import json
-import re
 import sys
 
 from .. import config
-from ..errors import ShapeMismatchError
-
-
-def _image_shape(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", text)
-    if not m:
-        raise ShapeMismatchError(f"--image-shape must look like HxW (e.g. 96x128), got {text!r}")
-    return int(m.group(1)), int(m.group(2))
+from ._argtypes import image_size, integer, number
 
 
 def register(subparsers) -> None:
@@ -25,18 +17,18 @@ def register(subparsers) -> None:
     p.add_argument("input", metavar="IN")
     p.add_argument("-o", "--output", required=True, metavar="OUT.zarr",
                    help="the bigT store to write")
-    p.add_argument("--tile-size", type=int, default=None,
+    p.add_argument("--tile-size", type=integer(1), default=None,
                    help="rows/cols of one matrix tile (default "
                         f"{config.DEFAULT_TILE_SIZE})")
     p.add_argument("--var", default=None, help="variable of a .mat file")
     p.add_argument("--dtype", choices=("float32", "float64"), default=None,
                    help="value type of the store (default: the input's, float32 for "
                         "integer values; float32 halves the store of a float64 input)")
-    p.add_argument("--image-shape", default=None, metavar="HxW",
+    p.add_argument("--image-shape", type=image_size, default=None, metavar="HxW",
                    help="the matrix maps HxW images (numbered row-major in IN)")
     p.add_argument("--pixel-order", choices=("row-major", "tile-major"), default="row-major",
                    help="pixel order of the store (needs --image-shape for tile-major)")
-    p.add_argument("--image-tile", default=None, metavar="HxW",
+    p.add_argument("--image-tile", type=image_size, default=None, metavar="HxW",
                    help="image tile of the tile-major order (default "
                         f"{config.DEFAULT_IMAGE_TILE[0]}x{config.DEFAULT_IMAGE_TILE[1]})")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
@@ -50,7 +42,7 @@ def register(subparsers) -> None:
     p.add_argument("--order", choices=("row-major", "matrix"), default="row-major",
                    help="row-major image order (default; undoes a tile-major pixel order) or "
                         "the stored matrix order")
-    p.add_argument("--max-gb", type=float, default=None,
+    p.add_argument("--max-gb", type=number(0, lo_open=True), default=None,
                    help="refuse beyond this many GB of CSR arrays (default "
                         f"{config.TO_SCIPY_MAX_BYTES / 1e9:g})")
     p.set_defaults(func=export_cmd)
@@ -65,13 +57,13 @@ def register(subparsers) -> None:
 
 def convert_cmd(args) -> int:
     from ..storage import from_scipy
-    from ..storage.convert import load_matrix
+    from ..storage.convert import check_values, load_matrix
 
     A = load_matrix(args.input, var=args.var)
+    check_values(A, args.input, args.dtype)  # errors name IN, not the store
     S = from_scipy(A, args.output, tile_size=args.tile_size, dtype=args.dtype,
-                   image_shape=None if args.image_shape is None else _image_shape(args.image_shape),
-                   pixel_order=args.pixel_order,
-                   image_tile=None if args.image_tile is None else _image_shape(args.image_tile),
+                   image_shape=args.image_shape, pixel_order=args.pixel_order,
+                   image_tile=args.image_tile,
                    input_order="row-major", overwrite=args.overwrite,
                    metadata={"source": str(args.input)})
     print(f"wrote {S.path}: {S.shape[0]} x {S.shape[1]} {S.dtype.name}, nnz {S.nnz}, "

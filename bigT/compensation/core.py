@@ -155,7 +155,7 @@ def inverse_terms(X) -> int | None:
 def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") -> PathChoice:
     """Pick the explicit or the matrix-free path (cost model in :class:`PathChoice`)."""
     if path not in PATHS:
-        raise ValueError(f"path must be one of {PATHS}, got {path!r}")
+        raise BigTError(f"path must be one of {PATHS}, got {path!r}")
     if terms is None and X is not None:
         terms = inverse_terms(X)
     terms = int(config.DEFAULT_COMPENSATION_TERMS if terms is None else terms)
@@ -364,12 +364,13 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     if bounces < 0:
         raise BigTError(f"bounces must be >= 0, got {bounces}")
     if tuple(T.shape) != tuple(X.shape):
-        raise ShapeMismatchError(f"T is {T.shape} but X is {X.shape}")
+        raise ShapeMismatchError(f"X is {X.shape} but T ({T.path}) is {T.shape}: not the "
+                                 "inverse of this T", X.path)
     frames, single, order_t = _as_frames(image, T)
     order_x = pixel_order_of(X, frames.shape[1:])
     if order_x.image_shape != order_t.image_shape:
-        raise ShapeMismatchError(f"T maps {order_t.image_shape} images but X maps "
-                                 f"{order_x.image_shape}")
+        raise ShapeMismatchError(f"X maps {order_x.image_shape} images but T ({T.path}) "
+                                 f"maps {order_t.image_shape}", X.path)
     F = first_bounce_from_inverse(X)[:, None]  # in X's pixel order
     # Work in float64 for the dense vectors so the parts sum to T l to rounding.
     v = F * to_vectors(frames, order_x, np.float64)

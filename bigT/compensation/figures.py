@@ -7,6 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..atomic import atomic_output
+
 
 def _pyplot():
     import matplotlib
@@ -15,6 +17,18 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig, path, dpi: int = 110) -> Path:
+    """Write ``fig`` as PNG to ``path`` whole (:func:`bigT.atomic.atomic_output`) and
+    close it."""
+    path = Path(path)
+    try:
+        with atomic_output(path, "the figure") as tmp:
+            fig.savefig(tmp, dpi=dpi)
+    finally:
+        _pyplot().close(fig)
+    return path
 
 
 def side_by_side(path, panels: Sequence[np.ndarray], titles: Sequence[str], *,
@@ -35,11 +49,7 @@ def side_by_side(path, panels: Sequence[np.ndarray], titles: Sequence[str], *,
     if suptitle:
         fig.suptitle(suptitle, fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def scan_lines(path, lines: dict, *, title: str, target: float | None = None) -> Path:
@@ -56,11 +66,7 @@ def scan_lines(path, lines: dict, *, title: str, target: float | None = None) ->
     ax.legend(fontsize=8, loc="best")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
@@ -91,8 +97,4 @@ def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
     fig.suptitle("bounce separation (grey: 0 to each panel's maximum; remainder: blue "
                  "negative, red positive, centred on 0)", fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

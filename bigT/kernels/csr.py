@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..errors import InvalidMatrixError, ShapeMismatchError
+from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from . import _small
 from ._constants import CSR_BAD_INDPTR, CSR_INDEX_OUT_OF_RANGE, CSR_NOT_FINITE, CSR_OK, GROUP
 
@@ -81,7 +81,7 @@ def _n_threads(n_threads):
         n_threads = os.cpu_count() or 1
     n_threads = int(n_threads)
     if n_threads < 1:
-        raise ValueError(f"n_threads must be >= 1, got {n_threads}")
+        raise BigTError(f"n_threads must be >= 1, got {n_threads}")
     return n_threads
 
 
@@ -151,7 +151,7 @@ def choose_index_dtype(max_index, nnz, index_dtype=None):
                 f"index_dtype=int32 cannot hold max index {max_index} / nnz {nnz}"
             )
         return index_dtype
-    raise ValueError(f"index_dtype must be int32 or int64, got {index_dtype}")
+    raise BigTError(f"index_dtype must be int32 or int64, got {index_dtype}")
 
 
 def _float_dtype(*dtypes, name="inputs"):
@@ -249,12 +249,12 @@ def _vector(d, n, name, what):
 def _check_threshold(threshold, top_k):
     threshold = float(threshold)
     if not np.isfinite(threshold) or threshold < 0:
-        raise ValueError(f"threshold must be finite and >= 0, got {threshold}")
+        raise BigTError(f"threshold must be finite and >= 0, got {threshold}")
     if top_k is None:
         top_k = -1
     else:
         if isinstance(top_k, bool) or int(top_k) != top_k or top_k < 1:
-            raise ValueError(f"top_k must be a positive integer or None, got {top_k!r}")
+            raise BigTError(f"top_k must be a positive integer or None, got {top_k!r}")
         top_k = int(top_k)
     return threshold, top_k
 
@@ -326,7 +326,7 @@ def spgemm(
     if auto:
         method = "grouped"
     if method not in ("rows", "grouped"):
-        raise ValueError(f"method must be 'rows' or 'grouped', got {method!r}")
+        raise BigTError(f"method must be 'rows' or 'grouped', got {method!r}")
     for X, nm in ((A, "A"), (B, "B")):
         if sp.issparse(X) and X.ndim != 2:
             raise ShapeMismatchError(f"{nm} must be 2-D, got shape {X.shape}")

@@ -44,7 +44,12 @@ from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError, StoreErr
 from ..storage import BlockCSRWriter, PixelOrder, from_scipy
 from ..storage import open as open_store
 from ..storage.block_csr import atomic_write_json, group_json
-from ..storage.writer import check_replaceable, move_into_place, temporary_sibling
+from ..storage.writer import (
+    check_replaceable,
+    move_into_place,
+    recover_interrupted_replace,
+    temporary_sibling,
+)
 from ..spectral import SpectralRadius, spectral_radius
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES  # noqa: F401 (re-exported)
 from . import geometry, radiosity
@@ -331,7 +336,7 @@ def _write_ground_truth(root: Path, A: sp.csr_array, F: np.ndarray, po, tile_siz
 def _preview(path: Path, image: np.ndarray, title: str) -> Path:
     """T 1 (the camera's view of a white projector image) with three horizontal scan
     lines drawn on it and plotted beside it (paper Fig. 8)."""
-    from ..compensation.figures import _pyplot
+    from ..compensation.figures import _pyplot, save_figure
 
     plt = _pyplot()
     H, W = image.shape
@@ -352,9 +357,7 @@ def _preview(path: Path, image: np.ndarray, title: str) -> Path:
     ax1.legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100)
 
 
 def distinct_rows(image: np.ndarray, k: int) -> list[int]:
@@ -468,6 +471,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     stop = thr if thr > 0 else config.SCENE_NEUMANN_TOL
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
     path.parent.mkdir(parents=True, exist_ok=True)
+    recover_interrupted_replace(path)
     tmp = temporary_sibling(path)
     from ..progress import progress_bar
 
@@ -579,6 +583,7 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
         "preview": str(preview_path(path)) if preview else None,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
+    recover_interrupted_replace(path)
     tmp = temporary_sibling(path)
     try:
         from_scipy(sp.csr_array(T), tmp, tile_size=2, dtype=dtype, image_shape=(2, 2))

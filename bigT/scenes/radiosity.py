@@ -24,7 +24,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .. import config
-from ..errors import DivergenceError, MemoryLimitError
+from ..errors import BigTError, DivergenceError, MemoryLimitError
 from .geometry import Patches
 
 
@@ -92,7 +92,7 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
     chunk = chunk or config.SCENE_PAIR_CHUNK
     max_nnz = config.SCENE_MAX_A_NNZ if max_nnz is None else int(max_nnz)
     if cut < 0 or not math.isfinite(cut):
-        raise ValueError(f"cut must be a finite number >= 0, got {cut}")
+        raise BigTError(f"cut must be a finite number >= 0, got {cut}")
     if cut == 0 and n * n > config.SCENE_MAX_ALL_PAIRS:
         raise MemoryLimitError(
             f"cut = 0 tests all {n}^2 pairs, more than config.SCENE_MAX_ALL_PAIRS = "

@@ -18,6 +18,8 @@ FORMAT_NAME = "bigT-block-csr"
 FORMAT_VERSION = 1
 #: attrs key of the root group that holds everything bigT records.
 ATTRS_KEY = "bigT"
+#: Attribute of an inverse store's root holding the engine's record.
+INVERSE_ATTR = "bigT_inverse"
 #: attrs key of a tile-row group; its ``complete`` flag is written last.
 ROW_ATTRS_KEY = "bigT_row"
 INNER_FORMATS = ("csr",)

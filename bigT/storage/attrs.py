@@ -15,7 +15,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..errors import BigTError, CorruptStoreError, StoreError
+from ..errors import BigTError, CorruptStoreError, IncompleteStoreError, StoreError
 from . import _format as fmt
 from .pixel_order import PixelOrder
 
@@ -150,6 +150,9 @@ def read_raw_attrs(path: Path) -> dict:
     if meta.get("zarr_format") != 3 or meta.get("node_type") != "group":
         raise StoreError("not a bigT store (zarr.json is not a zarr v3 group)", path)
     attrs = (meta.get("attributes") or {}).get(fmt.ATTRS_KEY)
+    if attrs is None and fmt.INVERSE_ATTR in (meta.get("attributes") or {}):
+        raise IncompleteStoreError("an inverse whose first term is not finished yet: wait "
+                                   "for bigT invert, or rerun it if it was stopped", path)
     if not isinstance(attrs, dict) or attrs.get("format") != fmt.FORMAT_NAME:
         raise StoreError(f"not a bigT store (zarr group without attrs['{fmt.ATTRS_KEY}'] "
                          f"of format {fmt.FORMAT_NAME!r})", path)

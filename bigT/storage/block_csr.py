@@ -6,6 +6,7 @@ on open and kept in memory; a tile read touches only that tile's three arrays.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -17,6 +18,7 @@ import zarr
 from zarr.storage import LocalStore
 
 from .. import config
+from ..atomic import pid_alive
 from ..errors import (
     BigTError,
     CorruptStoreError,
@@ -27,6 +29,7 @@ from ..errors import (
 )
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
+from .locks import ReaderLease
 
 
 # --- small helpers -----------------------------------------------------------------
@@ -51,6 +54,20 @@ def atomic_write_json(path: Path, obj: dict) -> None:
         except OSError:
             pass
         raise
+
+
+def remove_stale_temp_files(directory: Path) -> int:
+    """Delete the temporary files of :func:`atomic_write_json` (``.NAME.PID.ID.tmp``)
+    in ``directory`` whose writer process is gone (killed between writing and
+    renaming). Returns how many were deleted."""
+    gone = 0
+    for entry in Path(directory).glob(".*.tmp"):
+        fields = entry.name[1:].rsplit(".", 3)
+        if len(fields) == 4 and fields[1].isdigit() and not pid_alive(int(fields[1])):
+            with contextlib.suppress(OSError):
+                entry.unlink()
+                gone += 1
+    return gone
 
 
 def group_json(attributes: dict) -> dict:
@@ -91,6 +108,10 @@ def row_marker(path: Path, i: int) -> dict | None:
 
 # --- the store ---------------------------------------------------------------------
 
+#: Times ``open`` follows a redirect that moved on while it took the term's lease.
+_LEASE_ATTEMPTS = 5
+
+
 def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
     """Open a bigT block-CSR store for reading.
 
@@ -113,17 +134,29 @@ def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
         The tile index is damaged or disagrees with the recorded nnz.
     """
     root = Path(os.fspath(path))
-    attrs = _read_bigt_attrs(root)
-    redirected_from = None
-    if "redirect" in attrs:
+    if not root.exists():
+        from .writer import recover_interrupted_replace
+
+        recover_interrupted_replace(root)  # a replace killed half way: the old store back
+    for _attempt in range(_LEASE_ATTEMPTS):
+        attrs = _read_bigt_attrs(root)
+        if "redirect" not in attrs:
+            return BlockCSR(root, StoreAttrs.from_dict(attrs, root),
+                            allow_incomplete=allow_incomplete, lease=ReaderLease(root))
         target = _check_redirect(attrs["redirect"], root)
-        redirected_from = root
-        attrs = _read_bigt_attrs(target)
-        if "redirect" in attrs:
-            raise StoreError("redirect points at another redirect (one level is followed)", root)
-        root = target
-    return BlockCSR(root, StoreAttrs.from_dict(attrs, root), allow_incomplete=allow_incomplete,
-                    redirected_from=redirected_from)
+        # the lease keeps the term from being deleted while this reader holds it
+        lease = ReaderLease(target)
+        if lease.valid:
+            attrs = _read_bigt_attrs(target)
+            if "redirect" in attrs:
+                raise StoreError("redirect points at another redirect (one level is followed)",
+                                 root)
+            return BlockCSR(target, StoreAttrs.from_dict(attrs, target),
+                            allow_incomplete=allow_incomplete, redirected_from=root,
+                            lease=lease)
+        lease.release()  # deleted before the lease was taken: the redirect moved on
+    raise StoreError("its current term was replaced while opening, again and again; "
+                     "try again", root)
 
 
 class BlockCSR:
@@ -152,8 +185,9 @@ class BlockCSR:
     """
 
     def __init__(self, path: Path, attrs: StoreAttrs, *, allow_incomplete: bool = False,
-                 redirected_from: Path | None = None):
+                 redirected_from: Path | None = None, lease: ReaderLease | None = None):
         self.path = Path(path)
+        self._lease = lease  # released with this object
         self.redirected_from = redirected_from
         self.attrs = attrs
         self.shape = attrs.shape
@@ -519,8 +553,8 @@ class BlockCSR:
         if missing:
             raise CorruptStoreError(f"missing chunk file {missing[0]}", self.path)
 
-    def verify(self) -> dict:
-        """Full check of every tile and every chunk file.
+    def verify(self, progress: bool | None = False) -> dict:
+        """Full check of every tile and every chunk file (``bigT verify``).
 
         Checks that every chunk file exists, that every checksum matches, the CSR
         structure of every tile (monotone indptr, sorted duplicate-free in-range
@@ -536,16 +570,14 @@ class BlockCSR:
         CorruptStoreError
             Naming the store and the first bad tile or chunk.
         """
+        from ..progress import progress_bar
+
         self.check_chunks_exist()
         total = 0
-        for i in range(self.grid[0]):
+        for i in progress_bar(range(self.grid[0]), progress=progress, desc="verify",
+                              unit="tile row"):
             if self.complete:
-                rec = row_marker(self.path, i)
-                if rec is None:
-                    raise CorruptStoreError(f"tile row {i} has no completion marker", self.path)
-                if list(rec.get("tile_columns", [])) != self.tile_columns(i).tolist():
-                    raise CorruptStoreError(f"tile row {i}: completion marker disagrees with the "
-                                            "tile index", self.path)
+                self._check_row_marker(i)
             for j, t in self.iter_tiles(i):
                 if t.nnz == 0:
                     raise self._corrupt(i, j, "stored tile is empty")
@@ -559,6 +591,17 @@ class BlockCSR:
         if total != self.nnz:
             raise CorruptStoreError(f"tiles hold {total} entries, the index records {self.nnz}", self.path)
         return {"tiles": self.n_tiles_stored, "nnz": total}
+
+    def _check_row_marker(self, i: int) -> None:
+        rec = row_marker(self.path, i)
+        if rec is None:
+            raise CorruptStoreError(f"tile row {i} has no completion marker "
+                                    f"({fmt.row_path(i)}/zarr.json missing or damaged)", self.path)
+        lo, hi = self.tile_indptr[i], self.tile_indptr[i + 1]
+        if (list(rec.get("tile_columns", [])) != self.tile_columns(i).tolist()
+                or list(rec.get("tile_nnz", [])) != self.tile_nnz[lo:hi].tolist()):
+            raise CorruptStoreError(f"tile row {i}: completion marker disagrees with the "
+                                    "tile index", self.path)
 
     def info(self) -> dict:
         """Summary: shape, nnz, density, tile fill, diagonal statistics, bytes on disk."""

@@ -14,7 +14,8 @@ import numpy as np
 import scipy.io
 import scipy.sparse as sp
 
-from ..errors import InvalidMatrixError, StoreError
+from ..atomic import atomic_output
+from ..errors import InvalidMatrixError, StoreError, short_reason
 
 INPUT_SUFFIXES = (".npz", ".mtx", ".mtx.gz", ".mat", ".npy")
 OUTPUT_SUFFIXES = (".npz", ".mtx")
@@ -37,9 +38,10 @@ def load_matrix(path, var: str | None = None):
     Raises
     ------
     StoreError
-        Missing or unreadable file, unknown suffix, ambiguous or absent .mat variable.
+        Missing or unreadable file (truncated, corrupt, not of its suffix's format),
+        unknown suffix, ambiguous or absent .mat variable.
     InvalidMatrixError
-        The file holds something that is not a 2-D numeric matrix.
+        The file holds something that is not a 2-D matrix of real numbers.
     """
     path = Path(os.fspath(path))
     kind = _suffix(path, INPUT_SUFFIXES)
@@ -48,23 +50,100 @@ def load_matrix(path, var: str | None = None):
     if not path.is_file():
         raise StoreError("no such file", path)
     try:
-        if kind == ".npz":
-            A = sp.load_npz(path)
-        elif kind in (".mtx", ".mtx.gz"):
-            A = scipy.io.mmread(path)
-        elif kind == ".npy":
-            A = np.load(path, allow_pickle=False)
-        else:
-            A = _load_mat(path, var)
+        A = _read(path, kind, var)
     except (StoreError, InvalidMatrixError):
         raise
-    except (OSError, ValueError, KeyError, NotImplementedError, EOFError) as exc:
-        raise StoreError(f"cannot read as {kind} ({type(exc).__name__}: {exc})", path) from None
+    except Exception as exc:  # parsers of a damaged file raise every type there is
+        raise StoreError(f"cannot read as {kind} ({short_reason(exc, path)})", path) from None
     if A.ndim != 2:
         raise InvalidMatrixError(f"holds an array of shape {A.shape}, not a 2-D matrix", path)
-    if not sp.issparse(A) and not (np.issubdtype(A.dtype, np.number) or A.dtype == bool):
-        raise InvalidMatrixError(f"holds values of dtype {A.dtype}, not numbers", path)
+    if not (np.issubdtype(A.dtype, np.number) or A.dtype == bool) \
+            or np.issubdtype(A.dtype, np.complexfloating):
+        raise InvalidMatrixError(f"holds values of dtype {A.dtype}, not real numbers", path)
     return A
+
+
+def _read(path: Path, kind: str, var: str | None):
+    if kind == ".npz":
+        return _load_npz(path)
+    if kind in (".mtx", ".mtx.gz"):
+        return scipy.io.mmread(path)
+    if kind == ".npy":
+        return np.load(path, allow_pickle=False)
+    return _load_mat(path, var)
+
+
+def _load_npz(path: Path):
+    """A scipy ``save_npz`` file; an archive of other arrays (``numpy.savez``) is
+    refused with the names it holds."""
+    with np.load(path, allow_pickle=False) as archive:
+        names = list(archive.files)
+    if "format" not in names:
+        raise InvalidMatrixError("is a .npz of arrays (" + ", ".join(names[:5])
+                                 + "), not a scipy sparse matrix (scipy.sparse.save_npz); "
+                                 "save a dense matrix as .npy", path)
+    return sp.load_npz(path)
+
+
+def check_values(A, path, dtype=None) -> None:
+    """Refuse values of the loaded matrix ``A`` that its store could not hold.
+
+    Run before the store is written, so the errors name the input file (the store's
+    own checks name the store). Integer and boolean values are always representable.
+
+    Parameters
+    ----------
+    A : scipy sparse matrix or ndarray, as :func:`load_matrix` returns it
+    path : the input file, named in the errors
+    dtype : {"float32", "float64"}, optional
+        The store's dtype; default A's own (float32 for anything but float64).
+
+    Raises
+    ------
+    InvalidMatrixError
+        NaN or Inf values; values beyond the dtype's range (they would become Inf); or
+        nonzero values below its smallest normal number (they would be stored subnormal
+        or as zero: their reciprocals overflow and ``invert`` fails on them).
+    """
+    if A.dtype.kind != "f":
+        return
+    dt = np.dtype(dtype) if dtype is not None else np.dtype(
+        np.float64 if A.dtype == np.float64 else np.float32)
+    info = np.finfo(dt)
+    data = _values(A)
+    remedy = (": store float64 (dtype='float64') or scale the matrix (its inverse scales "
+              "exactly)" if dt != np.float64 else ": scale the matrix (its inverse scales "
+              "exactly)")
+    checks = (
+        (lambda v: ~np.isfinite(v), "NaN/Inf values", ""),
+        (lambda v: np.isfinite(v) & (np.abs(v) > info.max),
+         f"values beyond {dt.name}'s range +-{info.max:.3g}", remedy),
+        (lambda v: (v != 0) & (np.abs(v) < info.tiny),
+         f"nonzero values below {dt.name}'s smallest normal number {info.tiny:.3g}",
+         ", which would be stored as 0 or subnormal (their reciprocals overflow)" + remedy),
+    )
+    for test, what, advice in checks:
+        with np.errstate(invalid="ignore"):
+            if test(data).any():
+                count, row = _count_and_first_row(A, test)
+                raise InvalidMatrixError(f"{count} {what} (first in row {row}){advice}", path)
+
+
+def _values(A) -> np.ndarray:
+    if not sp.issparse(A):
+        return np.asarray(A)
+    return A.data if hasattr(A, "data") else sp.csr_array(A).data
+
+
+def _count_and_first_row(A, test) -> tuple[int, int]:
+    """How many entries of ``A`` pass ``test`` and the row of the first (an error path:
+    the copy to COO costs nothing that matters)."""
+    if sp.issparse(A):
+        coo = sp.coo_array(A)
+        hit = np.flatnonzero(test(coo.data))
+        return len(hit), int(coo.row[hit].min())
+    rows = np.nonzero(test(np.asarray(A)))[0]
+    return len(rows), int(rows.min())
 
 
 def _load_mat(path: Path, var: str | None):
@@ -91,8 +170,9 @@ def save_matrix(A, path) -> Path:
     kind = _suffix(path, OUTPUT_SUFFIXES)
     if kind is None:
         raise StoreError(f"unknown output format (known: {', '.join(OUTPUT_SUFFIXES)})", path)
-    if kind == ".npz":
-        sp.save_npz(path, sp.csr_array(A), compressed=True)
-    else:
-        scipy.io.mmwrite(path, sp.coo_array(A))
+    with atomic_output(path, "the exported matrix") as tmp:
+        if kind == ".npz":
+            sp.save_npz(tmp, sp.csr_array(A), compressed=True)
+        else:
+            scipy.io.mmwrite(tmp, sp.coo_array(A))
     return path

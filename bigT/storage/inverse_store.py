@@ -24,14 +24,28 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import StoreError
+from . import _format as fmt
 from .attrs import StoreAttrs
-from .block_csr import BlockCSR, atomic_write_json, group_json, set_redirect
+from .block_csr import (
+    BlockCSR,
+    atomic_write_json,
+    group_json,
+    remove_stale_temp_files,
+    set_redirect,
+)
 from .block_csr import open as open_store
-from .writer import clean_partial_rows, create_store, finalize_store, read_store_attrs
+from .locks import READER_LEASE, WRITER_LOCK, WriterLock, create_reader_lease, remove_unless_read
+from .writer import (
+    clean_partial_rows,
+    create_store,
+    finalize_store,
+    read_store_attrs,
+    recover_interrupted_replace,
+)
 
 #: Attribute of the root group holding the engine's record (beside the storage
 #: layer's ``bigT`` attribute, which holds the redirect).
-INVERSE_ATTR = "bigT_inverse"
+INVERSE_ATTR = fmt.INVERSE_ATTR
 _TERM_DIR = re.compile(r"t(\d{4})")
 
 
@@ -64,8 +78,18 @@ class TermRecord:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "TermRecord":
-        names = [f.name for f in dataclasses.fields(cls)]
-        return cls(**{k: d.get(k) for k in names})
+        """Raises TypeError/ValueError on fields of the wrong type or sign (a damaged
+        record: :meth:`InverseRecord.from_dict` names the store)."""
+        values = {}
+        for f in dataclasses.fields(cls):
+            v = d.get(f.name)
+            if f.name in ("residual", "residual_abs"):
+                values[f.name] = None if v is None else float(v)
+            elif f.name == "seconds":
+                values[f.name] = float(v or 0.0)
+            else:
+                values[f.name] = _count(v, f.name)
+        return cls(**values)
 
     def to_dict(self) -> dict:
         return jsonable(dataclasses.asdict(self))
@@ -125,7 +149,7 @@ class InverseRecord:
             if not isinstance(d.get("params"), Mapping):
                 raise TypeError("no params")
             history = tuple(TermRecord.from_dict(h) for h in d.get("history") or ())
-            opt_int = (lambda v: None if v is None else int(v))
+            opt_int = (lambda v: None if v is None else _count(v, "a term"))
             opt_float = (lambda v: None if v is None else float(v))
             return cls(dict(d["params"]), opt_int(d.get("term")), opt_int(d.get("dir")),
                        history, opt_float(d.get("spectral_radius")),
@@ -136,6 +160,15 @@ class InverseRecord:
         except (TypeError, ValueError, AttributeError) as exc:
             raise StoreError(f"damaged inverse record ({exc}); delete the store to start "
                              "over", path) from None
+
+
+def _count(value, name: str) -> int:
+    """``value`` as a count (an int >= 0); ValueError/TypeError when it is not one."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+        raise TypeError(f"{name} is {value!r}, not a whole number")
+    if value < 0:
+        raise ValueError(f"{name} is {value!r} < 0")
+    return int(value)
 
 
 def term_dir(k: int) -> str:
@@ -152,6 +185,11 @@ class InverseStore:
 
     def __init__(self, path):
         self.path = Path(os.fspath(path))
+        self.lock = WriterLock(self.path)
+
+    def close(self) -> None:
+        """Release the writer lock (:meth:`open_or_create` took it)."""
+        self.lock.release()
 
     # --- the record --------------------------------------------------------------
 
@@ -187,19 +225,18 @@ class InverseStore:
             ``path`` holds something else, or an inverse with other parameters.
         """
         params = jsonable(params)
-        if overwrite and self.path.is_dir() and self.read_record() is not None:
-            shutil.rmtree(self.path)
-        if self.path.is_dir() and not any(self.path.iterdir()):
-            self.path.rmdir()  # an empty directory is nobody's work: take it
-        if not self.path.exists():
-            self.path.mkdir(parents=True)
+        self._refuse_foreign()
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.lock.acquire()  # a second writer is refused here, before any change
+        remove_stale_temp_files(self.path)
+        record = self.read_record()
+        if overwrite and record is not None:
+            self._delete_contents()
+            record = None
+        if record is None:  # new, or created by a run killed before its first record
             record = InverseRecord(params)
             self.save(record)
             return record
-        record = self.read_record()
-        if record is None:
-            raise StoreError("exists and is not a bigT inverse store; choose another path "
-                             "or delete it", self.path)
         if record.params != params:
             diff = [k for k in params if record.params.get(k) != params[k]]
             held = ", ".join(f"{k}={record.params.get(k)}" for k in diff)
@@ -207,7 +244,39 @@ class InverseStore:
                              f"asked (it holds {held}); rerun with the same parameters to "
                              "resume, pass overwrite=True to start anew, or choose another "
                              "path", self.path)
+        self._check_term_held(record)
         return self.reconcile(record)
+
+    def _check_term_held(self, record: InverseRecord) -> None:
+        """A record naming a term whose X is not on disk is damaged (a crash never
+        leaves one: the record is replaced after the X it names is published)."""
+        if record.dir is not None and not (self.term_path(record.dir, "X") / "zarr.json").is_file():
+            raise StoreError(f"damaged inverse record: it holds term {record.dir}, but "
+                             f"{term_dir(record.dir)}/X is not on disk; delete the store to "
+                             "start over", self.path)
+
+    def _refuse_foreign(self) -> None:
+        """Refuse a path holding something else than an inverse (or a start of one)."""
+        if not self.path.exists():
+            return
+        if not self.path.is_dir():
+            raise StoreError("exists and is a file, not a bigT inverse store; choose "
+                             "another path", self.path)
+        if self.read_record() is None and any(not _our_litter(e.name)
+                                              for e in self.path.iterdir()):
+            raise StoreError("exists and is not a bigT inverse store; choose another path "
+                             "or delete it", self.path)
+
+    def _delete_contents(self) -> None:
+        """Everything but the writer lock (held), the record last."""
+        for entry in self.path.iterdir():
+            if entry.name == WRITER_LOCK or entry.name == "zarr.json":
+                continue
+            if entry.is_dir():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+        (self.path / "zarr.json").unlink(missing_ok=True)
 
     def reconcile(self, record: InverseRecord) -> InverseRecord:
         """Adopt the term the redirect points at when the record lags behind it (a
@@ -237,11 +306,18 @@ class InverseStore:
         interrupted run left (its complete rows; what its writers left half done is
         deleted now, before any writer starts). Returns its path."""
         path = self.term_path(k, name)
+        if path.parent.is_dir():  # the term directory's group record, cut before renaming
+            remove_stale_temp_files(path.parent)
+        recover_interrupted_replace(path)
         if path.exists():
-            old = read_store_attrs(path)
-            if (old.shape, old.tile_size, old.dtype) == (attrs.shape, attrs.tile_size,
-                                                          attrs.dtype):
+            try:
+                old = read_store_attrs(path)
+            except StoreError:  # a header that bigT before 0.2 left half written
+                old = None
+            if old is not None and (old.shape, old.tile_size, old.dtype) == (
+                    attrs.shape, attrs.tile_size, attrs.dtype):
                 clean_partial_rows(path, old.grid[0])
+                remove_stale_temp_files(path)
                 return path
             shutil.rmtree(path)
         create_store(path, attrs)
@@ -255,16 +331,31 @@ class InverseStore:
         (so :meth:`reconcile` can repair a crash after the flip), then the redirect
         flips to it, then the record is replaced."""
         X.update_metadata(inverse=jsonable(term_metadata))
+        create_reader_lease(X.path)
         set_redirect(self.path, f"{term_dir(record.dir)}/X")
         self.save(record)
 
     def clean(self, keep: set[int]) -> None:
-        """Delete term directories other than ``keep`` (left by a crash after a flip)."""
+        """Delete term directories other than ``keep`` (left by a crash, or by a reader
+        that held them when they were dropped) that no reader holds now."""
         for entry in self.path.iterdir():
             m = _TERM_DIR.fullmatch(entry.name)
             if m and int(m.group(1)) not in keep:
-                shutil.rmtree(entry, ignore_errors=True)
+                remove_unless_read(entry)
 
     def drop_term(self, k: int) -> None:
-        shutil.rmtree(self.path / term_dir(k), ignore_errors=True)
+        """Delete term ``k``'s directory, or, while a reader holds its X, all of it
+        but that X (deleted by a later :meth:`clean`)."""
+        directory = self.path / term_dir(k)
+        if remove_unless_read(directory) or not directory.is_dir():
+            return
+        for entry in directory.iterdir():
+            if entry.is_dir() and not (entry / READER_LEASE).exists():
+                shutil.rmtree(entry, ignore_errors=True)
+
+
+def _our_litter(name: str) -> bool:
+    """What a run killed before its first record leaves: the writer lock, a
+    temporary record file."""
+    return name == WRITER_LOCK or (name.startswith(".zarr.json.") and name.endswith(".tmp"))
 

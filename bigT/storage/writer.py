@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
 import shutil
 import uuid
 from contextlib import contextmanager
+from glob import escape as glob_escape
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
 from .. import config
+from ..atomic import pid_alive
 from ..errors import (
     BigTError,
     DiskFullError,
@@ -74,21 +77,29 @@ def check_replaceable(path: Path, overwrite: bool) -> None:
             raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
 
 
+def _hidden_sibling(path: Path, kind: str) -> Path:
+    # the writer's PID in the name tells a later run whether its writer is alive
+    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.{kind}")
+
+
 def temporary_sibling(path: Path) -> Path:
     """A fresh hidden directory name beside ``path`` to build a replacement in."""
-    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
+    return _hidden_sibling(Path(path), "partial")
 
 
 def move_into_place(tmp: Path, path: Path) -> None:
     """Replace ``path`` (absent, or a bigT store) by the complete directory ``tmp``.
 
     Two renames on the same file system; if the second fails the old store is renamed
-    back, so ``path`` is never left missing or half replaced.
+    back, so ``path`` is never left missing or half replaced. A process killed between
+    the two leaves ``path`` missing and the old store in a hidden ``.old`` sibling:
+    :func:`recover_interrupted_replace` (run by every writer and by ``open``) puts it
+    back.
     """
     if not path.exists():
         os.replace(tmp, path)
         return
-    trash = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.old")
+    trash = _hidden_sibling(path, "old")
     os.replace(path, trash)
     try:
         os.replace(tmp, path)
@@ -96,6 +107,32 @@ def move_into_place(tmp: Path, path: Path) -> None:
         os.replace(trash, path)
         raise
     shutil.rmtree(trash, ignore_errors=True)
+
+
+def _dead_writers_siblings(path: Path, kind: str) -> list[Path]:
+    """Hidden ``kind`` siblings of ``path`` whose writer process is gone, newest first."""
+    found = []
+    for entry in path.parent.glob(f".{glob_escape(path.name)}.*.{kind}"):
+        parts = entry.name[len(path.name) + 2:].split(".")
+        if len(parts) == 3 and parts[0].isdigit() and not pid_alive(int(parts[0])):
+            found.append(entry)
+    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
+
+
+def recover_interrupted_replace(path) -> None:
+    """Undo what a writer killed during :func:`move_into_place` or while building a
+    replacement left beside ``path``: a missing ``path`` gets its old store back from
+    the ``.old`` sibling; ``.old`` and ``.partial`` siblings of dead writers are
+    deleted. Siblings of writers still running are left alone."""
+    path = Path(os.fspath(path))
+    if not path.parent.is_dir():
+        return
+    old = _dead_writers_siblings(path, "old")
+    if old and not path.exists():
+        with contextlib.suppress(OSError):  # another process may have restored it
+            os.rename(old.pop(0), path)
+    for entry in old + _dead_writers_siblings(path, "partial"):
+        shutil.rmtree(entry, ignore_errors=True)
 
 
 def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
@@ -202,12 +239,30 @@ def create_store(path, attrs: StoreAttrs) -> None:
     path = Path(path)
     attrs.check_json(path)
     try:
-        path.mkdir(parents=True, exist_ok=True)
-        (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
-        atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", group_json({}))
-        write_root_attrs(path, attrs)
+        if path.exists() or path.name.endswith(".partial"):
+            # an empty directory to write into (the caller's choice), or a store built
+            # aside already (nobody reads it before it is renamed into place)
+            path.mkdir(parents=True, exist_ok=True)
+            _write_header(path, attrs)
+            return
+        # else built aside and renamed: a crash never leaves a header half written
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = temporary_sibling(path)
+        try:
+            tmp.mkdir()
+            _write_header(tmp, attrs)
+            os.rename(tmp, path)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     except OSError as exc:
         raise (_wrap_oserror(exc, path, "the store header") or exc) from exc
+
+
+def _write_header(path: Path, attrs: StoreAttrs) -> None:
+    (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
+    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", group_json({}))
+    write_root_attrs(path, attrs)
 
 
 def read_store_attrs(path) -> StoreAttrs:
@@ -582,6 +637,7 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     A.eliminate_zeros()
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    recover_interrupted_replace(path)
     tmp = temporary_sibling(path)
     try:
         with _deleted_on_failure(tmp, path, "the store"):

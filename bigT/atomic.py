@@ -1,0 +1,109 @@
+"""Outputs written whole or not at all.
+
+Every file bigT writes for a user (an exported matrix, an image, a figure, a report)
+goes through :func:`atomic_output`: it is written to a hidden sibling, flushed to disk,
+checked, and renamed over the destination in one step. A full disk, a crash or an
+error half way leaves the destination as it was (absent, or its old contents), never
+a truncated file; the hidden sibling is deleted. Stores (directories) have their own
+protocol (:mod:`bigT.storage.writer`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import uuid
+from glob import escape as glob_escape
+from pathlib import Path
+from typing import Iterator
+
+from .errors import DiskFullError, OutputError
+
+
+def temporary_file_sibling(path: Path) -> Path:
+    """A fresh hidden name beside ``path`` that keeps its suffix (writers such as
+    imageio and matplotlib choose the format from it)."""
+    return path.with_name(f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
+
+
+def _remove_dead_writers_files(path: Path) -> None:
+    """Delete the temporary siblings of ``path`` that writers killed before their
+    rename left (their PID, in the name, is gone)."""
+    for entry in path.parent.glob(f".{glob_escape(path.stem)}.*.tmp{glob_escape(path.suffix)}"):
+        pid = entry.name[len(path.stem) + 2:].split(".")[0]
+        if pid.isdigit() and not pid_alive(int(pid)):
+            with contextlib.suppress(OSError):
+                entry.unlink()
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def _fsync_path(path: Path, directory: bool = False) -> None:
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _as_output_error(exc: OSError, path: Path, what: str) -> Exception:
+    if exc.errno == errno.ENOSPC:
+        return DiskFullError(f"disk full while writing {what}; nothing was replaced", path)
+    reason = exc.strerror or str(exc)
+    return OutputError(f"cannot write {what}: {reason}; nothing was replaced", path)
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, what: str = "the output") -> Iterator[Path]:
+    """Write a file through a temporary sibling, then rename it into place.
+
+    Parameters
+    ----------
+    path : the destination file; its folder is created when missing.
+    what : words for the error messages ("the exported matrix").
+
+    Yields
+    ------
+    Path
+        Where to write (same folder and suffix as ``path``).
+
+    Raises
+    ------
+    OutputError, DiskFullError
+        The file could not be written; ``path`` is untouched and the sibling deleted.
+    """
+    path = Path(os.fspath(path))
+    if path.is_dir():
+        raise OutputError(f"is a folder; {what} is a file: choose a file name", path)
+    tmp = temporary_file_sibling(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _remove_dead_writers_files(path)
+        yield tmp
+        if not tmp.is_file() or tmp.stat().st_size == 0:
+            raise OutputError(f"writing {what} produced no data; nothing was replaced", path)
+        _fsync_path(tmp)
+        os.replace(tmp, path)
+        with contextlib.suppress(OSError):  # the rename's durability; not on every FS
+            _fsync_path(path.parent, directory=True)
+    except OSError as exc:
+        _discard(tmp)
+        raise _as_output_error(exc, path, what) from exc
+    except BaseException:
+        _discard(tmp)
+        raise
+
+
+def _discard(tmp: Path) -> None:
+    with contextlib.suppress(OSError):
+        tmp.unlink()

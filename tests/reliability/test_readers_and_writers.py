@@ -1,0 +1,77 @@
+"""Readers of an inverse being extended, and a second writer (issue #17, item 4)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "algorithms"))
+
+from inverse_helpers import random_dominant, store  # noqa: E402
+
+from bigT import stratified_inverse as invert  # noqa: E402
+from bigT.cli import main  # noqa: E402
+from bigT.errors import IncompleteStoreError  # noqa: E402
+from bigT.storage import open as open_store  # noqa: E402
+from bigT.storage.inverse_store import InverseStore  # noqa: E402
+from bigT.storage.locks import WriterLock  # noqa: E402
+
+needs_flock = pytest.mark.skipif(os.name != "posix", reason="locks are no-ops without fcntl")
+
+
+@pytest.fixture
+def T(tmp_path):
+    return store(tmp_path, random_dominant(64, seed=5), "T.zarr", tile_size=16)
+
+
+def terms_on_disk(X: Path) -> list[str]:
+    return sorted(p.name for p in X.iterdir() if p.name.startswith("t"))
+
+
+@needs_flock
+def test_a_reader_keeps_the_term_it_opened_while_the_writer_moves_on(T, tmp_path):
+    X = tmp_path / "X.zarr"
+    invert(T, X, terms=1, progress=False)
+    reader = open_store(X)
+    before = reader.to_scipy().toarray()
+    invert(T, X, terms=3, progress=False)  # drops term 1's P, keeps its X for the reader
+    assert reader.path.parent.name == "t0001" and reader.path.is_dir()
+    np.testing.assert_array_equal(reader.to_scipy().toarray(), before)
+    assert open_store(X).metadata["inverse"]["term"] == 3  # a new reader sees term 3
+    del reader
+    invert(T, X, terms=3, progress=False)  # held already: only cleans
+    assert terms_on_disk(X) == ["t0003"]
+
+
+@needs_flock
+def test_without_readers_only_the_current_term_stays(T, tmp_path):
+    X = tmp_path / "X.zarr"
+    invert(T, X, terms=3, progress=False)
+    assert terms_on_disk(X) == ["t0003"]
+
+
+@needs_flock
+def test_a_second_writer_is_refused_with_the_first_ones_pid(T, tmp_path, capsys):
+    X = tmp_path / "X.zarr"
+    invert(T, X, terms=1, progress=False)
+    before = open_store(X).to_scipy().toarray()
+    with WriterLock(X, command="bigT invert (test)"):
+        status = main(["invert", str(T.path), "-o", str(X), "--terms", "2", "-q"])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1
+    assert f"PID {os.getpid()}" in err and str(X) in err and "Traceback" not in err
+    np.testing.assert_array_equal(open_store(X).to_scipy().toarray(), before)
+    assert main(["invert", str(T.path), "-o", str(X), "--terms", "2", "-q"]) == 0
+
+
+def test_an_inverse_before_its_first_term_says_so(tmp_path):
+    X = tmp_path / "X.zarr"
+    store = InverseStore(X)
+    store.open_or_create({"T": "some"})
+    store.close()
+    with pytest.raises(IncompleteStoreError, match="first term is not finished"):
+        open_store(X)
