@@ -29,6 +29,8 @@ FULL = [
                        "--method", "power", "--memory-limit", "2GiB"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("compensate", ["bench_compensate.py"]),
+    ("stability", ["bench_stability.py"]),
+    ("reliability", ["bench_reliability.py"]),
 ]
 QUICK = [
     ("store", ["bench_store.py", "--n", "20000", "--nnz-per-row", "20"]),
@@ -38,6 +40,8 @@ QUICK = [
     ("out-of-core", ["bench_out_of_core.py", "--n", "32768", "--memory-limit", "2GiB"]),
     ("compensate", ["bench_compensate.py", "--size", "96x128", "--scene-size", "32x48",
                     "--frames", "64", "--no-splu"]),
+    ("stability", ["bench_stability.py", "--quick"]),
+    ("reliability", ["bench_reliability.py", "--quick"]),
 ]
 
 
