@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import uuid
 from glob import escape as glob_escape
 from pathlib import Path
@@ -30,15 +31,21 @@ def temporary_file_sibling(path: Path) -> Path:
 def _remove_dead_writers_files(path: Path) -> None:
     """Delete the temporary siblings of ``path`` that writers killed before their
     rename left (their PID, in the name, is gone)."""
+    ours = re.compile(rf"\.{re.escape(path.stem)}\.(\d+)\.[0-9a-f]{{8}}\.tmp"
+                      rf"{re.escape(path.suffix)}")
     for entry in path.parent.glob(f".{glob_escape(path.stem)}.*.tmp{glob_escape(path.suffix)}"):
-        pid = entry.name[len(path.stem) + 2:].split(".")[0]
-        if pid.isdigit() and not pid_alive(int(pid)):
+        match = ours.fullmatch(entry.name)
+        if match and not pid_alive(int(match.group(1))):
             with contextlib.suppress(OSError):
                 entry.unlink()
 
 
 def pid_alive(pid: int) -> bool:
-    """Whether process ``pid`` exists on this machine."""
+    """Whether process ``pid`` exists on this machine (always True on Windows, where
+    ``os.kill(pid, 0)`` would terminate it: litter is then left, never deleted under a
+    live writer)."""
+    if os.name == "nt":
+        return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -49,7 +56,10 @@ def pid_alive(pid: int) -> bool:
 
 
 def _fsync_path(path: Path, directory: bool = False) -> None:
-    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    # a file read-write (Windows flushes only handles open for writing); a directory
+    # read-only, where the platform has O_DIRECTORY
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) if directory else os.O_RDWR
+    fd = os.open(path, flags)
     try:
         os.fsync(fd)
     finally:

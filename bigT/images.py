@@ -181,7 +181,8 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None 
         raise ImageError(f"unknown image format {suffix!r} (use {', '.join(IMAGE_SUFFIXES)})", path)
     with atomic_output(path, "the image") as tmp:
         if suffix == ".npy":
-            np.save(tmp, pixels)
+            with open(tmp, "wb") as f:  # given a name, numpy appends ".npy" to ".NPY"
+                np.save(f, pixels)
         else:
             _iio_call("imwrite", tmp, pixels)
     return path

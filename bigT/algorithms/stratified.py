@@ -351,14 +351,13 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite)
     memory_limit = parse_bytes(memory_limit)
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
-    engine = None
+    store = InverseStore(out)
     try:
-        engine = _Engine(T, out, series, runner, opts, first_bounce, memory_limit)
+        engine = _Engine(T, store, series, runner, opts, first_bounce, memory_limit)
         return engine.run(t_start)
     finally:
         _let_go(runner, T, out)
-        if engine is not None:
-            engine.store.close()
+        store.close()  # the writer lock, whatever failed
 
 
 def _let_go(runner, T, out) -> None:
@@ -397,8 +396,8 @@ class _Engine:
     """One run of :func:`stratified_inverse`: the loop over terms, each term's passes
     handed to the runner, each finished term published in the inverse store."""
 
-    def __init__(self, T, out, series: SeriesMethod, runner, opts: _Options, first_bounce,
-                 memory_limit):
+    def __init__(self, T, store: InverseStore, series: SeriesMethod, runner, opts: _Options,
+                 first_bounce, memory_limit):
         self.T, self.series, self.runner, self.opts = T, series, runner, opts
         self.T_path = local_path(T.path, "transport T")  # as the workers will open it
         runner.check_paths([self.T_path])
@@ -408,11 +407,11 @@ class _Engine:
         self.fb = resolve_first_bounce(T, first_bounce)
         self.policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], _max_row_nnz(T))
         self.plans = runner.plans(self.policy)
-        self.store = InverseStore(out)
-        self.created = not os.path.exists(out) or opts.overwrite
+        self.store = store
+        self.created = not store.path.exists() or opts.overwrite
         self.record = self.store.open_or_create(
             _fingerprint(T, self.fb, opts.prune, series.name), overwrite=opts.overwrite)
-        runner.check_paths([out])
+        runner.check_paths([str(store.path)])
         if self.record.tile_size is None:
             ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads)
             self._save(self.record.replace(tile_size=ts, excluded_pixels=self.fb.excluded))
@@ -441,7 +440,7 @@ class _Engine:
             # refused (a diverging series) or stopped before any term was finished: an
             # output this run created holds nothing worth keeping
             if self.created and self.record.term is None:
-                shutil.rmtree(self.store.path, ignore_errors=True)
+                self.store.discard()
             raise
         stopped = self._extend(resumed_from)
         if self.record.dir is not None:

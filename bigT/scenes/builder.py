@@ -47,7 +47,6 @@ from ..storage.block_csr import atomic_write_json, group_json
 from ..storage.writer import (
     check_replaceable,
     move_into_place,
-    recover_interrupted_replace,
     temporary_sibling,
 )
 from ..spectral import SpectralRadius, spectral_radius
@@ -471,7 +470,6 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     stop = thr if thr > 0 else config.SCENE_NEUMANN_TOL
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
     path.parent.mkdir(parents=True, exist_ok=True)
-    recover_interrupted_replace(path)
     tmp = temporary_sibling(path)
     from ..progress import progress_bar
 
@@ -583,7 +581,6 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
         "preview": str(preview_path(path)) if preview else None,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    recover_interrupted_replace(path)
     tmp = temporary_sibling(path)
     try:
         from_scipy(sp.csr_array(T), tmp, tile_size=2, dtype=dtype, image_shape=(2, 2))

@@ -139,10 +139,12 @@ def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
 
         recover_interrupted_replace(root)  # a replace killed half way: the old store back
     for _attempt in range(_LEASE_ATTEMPTS):
+        lease = ReaderLease(root)  # before reading: the store stays while it is held
         attrs = _read_bigt_attrs(root)
         if "redirect" not in attrs:
             return BlockCSR(root, StoreAttrs.from_dict(attrs, root),
-                            allow_incomplete=allow_incomplete, lease=ReaderLease(root))
+                            allow_incomplete=allow_incomplete, lease=lease)
+        lease.release()
         target = _check_redirect(attrs["redirect"], root)
         # the lease keeps the term from being deleted while this reader holds it
         lease = ReaderLease(target)

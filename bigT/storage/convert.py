@@ -76,6 +76,11 @@ def _read(path: Path, kind: str, var: str | None):
 def _load_npz(path: Path):
     """A scipy ``save_npz`` file; an archive of other arrays (``numpy.savez``) is
     refused with the names it holds."""
+    import zipfile
+
+    if not zipfile.is_zipfile(path):  # else numpy says "pickled (object) data"
+        raise StoreError("cannot read as .npz (not a zip archive: truncated, or another "
+                         "format)", path)
     with np.load(path, allow_pickle=False) as archive:
         names = list(archive.files)
     if "format" not in names:
@@ -170,9 +175,11 @@ def save_matrix(A, path) -> Path:
     kind = _suffix(path, OUTPUT_SUFFIXES)
     if kind is None:
         raise StoreError(f"unknown output format (known: {', '.join(OUTPUT_SUFFIXES)})", path)
-    with atomic_output(path, "the exported matrix") as tmp:
+    # through a file object: given a name, numpy and scipy append a lower-case suffix
+    # to one they do not recognise (OUT.NPZ)
+    with atomic_output(path, "the exported matrix") as tmp, open(tmp, "wb") as f:
         if kind == ".npz":
-            sp.save_npz(tmp, sp.csr_array(A), compressed=True)
+            sp.save_npz(f, sp.csr_array(A), compressed=True)
         else:
-            scipy.io.mmwrite(tmp, sp.coo_array(A))
+            scipy.io.mmwrite(f, sp.coo_array(A))
     return path

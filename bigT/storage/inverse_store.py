@@ -11,12 +11,14 @@ the two renames is repaired on the next open (:meth:`InverseStore.reconcile`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
 import os
 import re
 import shutil
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -34,7 +36,14 @@ from .block_csr import (
     set_redirect,
 )
 from .block_csr import open as open_store
-from .locks import READER_LEASE, WRITER_LOCK, WriterLock, create_reader_lease, remove_unless_read
+from .locks import (
+    READER_LEASE,
+    WRITER_LOCK,
+    WriterLock,
+    create_reader_lease,
+    remove_trash,
+    remove_unless_read,
+)
 from .writer import (
     clean_partial_rows,
     create_store,
@@ -191,6 +200,16 @@ class InverseStore:
         """Release the writer lock (:meth:`open_or_create` took it)."""
         self.lock.release()
 
+    def discard(self) -> None:
+        """Delete the whole store (one this run created and finished no term in),
+        renamed away first: a crash during the deletion leaves nothing under its name
+        (the next writer deletes the trash)."""
+        trash = self.path.with_name(f".{self.path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.trash")
+        with contextlib.suppress(FileNotFoundError):
+            os.rename(self.path, trash)
+        self.lock.release()
+        shutil.rmtree(trash, ignore_errors=True)
+
     # --- the record --------------------------------------------------------------
 
     def _root(self) -> dict | None:
@@ -225,10 +244,19 @@ class InverseStore:
             ``path`` holds something else, or an inverse with other parameters.
         """
         params = jsonable(params)
+        recover_interrupted_replace(self.path)  # trash a killed discard() left beside it
         self._refuse_foreign()
         self.path.mkdir(parents=True, exist_ok=True)
         self.lock.acquire()  # a second writer is refused here, before any change
+        try:
+            return self._open_locked(params, overwrite)
+        except BaseException:
+            self.lock.release()  # else held as long as the traceback lives
+            raise
+
+    def _open_locked(self, params: dict, overwrite: bool) -> InverseRecord:
         remove_stale_temp_files(self.path)
+        remove_trash(self.path)
         record = self.read_record()
         if overwrite and record is not None:
             self._delete_contents()
@@ -245,7 +273,10 @@ class InverseStore:
                              "resume, pass overwrite=True to start anew, or choose another "
                              "path", self.path)
         self._check_term_held(record)
-        return self.reconcile(record)
+        record = self.reconcile(record)
+        if record.dir is not None:  # made before leases existed, or by a crash after
+            create_reader_lease(self.term_path(record.dir, "X"))
+        return record
 
     def _check_term_held(self, record: InverseRecord) -> None:
         """A record naming a term whose X is not on disk is damaged (a crash never
@@ -268,15 +299,16 @@ class InverseStore:
                              "or delete it", self.path)
 
     def _delete_contents(self) -> None:
-        """Everything but the writer lock (held), the record last."""
+        """Everything but the writer lock (held). The terms are renamed away first (a
+        crash then leaves no old term under a name a new run would take up), then the
+        record goes, then the trash."""
         for entry in self.path.iterdir():
-            if entry.name == WRITER_LOCK or entry.name == "zarr.json":
-                continue
-            if entry.is_dir():
-                shutil.rmtree(entry)
-            else:
-                entry.unlink()
+            if _TERM_DIR.fullmatch(entry.name):
+                os.rename(entry, self.path / f".{entry.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.trash")
         (self.path / "zarr.json").unlink(missing_ok=True)
+        for entry in self.path.iterdir():
+            if entry.name != WRITER_LOCK:
+                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
 
     def reconcile(self, record: InverseRecord) -> InverseRecord:
         """Adopt the term the redirect points at when the record lags behind it (a
@@ -342,6 +374,7 @@ class InverseStore:
             m = _TERM_DIR.fullmatch(entry.name)
             if m and int(m.group(1)) not in keep:
                 remove_unless_read(entry)
+        remove_trash(self.path)
 
     def drop_term(self, k: int) -> None:
         """Delete term ``k``'s directory, or, while a reader holds its X, all of it
@@ -355,7 +388,8 @@ class InverseStore:
 
 
 def _our_litter(name: str) -> bool:
-    """What a run killed before its first record leaves: the writer lock, a
-    temporary record file."""
-    return name == WRITER_LOCK or (name.startswith(".zarr.json.") and name.endswith(".tmp"))
+    """What a run killed before its first record (or during ``--overwrite``) leaves:
+    the writer lock, a temporary record file, old terms renamed to trash."""
+    return (name == WRITER_LOCK or name.endswith(".trash")
+            or (name.startswith(".zarr.json.") and name.endswith(".tmp")))
 

@@ -18,10 +18,12 @@ the user's to ensure.
 
 from __future__ import annotations
 
-import contextlib
+import errno
 import os
 import shutil
 import time
+import uuid
+import warnings
 from pathlib import Path
 
 from ..errors import StoreError
@@ -31,13 +33,49 @@ try:
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
+#: errno values of a file system without flock (Lustre's noflock, NFS without lockd):
+#: locking is then skipped, with a warning, rather than failing every open.
+_NO_LOCKING = {errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL}
+
+
+def _flock(fd: int, operation: int) -> bool:
+    """``flock(fd, operation)``; False (and a warning) where the file system has no
+    locks. BlockingIOError (held by another) propagates."""
+    try:
+        fcntl.flock(fd, operation)
+        return True
+    except BlockingIOError:
+        raise
+    except OSError as exc:
+        if exc.errno not in _NO_LOCKING:
+            raise
+        warnings.warn("this file system has no flock: bigT cannot stop a second writer "
+                      "or keep a reader's term from deletion here", stacklevel=3)
+        return False
+
+
 #: The writer lock's file, in the root of an inverse store.
 WRITER_LOCK = ".bigT-writer.lock"
 #: The reader lease's file, in a published term's X store.
 READER_LEASE = ".bigT-readers"
 
 
-class WriterLock:
+class _HeldFile:
+    """A file descriptor whose ``flock`` lasts as long as it is open: closed by
+    :meth:`release`, or when the object is collected."""
+
+    _fd: int | None = None
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __del__(self):
+        self.release()
+
+
+class WriterLock(_HeldFile):
     """An exclusive, non-blocking lock on ``root/WRITER_LOCK``.
 
     Parameters
@@ -56,26 +94,22 @@ class WriterLock:
             return self
         fd = os.open(self.file, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.read(fd, 200).decode(errors="replace").strip() or "another process"
             os.close(fd)
             raise StoreError(f"is being written by {holder}; wait for it to finish or stop "
                              "it (a second writer would corrupt it)", self.file.parent) from None
+        except BaseException:
+            os.close(fd)
+            raise
         os.ftruncate(fd, 0)
         os.write(fd, f"{self.command} (PID {os.getpid()}, since "
                      f"{time.strftime('%Y-%m-%d %H:%M:%S')})".encode())
         self._fd = fd
         return self
 
-    def release(self) -> None:
-        """Drop the lock (the file stays: unlinking it would race a waiting writer)."""
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
-
-    def __del__(self):
-        self.release()
+    # release() drops the lock; the file stays (unlinking it would race a waiting writer)
 
     def __enter__(self) -> "WriterLock":
         return self.acquire()
@@ -84,7 +118,7 @@ class WriterLock:
         self.release()
 
 
-class ReaderLease:
+class ReaderLease(_HeldFile):
     """A shared lock on ``store/READER_LEASE`` while a reader holds the store open;
     a no-op for stores without the file (every store but a published term's X).
 
@@ -95,24 +129,20 @@ class ReaderLease:
     def __init__(self, store: str | os.PathLike):
         self._fd: int | None = None
         self.valid = True
-        file = Path(os.fspath(store)) / READER_LEASE
-        if fcntl is None:
-            return
-        try:
-            fd = os.open(file, os.O_RDONLY)
-        except OSError:
-            return
-        fcntl.flock(fd, fcntl.LOCK_SH)  # the writer holds it exclusively only to delete
-        self._fd = fd
-        self.valid = (Path(os.fspath(store)) / "zarr.json").exists()
-
-    def release(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
-
-    def __del__(self):
-        self.release()
+        store = Path(os.fspath(store))
+        if fcntl is not None:
+            try:
+                self._fd = os.open(store / READER_LEASE, os.O_RDONLY)
+            except FileNotFoundError:
+                pass  # a store without readers' leases, or one being deleted: see below
+            else:
+                # blocks only while the writer holds it exclusively, to delete the term
+                _flock(self._fd, fcntl.LOCK_SH)
+        # the writer deletes a term after renaming it away: gone means deleted, and the
+        # reader opens the redirect again
+        self.valid = (store / "zarr.json").exists()
+        if not self.valid:
+            self.release()
 
 
 def create_reader_lease(store: str | os.PathLike) -> None:
@@ -123,6 +153,11 @@ def create_reader_lease(store: str | os.PathLike) -> None:
 def remove_unless_read(directory: str | os.PathLike) -> bool:
     """Delete ``directory`` unless a reader holds a lease on a store inside it.
 
+    With every lease held exclusively, the directory is first renamed to a hidden
+    ``.NAME.PID.HEX.trash`` sibling (one atomic step: a reader that then takes a lease
+    finds the store gone and opens the redirect again, never a half-deleted store),
+    then deleted. Trash of writers killed meanwhile goes with :func:`remove_trash`.
+
     Returns
     -------
     bool
@@ -131,18 +166,35 @@ def remove_unless_read(directory: str | os.PathLike) -> bool:
     directory = Path(os.fspath(directory))
     held: list[int] = []
     try:
+        for file in directory.glob(f"*/{READER_LEASE}"):
+            try:
+                # read-write: NFS emulates flock with byte-range locks, whose exclusive
+                # form needs a descriptor open for writing
+                held.append(os.open(file, os.O_RDWR))
+            except FileNotFoundError:
+                continue
+            if fcntl is not None:
+                _flock(held[-1], fcntl.LOCK_EX | fcntl.LOCK_NB)
+        trash = directory.with_name(
+            f".{directory.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.trash")
         try:
-            for file in directory.rglob(READER_LEASE):
-                held.append(os.open(file, os.O_RDONLY))
-                if fcntl is not None:
-                    fcntl.flock(held[-1], fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return False
-        except OSError:
-            pass  # a lease file deleted meanwhile: nobody can hold it
-        # deleted with the leases held, so no reader opens it half deleted
-        shutil.rmtree(directory, ignore_errors=True)
+            os.rename(directory, trash)
+        except FileNotFoundError:
+            return True
+    except BlockingIOError:
+        return False
     finally:
         for fd in held:
             os.close(fd)
-    return not directory.exists()
+    shutil.rmtree(trash, ignore_errors=True)
+    return True
+
+
+def remove_trash(parent: str | os.PathLike) -> None:
+    """Delete the ``.trash`` directories in ``parent`` whose writer is gone."""
+    from ..atomic import pid_alive
+
+    for entry in Path(os.fspath(parent)).glob(".*.trash"):
+        pid = entry.name.rsplit(".", 3)[-3] if entry.name.count(".") >= 3 else ""
+        if pid.isdigit() and not pid_alive(int(pid)):
+            shutil.rmtree(entry, ignore_errors=True)

@@ -69,7 +69,9 @@ def _remove_existing(path: Path, overwrite: bool) -> None:
 
 def check_replaceable(path: Path, overwrite: bool) -> None:
     """Refuse an existing ``path`` unless ``overwrite``, and refuse to replace anything
-    that is not a bigT store (or an empty directory) even then. Deletes nothing."""
+    that is not a bigT store (or an empty directory) even then. Deletes nothing of
+    the user's (a replace killed half way is recovered first: the old store back)."""
+    recover_interrupted_replace(path)
     if path.exists():
         if not overwrite:
             raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
@@ -99,13 +101,17 @@ def move_into_place(tmp: Path, path: Path) -> None:
     if not path.exists():
         os.replace(tmp, path)
         return
-    trash = _hidden_sibling(path, "old")
-    os.replace(path, trash)
+    old = _hidden_sibling(path, "old")
+    os.replace(path, old)
     try:
         os.replace(tmp, path)
     except BaseException:
-        os.replace(trash, path)
+        os.replace(old, path)
         raise
+    # renamed again before the deletion: a ".old" is always whole (restorable), a
+    # ".trash" may be half deleted (never restored)
+    trash = old.with_name(old.name[:-len("old")] + "trash")
+    os.replace(old, trash)
     shutil.rmtree(trash, ignore_errors=True)
 
 
@@ -122,8 +128,8 @@ def _dead_writers_siblings(path: Path, kind: str) -> list[Path]:
 def recover_interrupted_replace(path) -> None:
     """Undo what a writer killed during :func:`move_into_place` or while building a
     replacement left beside ``path``: a missing ``path`` gets its old store back from
-    the ``.old`` sibling; ``.old`` and ``.partial`` siblings of dead writers are
-    deleted. Siblings of writers still running are left alone."""
+    the ``.old`` sibling; ``.old``, ``.partial`` and ``.trash`` siblings of dead
+    writers are deleted. Siblings of writers still running are left alone."""
     path = Path(os.fspath(path))
     if not path.parent.is_dir():
         return
@@ -131,7 +137,8 @@ def recover_interrupted_replace(path) -> None:
     if old and not path.exists():
         with contextlib.suppress(OSError):  # another process may have restored it
             os.rename(old.pop(0), path)
-    for entry in old + _dead_writers_siblings(path, "partial"):
+    for entry in old + _dead_writers_siblings(path, "partial") + _dead_writers_siblings(
+            path, "trash"):
         shutil.rmtree(entry, ignore_errors=True)
 
 
@@ -637,7 +644,6 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     A.eliminate_zeros()
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    recover_interrupted_replace(path)
     tmp = temporary_sibling(path)
     try:
         with _deleted_on_failure(tmp, path, "the store"):

@@ -80,6 +80,7 @@ def choose(kinds: list[str], sample: int, every_point: bool) -> list[int]:
 
 def check_invert(tmp: Path, sample: int = 1, every_point: bool = False) -> CrashResult:
     """Crash a 2-term invert of a 64 x 64 T (4 x 4 tiles) and resume it."""
+    tmp.mkdir(parents=True, exist_ok=True)
     store(tmp, random_dominant(64, seed=1), "T.zarr", tile_size=16)
     argv = lambda out: ["invert", str(tmp / "T.zarr"), "-o", str(out), "--terms", "2", "-q"]
     assert main(argv(tmp / "warm.zarr")) == 0  # children start with everything imported
@@ -104,6 +105,7 @@ def check_invert(tmp: Path, sample: int = 1, every_point: bool = False) -> Crash
 
 
 def _matrix_file(tmp: Path, name: str, seed: int) -> tuple[Path, np.ndarray]:
+    tmp.mkdir(parents=True, exist_ok=True)
     A = random_dominant(48, seed=seed)
     path = tmp / name
     sp.save_npz(path, sp.csr_array(A))

@@ -75,3 +75,40 @@ def test_an_inverse_before_its_first_term_says_so(tmp_path):
     store.close()
     with pytest.raises(IncompleteStoreError, match="first term is not finished"):
         open_store(X)
+
+
+@needs_flock
+def test_a_reader_whose_term_is_deleted_before_its_lease_opens_the_new_term(T, tmp_path,
+                                                                            monkeypatch):
+    """The race the lease cannot close alone: the reader resolved the redirect to term 1,
+    then the writer moved on and deleted term 1 before the reader took its lease."""
+    from bigT.storage import block_csr
+
+    X = tmp_path / "X.zarr"
+    invert(T, X, terms=1, progress=False)
+    real_lease = block_csr.ReaderLease
+    raced = []
+
+    def lease_after_the_writer_moved_on(store):
+        if not raced and Path(store).parent.name.startswith("t0"):  # a term, not the root
+            raced.append(Path(store))
+            invert(T, X, terms=2, progress=False)  # publishes term 2, deletes term 1
+        return real_lease(store)
+
+    monkeypatch.setattr(block_csr, "ReaderLease", lease_after_the_writer_moved_on)
+    reader = open_store(X)
+    assert raced[0].parent.name == "t0001" and not raced[0].exists()
+    assert reader.metadata["inverse"]["term"] == 2
+
+
+def test_a_refused_run_lets_go_of_the_writer_lock(T, tmp_path):
+    from bigT.errors import StoreError
+
+    X = tmp_path / "X.zarr"
+    invert(T, X, terms=1, prune=1e-5, progress=False)
+    with pytest.raises(StoreError, match="different prune") as refused:
+        invert(T, X, terms=1, prune=1e-4, progress=False)
+    # the traceback (and its frames) still alive: the lock must not be
+    assert refused.value is not None
+    report = invert(T, X, terms=1, prune=1e-4, progress=False, overwrite=True)
+    assert report.terms == 1

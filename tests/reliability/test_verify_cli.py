@@ -63,3 +63,11 @@ def test_damage_off_the_diagonal_is_found_where_info_sees_none(S, capsys, damage
     status, out, err = verify(S.path, capsys)
     assert status == 2 and out == "" and err.count("\n") == 1
     assert str(S.path) in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("name", ["X.NPZ", "X.MTX"])
+def test_export_to_an_upper_case_suffix_writes_that_file_and_nothing_else(S, tmp_path, name):
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["export", str(S.path), "-o", str(out / name), "-q"]) == 0
+    assert [p.name for p in out.iterdir()] == [name]
