@@ -117,10 +117,11 @@ def _check_reciprocal(f: np.ndarray, active: np.ndarray, dtype, what: str, path)
     small = np.flatnonzero(active & (np.abs(f) < 1.0 / np.finfo(dtype).max) & (f != 0))
     if len(small):
         i = small[0]
+        wider = "" if dtype == np.float64 else " or store it as float64"
         raise InvalidMatrixError(
             f"{what} has {len(small)} entries too small for {dtype.name} (first at index "
             f"{i}, value {f[i]:.3g}): F^-1 = 1/{what} overflows; scale T (its inverse "
-            "scales exactly) or store it as float64", path)
+            f"scales exactly){wider}", path)
 
 
 def resolve_first_bounce(T, spec="diag") -> FirstBounce:
