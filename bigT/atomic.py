@@ -22,22 +22,39 @@ from typing import Iterator
 from .errors import DiskFullError, OutputError
 
 
+def hidden_sibling(path: Path, kind: str, name: str | None = None) -> Path:
+    """A fresh hidden name beside ``path``: ``.NAME.PID.HEX.KIND``, NAME default
+    ``path``'s. The writer's PID in it tells a later run whether the writer is alive
+    (:func:`dead_writers_siblings`); every temporary name bigT makes has this form."""
+    name = path.name if name is None else name
+    return path.with_name(f".{name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.{kind}")
+
+
+def dead_writers_siblings(parent: Path, kind: str, name: str | None = None) -> list[Path]:
+    """The :func:`hidden_sibling` names of ``kind`` in ``parent`` (of ``name`` only,
+    when given) whose writer process is gone, newest first."""
+    pattern = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]+\." + re.escape(kind))
+    found = []
+    for entry in Path(parent).glob(f".{glob_escape(name) if name else '*'}.*.{glob_escape(kind)}"):
+        match = pattern.fullmatch(entry.name)
+        if (match and (name is None or match["name"] == name)
+                and not pid_alive(int(match["pid"]))):
+            found.append(entry)
+    return sorted(found, key=lambda p: p.lstat().st_mtime, reverse=True)
+
+
 def temporary_file_sibling(path: Path) -> Path:
     """A fresh hidden name beside ``path`` that keeps its suffix (writers such as
     imageio and matplotlib choose the format from it)."""
-    return path.with_name(f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
+    return hidden_sibling(path, f"tmp{path.suffix}", name=path.stem)
 
 
 def _remove_dead_writers_files(path: Path) -> None:
     """Delete the temporary siblings of ``path`` that writers killed before their
-    rename left (their PID, in the name, is gone)."""
-    ours = re.compile(rf"\.{re.escape(path.stem)}\.(\d+)\.[0-9a-f]{{8}}\.tmp"
-                      rf"{re.escape(path.suffix)}")
-    for entry in path.parent.glob(f".{glob_escape(path.stem)}.*.tmp{glob_escape(path.suffix)}"):
-        match = ours.fullmatch(entry.name)
-        if match and not pid_alive(int(match.group(1))):
-            with contextlib.suppress(OSError):
-                entry.unlink()
+    rename left."""
+    for entry in dead_writers_siblings(path.parent, f"tmp{path.suffix}", name=path.stem):
+        with contextlib.suppress(OSError):
+            entry.unlink()
 
 
 def pid_alive(pid: int) -> bool:

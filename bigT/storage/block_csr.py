@@ -18,7 +18,7 @@ import zarr
 from zarr.storage import LocalStore
 
 from .. import config
-from ..atomic import pid_alive
+from ..atomic import dead_writers_siblings, hidden_sibling
 from ..errors import (
     BigTError,
     CorruptStoreError,
@@ -41,7 +41,7 @@ def atomic_write_json(path: Path, obj: dict) -> None:
     the tile-row completion markers and metadata updates atomic.
     """
     text = json.dumps(obj, indent=2, allow_nan=False)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{id(obj):x}.tmp")
+    tmp = hidden_sibling(path, "tmp")
     try:
         with io.open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
@@ -61,12 +61,10 @@ def remove_stale_temp_files(directory: Path) -> int:
     in ``directory`` whose writer process is gone (killed between writing and
     renaming). Returns how many were deleted."""
     gone = 0
-    for entry in Path(directory).glob(".*.tmp"):
-        fields = entry.name[1:].rsplit(".", 3)
-        if len(fields) == 4 and fields[1].isdigit() and not pid_alive(int(fields[1])):
-            with contextlib.suppress(OSError):
-                entry.unlink()
-                gone += 1
+    for entry in dead_writers_siblings(Path(directory), "tmp"):
+        with contextlib.suppress(OSError):
+            entry.unlink()
+            gone += 1
     return gone
 
 

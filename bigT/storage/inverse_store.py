@@ -18,13 +18,13 @@ import math
 import os
 import re
 import shutil
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from ..atomic import hidden_sibling
 from ..errors import StoreError
 from . import _format as fmt
 from .attrs import StoreAttrs
@@ -204,7 +204,7 @@ class InverseStore:
         """Delete the whole store (one this run created and finished no term in),
         renamed away first: a crash during the deletion leaves nothing under its name
         (the next writer deletes the trash)."""
-        trash = self.path.with_name(f".{self.path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.trash")
+        trash = hidden_sibling(self.path, "trash")
         with contextlib.suppress(FileNotFoundError):
             os.rename(self.path, trash)
         self.lock.release()
@@ -304,7 +304,7 @@ class InverseStore:
         record goes, then the trash."""
         for entry in self.path.iterdir():
             if _TERM_DIR.fullmatch(entry.name):
-                os.rename(entry, self.path / f".{entry.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.trash")
+                os.rename(entry, hidden_sibling(entry, "trash"))
         (self.path / "zarr.json").unlink(missing_ok=True)
         for entry in self.path.iterdir():
             if entry.name != WRITER_LOCK:

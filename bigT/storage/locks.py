@@ -22,10 +22,10 @@ import errno
 import os
 import shutil
 import time
-import uuid
 import warnings
 from pathlib import Path
 
+from ..atomic import dead_writers_siblings, hidden_sibling
 from ..errors import StoreError
 
 try:
@@ -175,8 +175,7 @@ def remove_unless_read(directory: str | os.PathLike) -> bool:
                 continue
             if fcntl is not None:
                 _flock(held[-1], fcntl.LOCK_EX | fcntl.LOCK_NB)
-        trash = directory.with_name(
-            f".{directory.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.trash")
+        trash = hidden_sibling(directory, "trash")
         try:
             os.rename(directory, trash)
         except FileNotFoundError:
@@ -192,9 +191,5 @@ def remove_unless_read(directory: str | os.PathLike) -> bool:
 
 def remove_trash(parent: str | os.PathLike) -> None:
     """Delete the ``.trash`` directories in ``parent`` whose writer is gone."""
-    from ..atomic import pid_alive
-
-    for entry in Path(os.fspath(parent)).glob(".*.trash"):
-        pid = entry.name.rsplit(".", 3)[-3] if entry.name.count(".") >= 3 else ""
-        if pid.isdigit() and not pid_alive(int(pid)):
-            shutil.rmtree(entry, ignore_errors=True)
+    for entry in dead_writers_siblings(Path(os.fspath(parent)), "trash"):
+        shutil.rmtree(entry, ignore_errors=True)

@@ -9,14 +9,13 @@ import os
 import shutil
 import uuid
 from contextlib import contextmanager
-from glob import escape as glob_escape
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..atomic import pid_alive
+from ..atomic import dead_writers_siblings, hidden_sibling
 from ..errors import (
     BigTError,
     DiskFullError,
@@ -79,14 +78,9 @@ def check_replaceable(path: Path, overwrite: bool) -> None:
             raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
 
 
-def _hidden_sibling(path: Path, kind: str) -> Path:
-    # the writer's PID in the name tells a later run whether its writer is alive
-    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.{kind}")
-
-
 def temporary_sibling(path: Path) -> Path:
     """A fresh hidden directory name beside ``path`` to build a replacement in."""
-    return _hidden_sibling(Path(path), "partial")
+    return hidden_sibling(Path(path), "partial")
 
 
 def move_into_place(tmp: Path, path: Path) -> None:
@@ -101,7 +95,7 @@ def move_into_place(tmp: Path, path: Path) -> None:
     if not path.exists():
         os.replace(tmp, path)
         return
-    old = _hidden_sibling(path, "old")
+    old = hidden_sibling(path, "old")
     os.replace(path, old)
     try:
         os.replace(tmp, path)
@@ -115,16 +109,6 @@ def move_into_place(tmp: Path, path: Path) -> None:
     shutil.rmtree(trash, ignore_errors=True)
 
 
-def _dead_writers_siblings(path: Path, kind: str) -> list[Path]:
-    """Hidden ``kind`` siblings of ``path`` whose writer process is gone, newest first."""
-    found = []
-    for entry in path.parent.glob(f".{glob_escape(path.name)}.*.{kind}"):
-        parts = entry.name[len(path.name) + 2:].split(".")
-        if len(parts) == 3 and parts[0].isdigit() and not pid_alive(int(parts[0])):
-            found.append(entry)
-    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
-
-
 def recover_interrupted_replace(path) -> None:
     """Undo what a writer killed during :func:`move_into_place` or while building a
     replacement left beside ``path``: a missing ``path`` gets its old store back from
@@ -133,12 +117,13 @@ def recover_interrupted_replace(path) -> None:
     path = Path(os.fspath(path))
     if not path.parent.is_dir():
         return
-    old = _dead_writers_siblings(path, "old")
+    old = dead_writers_siblings(path.parent, "old", path.name)
     if old and not path.exists():
         with contextlib.suppress(OSError):  # another process may have restored it
             os.rename(old.pop(0), path)
-    for entry in old + _dead_writers_siblings(path, "partial") + _dead_writers_siblings(
-            path, "trash"):
+    for kind in ("partial", "trash"):
+        old += dead_writers_siblings(path.parent, kind, path.name)
+    for entry in old:
         shutil.rmtree(entry, ignore_errors=True)
 
 
