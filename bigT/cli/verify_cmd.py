@@ -26,6 +26,7 @@ def verify_cmd(args) -> int:
     checked = S.verify(progress=not args.no_progress)
     via = f" (term {S.metadata['inverse'].get('term')} of {S.redirected_from})" \
         if S.redirected_from is not None and "inverse" in S.metadata else ""
-    print(f"{S.path}{via}: OK, {checked['tiles']} tiles, {checked['nnz']} entries, "
+    tiles = f"{checked['tiles']} tile" + ("s" if checked["tiles"] != 1 else "")
+    print(f"{S.path}{via}: OK, {tiles}, {checked['nnz']} entries, "
           f"every checksum and row marker checked in {time.perf_counter() - t0:.1f} s")
     return 0
