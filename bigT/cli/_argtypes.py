@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
-from typing import Callable
+from typing import Any, Callable
 
 __all__ = ["integer", "number", "memory_size", "image_size", "scheduler_address",
            "clip_range", "density"]
@@ -30,6 +30,24 @@ def _range_words(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
     if hi is None:
         return f"{'>' if lo_open else '>='} {lo:g}"
     return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+
+
+def _checked(convert, in_range, what: str, name: str, shown) -> Callable[[str], Any]:
+    """The parser of :func:`integer` and :func:`number`: ``convert`` the stripped text,
+    then require ``in_range``; ``shown(value, text)`` is how a value out of range is
+    quoted in the message."""
+
+    def parse(text: str):
+        try:
+            value = convert(text.strip())
+        except ValueError:
+            raise _fail(f"must be {what}, got {text!r}") from None
+        if not in_range(value):
+            raise _fail(f"must be {what}, got {shown(value, text)}")
+        return value
+
+    parse.__name__ = name
+    return parse
 
 
 def integer(lo: int, hi: int | None = None) -> Callable[[str], int]:
@@ -46,18 +64,9 @@ def integer(lo: int, hi: int | None = None) -> Callable[[str], int]:
         ``str -> int``, raising ``ArgumentTypeError`` for anything else.
     """
     what = f"an integer {_range_words(lo, hi)}"
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text.strip())
-        except ValueError:
-            raise _fail(f"must be {what}, got {text!r}") from None
-        if value < lo or (hi is not None and value > hi):
-            raise _fail(f"must be {what}, got {value}")
-        return value
-
-    parse.__name__ = f"integer {_range_words(lo, hi)}"
-    return parse
+    in_range = (lambda value: lo <= value and (hi is None or value <= hi))
+    return _checked(int, in_range, what, f"integer {_range_words(lo, hi)}",
+                    lambda value, text: value)
 
 
 def number(lo: float, hi: float | None = None, *, lo_open: bool = False,
@@ -76,19 +85,12 @@ def number(lo: float, hi: float | None = None, *, lo_open: bool = False,
     """
     what = f"a finite number {_range_words(lo, hi, lo_open, hi_open)}"
 
-    def parse(text: str) -> float:
-        try:
-            value = float(text.strip())
-        except ValueError:
-            raise _fail(f"must be {what}, got {text!r}") from None
+    def in_range(value: float) -> bool:
         below = value <= lo if lo_open else value < lo
         above = hi is not None and (value >= hi if hi_open else value > hi)
-        if not math.isfinite(value) or below or above:
-            raise _fail(f"must be {what}, got {text.strip()!r}")
-        return value
+        return math.isfinite(value) and not below and not above
 
-    parse.__name__ = what
-    return parse
+    return _checked(float, in_range, what, what, lambda v, text: repr(text.strip()))
 
 
 #: Multipliers of the memory units; SI prefixes are powers of 1000, binary (Ki, Mi,

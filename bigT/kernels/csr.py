@@ -550,29 +550,29 @@ def add_diag_scaled(A, d, B):
 
 def scale_rows(A, d):
     """diag(d) @ A. d: (m,). Returns csr_array, dtype = promotion of A and d."""
-    d = _vector(d, A.shape[0] if sp.issparse(A) else -1, "d", "one factor per row")
-    fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
-    a = _as_csr(A, "A", dtype=fdt)
-    d = np.ascontiguousarray(d, fdt)
-    if _small_enough(a.nnz):
-        out = _small.scale_rows(a.indptr, a.data, d)
-    else:
-        out = np.empty_like(a.data)
-        _numba().scale_rows_internal(a.indptr, a.data, d, out)
-    return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
+    return _scaled(A, d, axis=0)
 
 
 def scale_cols(A, d):
     """A @ diag(d). d: (n,). Returns csr_array, dtype = promotion of A and d."""
-    d = _vector(d, A.shape[1] if sp.issparse(A) else -1, "d", "one factor per column")
+    return _scaled(A, d, axis=1)
+
+
+def _scaled(A, d, axis: int):
+    """Each stored entry of A times d of its row (axis 0) or column (axis 1)."""
+    d = _vector(d, A.shape[axis] if sp.issparse(A) else -1, "d",
+                "one factor per row" if axis == 0 else "one factor per column")
     fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
     a = _as_csr(A, "A", dtype=fdt)
     d = np.ascontiguousarray(d, fdt)
+    # rows are found through indptr, columns through indices
+    where = a.indptr if axis == 0 else a.indices
     if _small_enough(a.nnz):
-        out = _small.scale_cols(a.indices, a.data, d)
+        out = (_small.scale_rows if axis == 0 else _small.scale_cols)(where, a.data, d)
     else:
         out = np.empty_like(a.data)
-        _numba().scale_cols_internal(a.indices, a.data, d, out)
+        kernel = _numba().scale_rows_internal if axis == 0 else _numba().scale_cols_internal
+        kernel(where, a.data, d, out)
     return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
 
 
