@@ -140,3 +140,15 @@ MEMORY_MIN_WORK_BYTES = 24 << 20
 #: cache's share and the shared right factor's share; the rest goes to the tasks.
 MEMORY_CACHE_SHARE = 0.35
 MEMORY_WHOLE_SHARE = 0.35
+
+# --- acquisition (bigT.acquisition) ------------------------------------------------
+#: A camera pixel belongs to the projector super-pixel with its largest response only
+#: when that response is at least this share of what it receives under an all-white
+#: pattern: pixels lit by interreflection alone (no super-pixel dominates) are left out.
+ACQUIRE_MIN_DIRECT_SHARE = 0.2
+#: Default noise floor of T's entries, in units of the noise of one camera super-pixel
+#: (the black capture's robust pixel noise over the square root of the mean group size).
+ACQUIRE_FLOOR_SIGMAS = 3.0
+#: Memory for the entries of T gathered at once (a pass over the captures fills the
+#: tile rows that fit; more passes when they do not).
+ACQUIRE_MEMORY_BYTES = 1 << 30

@@ -65,6 +65,12 @@ class ImageError(BigTError):
     """An image that cannot be used: wrong size, wrong channel count, NaN."""
 
 
+class AcquisitionError(BigTError):
+    """Patterns or captures that cannot make a transport matrix: a missing or extra
+    capture, one of the wrong size or bit depth, a manifest of another projector,
+    captures that are all black."""
+
+
 class DiskFullError(BigTError):
     """The disk filled while writing; what was complete before is kept."""
 

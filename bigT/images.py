@@ -133,22 +133,25 @@ def read_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> n
     -------
     ndarray, shape (H, W), float64
     """
+    return check_image(read_raw_image(path), path, shape)
+
+
+def read_raw_image(path: str | os.PathLike) -> np.ndarray:
+    """The pixels of an image file as stored (uint8, uint16, floats...), unchecked;
+    :func:`read_image` is this and :func:`check_image`. Acquisition needs the stored
+    type to check bit depths and find saturated pixels."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in IMAGE_SUFFIXES:
         raise ImageError(f"unknown image format {suffix!r} (use {', '.join(IMAGE_SUFFIXES)})", path)
     try:
         if suffix == ".npy":
-            raw = np.load(path, allow_pickle=False)
-        else:
-            raw = _iio_call("imread", path)
+            return np.load(path, allow_pickle=False)
+        return _iio_call("imread", path)
     except FileNotFoundError:
         raise ImageError("no such file", path) from None
-    except ImageError:
-        raise
     except Exception as exc:  # imageio/pillow/numpy raise many types on a damaged file
         raise ImageError(f"cannot read the image ({short_reason(exc, path)})", path) from None
-    return check_image(raw, path, shape)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None = None) -> Path:

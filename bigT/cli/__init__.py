@@ -117,6 +117,7 @@ COMMAND_MODULES = (
     "bigT.cli.store_cmds",     # convert, export, info
     "bigT.cli.verify_cmd",     # verify
     "bigT.cli.scene_cmd",      # scene
+    "bigT.cli.acquire_cmds",   # acquire patterns, build, simulate
     "bigT.cli.invert_cmd",     # invert
     "bigT.cli.compensate_cmds",  # compensate, relight, bounces
 )

@@ -1,0 +1,177 @@
+"""A captures folder read against its pattern manifest: :class:`Captures`.
+
+One camera image per pattern, named as the pattern (any of the image suffixes of
+:mod:`bigT.images`); values are made linear (``gamma`` undoes a known camera gamma:
+linear = stored ** gamma) and the black capture is subtracted. Every capture is read
+when it is needed and dropped after, so the captures are never all in memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import AcquisitionError, ImageError
+from ..images import IMAGE_SUFFIXES, check_image, is_image_file, read_raw_image
+from .manifest import Manifest, Pattern
+
+
+@dataclass(frozen=True)
+class CaptureFormat:
+    """What every capture of a folder must share.
+
+    Attributes
+    ----------
+    shape : (int, int), the camera's (Hc, Wc)
+    dtype : str, the stored pixel type (``uint8``, ``uint16``, ``float32``...)
+    """
+
+    shape: tuple[int, int]
+    dtype: str
+
+    @property
+    def full_scale(self) -> int | None:
+        """The largest value an integer capture can hold (saturation), None for floats."""
+        kind = np.dtype(self.dtype)
+        return int(np.iinfo(kind).max) if kind.kind in "ui" else None
+
+
+@dataclass
+class Captures:
+    """The captures of ``folder`` for the patterns of ``manifest``.
+
+    Parameters
+    ----------
+    manifest : Manifest
+    folder : path of the captures folder
+    gamma : float, the camera's encoding gamma (1: linear captures)
+    black : path, optional
+        A black-level image to subtract instead of the capture of the ``black`` pattern.
+
+    Raises
+    ------
+    AcquisitionError
+        A capture missing or one without a pattern (naming the first few), two files
+        for one pattern; captures of different sizes or bit depths (naming the file).
+    """
+
+    manifest: Manifest
+    folder: Path
+    gamma: float = 1.0
+    black_file: Path | None = None
+    files: dict[str, Path] = field(init=False)
+    format: CaptureFormat = field(init=False)
+    saturated: dict[str, int] = field(init=False, default_factory=dict)
+
+    def __post_init__(self):
+        self.folder = Path(self.folder)
+        if not self.folder.is_dir():
+            raise AcquisitionError("no such captures folder", self.folder)
+        self.files = _match_files(self.manifest, self.folder)
+        first = read_raw_image(self.files[self.manifest.single("black").stem])
+        self.format = CaptureFormat(tuple(check_image(first).shape), first.dtype.name)
+        self._black = self._linear(self.black_file) if self.black_file else None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.format.shape
+
+    def path(self, pattern: Pattern) -> Path:
+        return self.files[pattern.stem]
+
+    def _linear(self, path: Path) -> np.ndarray:
+        raw = read_raw_image(path)
+        if raw.dtype.name != self.format.dtype:
+            raise AcquisitionError(
+                f"pixel type {raw.dtype.name} differs from the other captures' "
+                f"{self.format.dtype} (mixed bit depths: capture every pattern the same way)",
+                path)
+        image = check_image(raw, path)
+        if image.shape != self.format.shape:
+            raise AcquisitionError(
+                f"capture of {image.shape[0]}x{image.shape[1]} pixels; the others are "
+                f"{self.format.shape[0]}x{self.format.shape[1]}", path)
+        top = self.format.full_scale
+        if top is not None:
+            count = int(np.count_nonzero(raw == top))
+            if count:
+                self.saturated[path.name] = count
+        if self.gamma != 1.0:
+            image = np.power(np.maximum(image, 0.0), self.gamma)
+        return image
+
+    def linear(self, pattern: Pattern) -> np.ndarray:
+        """The capture of ``pattern``, linear, black level not subtracted.
+
+        Returns
+        -------
+        ndarray, shape (Hc, Wc), float64
+        """
+        return self._linear(self.path(pattern))
+
+    @property
+    def black(self) -> np.ndarray:
+        """The black level, shape (Hc, Wc): ``--black`` or the black pattern's capture."""
+        if self._black is None:
+            self._black = self.linear(self.manifest.single("black"))
+        return self._black
+
+    def signal(self, pattern: Pattern) -> np.ndarray:
+        """The capture of ``pattern`` less the black level, negatives (noise) set to 0.
+
+        Returns
+        -------
+        ndarray, shape (Hc, Wc), float64
+        """
+        return np.maximum(self.linear(pattern) - self.black, 0.0)
+
+    def pixel_noise(self) -> float:
+        """Robust standard deviation of one pixel's noise: 1.4826 x the median absolute
+        deviation of the black capture (0 for a noiseless camera)."""
+        b = self.black
+        return float(1.4826 * np.median(np.abs(b - np.median(b))))
+
+    def saturation_warning(self) -> str | None:
+        """One line naming the captures with pixels at full scale, or None."""
+        if not self.saturated:
+            return None
+        names = sorted(self.saturated)
+        shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+        return (f"{sum(self.saturated.values())} saturated pixels in {len(names)} captures "
+                f"({shown}): T is underestimated there; lower the exposure and capture again")
+
+
+def _match_files(manifest: Manifest, folder: Path) -> dict[str, Path]:
+    """Pattern stem -> capture file; every pattern once, no image file without one."""
+    stems = {p.stem for p in manifest.patterns}
+    found: dict[str, Path] = {}
+    extra = []
+    for path in sorted(folder.iterdir()):
+        if not (path.is_file() and is_image_file(path)):
+            continue
+        if path.stem not in stems:
+            extra.append(path.name)
+        elif path.stem in found:
+            raise AcquisitionError(f"two captures of pattern {path.stem}: "
+                                   f"{found[path.stem].name} and {path.name}", folder)
+        else:
+            found[path.stem] = path
+    missing = [p.file for p in manifest.patterns if p.stem not in found]
+    if missing:
+        raise AcquisitionError(
+            f"{len(missing)} of {len(manifest.patterns)} captures missing ({_some(missing)}); "
+            f"each pattern needs a capture of the same name ({'/'.join(IMAGE_SUFFIXES)})", folder)
+    if extra:
+        raise AcquisitionError(
+            f"{len(extra)} image files match no pattern of the manifest ({_some(extra)}); "
+            "are these the captures of another pattern set?", folder)
+    return found
+
+
+def _some(names: list[str], k: int = 3) -> str:
+    return ", ".join(names[:k]) + (f", ... ({len(names) - k} more)" if len(names) > k else "")
+
+
+__all__ = ["Captures", "CaptureFormat", "ImageError"]

@@ -1,0 +1,246 @@
+"""What a pattern folder holds: :class:`Pattern` and :class:`Manifest` (``manifest.json``).
+
+A projector of ``H x W`` pixels is cut into super-pixels of ``s x s`` pixels (paper
+§6.1 groups 4x4 or 2x2 projector pixels); the super-pixel grid is ``(H/s, W/s)`` and a
+super-pixel's *index* is its row-major position in that grid. The manifest lists, in
+the order they are to be projected, every pattern image of the folder and what it
+lights; a captures folder holds one camera image per pattern under the same ``file``
+name (suffix free: ``.png``, ``.tif``, ``.npy``).
+
+Kinds of pattern
+----------------
+``black``, ``white``
+    Nothing lit (the camera's black level) and everything lit (validation, paper Fig. 8;
+    Gray-code shadow mask).
+``superpixel``
+    Brute force: one super-pixel lit; ``index`` says which.
+``row-stripe``, ``col-stripe``
+    Stripe scanning (Ding et al. 2009): one band of super-pixel rows (``band`` = the
+    grid row) or columns (``band`` = the grid column) lit.
+``graycode``
+    Structured light: the super-pixels whose ``axis`` ("col" or "row") coordinate has a
+    Gray code with bit ``bit`` set (``bit`` 0 is the most significant, as OpenCV's
+    ``structured_light.GrayCodePattern`` orders them) are lit, or the others when
+    ``inverted``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..atomic import atomic_output
+from ..errors import AcquisitionError
+
+MANIFEST = "manifest.json"
+FORMAT = "bigT-acquisition-patterns"
+VERSION = 1
+METHODS = ("brute-force", "stripes", "graycode")
+KINDS = ("black", "white", "superpixel", "row-stripe", "col-stripe", "graycode")
+AXES = ("col", "row")
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """One pattern image and what it lights.
+
+    Attributes
+    ----------
+    file : str
+        File name of the pattern (``.png``) in the pattern folder; the capture of it has
+        the same stem.
+    kind : one of :data:`KINDS`
+    index : int or None, the lit super-pixel (``superpixel``)
+    band : int or None, the lit grid row or column (``row-stripe``/``col-stripe``)
+    axis : {"col", "row"} or None, the coordinate a ``graycode`` pattern encodes
+    bit : int or None, the Gray-code bit, 0 = most significant
+    inverted : bool or None, a ``graycode`` pattern's complement
+    """
+
+    file: str
+    kind: str
+    index: int | None = None
+    band: int | None = None
+    axis: str | None = None
+    bit: int | None = None
+    inverted: bool | None = None
+
+    @property
+    def stem(self) -> str:
+        return Path(self.file).stem
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if v is not None}
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """The patterns of one acquisition, in projection order.
+
+    Attributes
+    ----------
+    projector : (int, int), the projector's (H, W) in pixels
+    superpixel : int, side s of a super-pixel in projector pixels (H and W multiples of s)
+    method : one of :data:`METHODS`, how T's columns are measured
+    graycode : bool, Gray-code patterns included (the correspondence by decoding)
+    patterns : tuple of Pattern
+    """
+
+    projector: tuple[int, int]
+    superpixel: int
+    method: str
+    graycode: bool
+    patterns: tuple[Pattern, ...]
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """(H/s, W/s): the super-pixel grid; T is n x n with n = its product."""
+        return (self.projector[0] // self.superpixel, self.projector[1] // self.superpixel)
+
+    @property
+    def n(self) -> int:
+        return self.grid[0] * self.grid[1]
+
+    def of_kind(self, kind: str) -> list[Pattern]:
+        return [p for p in self.patterns if p.kind == kind]
+
+    def single(self, kind: str) -> Pattern:
+        """The one pattern of ``kind`` (``black`` or ``white``)."""
+        return self.of_kind(kind)[0]
+
+    def graycode_bits(self, axis: str) -> int:
+        """Bits of the Gray code of a grid coordinate along ``axis``."""
+        size = self.grid[1] if axis == "col" else self.grid[0]
+        return graycode_bits(size)
+
+    def to_dict(self) -> dict:
+        return {"format": FORMAT, "version": VERSION, "projector": list(self.projector),
+                "superpixel": self.superpixel, "grid": list(self.grid),
+                "method": self.method, "graycode": self.graycode,
+                "patterns": [p.to_dict() for p in self.patterns]}
+
+    @classmethod
+    def from_dict(cls, d: dict, path) -> "Manifest":
+        """Parse and check a manifest; every problem is an AcquisitionError naming ``path``."""
+        def bad(what):
+            return AcquisitionError(f"not a valid bigT pattern manifest: {what}", path)
+
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise bad(f"'format' is not {FORMAT!r}")
+        if d.get("version") != VERSION:
+            raise bad(f"version {d.get('version')!r}, this bigT reads version {VERSION}")
+        try:
+            projector = tuple(_count(v, "projector") for v in d["projector"])
+            superpixel = _count(d["superpixel"], "superpixel")
+            method, graycode = d["method"], d["graycode"]
+            patterns = tuple(_pattern(p) for p in d["patterns"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise bad(str(exc) if not isinstance(exc, KeyError) else f"no {exc}") from None
+        if method not in METHODS or not isinstance(graycode, bool) or len(projector) != 2:
+            raise bad("method, graycode or projector has a wrong value")
+        manifest = cls(projector, superpixel, method, graycode, patterns)
+        expected = make_manifest(method, projector, superpixel, graycode=graycode)
+        if manifest != expected:
+            raise bad("the pattern list is not the one bigT writes for its method and size")
+        return manifest
+
+
+def _count(value, what) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{what} must be a positive integer, got {value!r}")
+    return value
+
+
+def _pattern(d) -> Pattern:
+    if not isinstance(d, dict) or d.get("kind") not in KINDS or not isinstance(d.get("file"), str):
+        raise ValueError(f"pattern entry {d!r} has no valid 'kind' and 'file'")
+    return Pattern(**{k: d.get(k) for k in Pattern.__dataclass_fields__})
+
+
+def graycode_bits(size: int) -> int:
+    """Bits needed to number ``size`` positions (at least 1)."""
+    return max(1, math.ceil(math.log2(size)))
+
+
+def check_geometry(projector, superpixel: int) -> None:
+    """AcquisitionError unless the projector's sides are positive multiples of s."""
+    h, w = projector
+    if superpixel < 1 or h < superpixel or w < superpixel or h % superpixel or w % superpixel:
+        raise AcquisitionError(
+            f"the projector's {h}x{w} pixels do not divide into {superpixel}x{superpixel} "
+            "super-pixels: choose --superpixel dividing both sides")
+
+
+def make_manifest(method: str, projector, superpixel: int = 1, *,
+                  graycode: bool | None = None) -> Manifest:
+    """The patterns bigT projects for ``method``.
+
+    Parameters
+    ----------
+    method : one of :data:`METHODS`
+    projector : (int, int), the projector's (H, W) in pixels
+    superpixel : int, super-pixel side s (H and W multiples of s)
+    graycode : bool, optional
+        Add the Gray-code patterns (the ``graycode`` method always has them; brute
+        force and stripes then take the correspondence from them rather than from the
+        maximum response). Default: only for the ``graycode`` method.
+
+    Returns
+    -------
+    Manifest
+        Black and white first, then the method's patterns, then the Gray code (column
+        bits then row bits, each pattern followed by its inverse).
+    """
+    if method not in METHODS:
+        raise AcquisitionError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    projector = (int(projector[0]), int(projector[1]))
+    check_geometry(projector, superpixel)
+    graycode = method == "graycode" or bool(graycode)
+    gh, gw = projector[0] // superpixel, projector[1] // superpixel
+    patterns = [Pattern("black.png", "black"), Pattern("white.png", "white")]
+    if method == "brute-force":
+        width = len(str(gh * gw - 1))
+        patterns += [Pattern(f"sp_{k:0{width}d}.png", "superpixel", index=k)
+                     for k in range(gh * gw)]
+    elif method == "stripes":
+        patterns += [Pattern(f"row_{r:0{len(str(gh - 1))}d}.png", "row-stripe", band=r)
+                     for r in range(gh)]
+        patterns += [Pattern(f"col_{c:0{len(str(gw - 1))}d}.png", "col-stripe", band=c)
+                     for c in range(gw)]
+    if graycode:
+        for axis, size in (("col", gw), ("row", gh)):
+            for bit in range(graycode_bits(size)):
+                for inverted in (False, True):
+                    name = f"gray_{axis}_{bit:02d}{'_inv' if inverted else ''}.png"
+                    patterns.append(Pattern(name, "graycode", axis=axis, bit=bit,
+                                            inverted=inverted))
+    return Manifest(projector, int(superpixel), method, graycode, tuple(patterns))
+
+
+def write_manifest(folder: Path, manifest: Manifest) -> Path:
+    path = Path(folder) / MANIFEST
+    with atomic_output(path, "the pattern manifest") as tmp:
+        with open(tmp, "w") as f:
+            json.dump(manifest.to_dict(), f, indent=1)
+            f.write("\n")
+    return path
+
+
+def read_manifest(folder) -> Manifest:
+    """The manifest of a pattern folder (or the manifest file itself)."""
+    path = Path(folder)
+    if path.is_dir():
+        path = path / MANIFEST
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise AcquisitionError("no pattern manifest here (write one with bigT acquire "
+                               "patterns)", path) from None
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise AcquisitionError(f"the pattern manifest is not JSON ({exc.msg}, line "
+                               f"{exc.lineno})", path) from None
+    return Manifest.from_dict(d, path)

@@ -1,0 +1,177 @@
+"""``bigT acquire``: patterns to project, T built from their captures, and a simulated
+camera to try it without a rig (bigT.acquisition)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+
+from ._argtypes import image_size, integer, memory_size, number
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "acquire", help="measure T with a projector and a camera (patterns, build, simulate)",
+        description="Acquire a light-transport matrix from a projector-camera rig: write the "
+                    "patterns to project, build T from their captures (correspondence, noise "
+                    "floor, tile row by tile row), or simulate the captures from a synthetic "
+                    "scene.")
+    sub = p.add_subparsers(dest="acquire_command", metavar="STEP", required=True)
+    _register_patterns(sub)
+    _register_build(sub)
+    _register_simulate(sub)
+
+
+def _common(p) -> None:
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="print nothing but errors and warnings")
+
+
+def _register_patterns(sub) -> None:
+    from ..acquisition import METHODS
+
+    p = sub.add_parser(
+        "patterns", help="write the pattern images and their manifest",
+        description="Write the images the projector shows (8-bit PNG at its resolution) and "
+                    "DIR/manifest.json listing them in order with what each lights. Every set "
+                    "has an all-black and an all-white pattern.")
+    p.add_argument("--method", choices=METHODS, required=True,
+                   help="brute-force: one super-pixel per image; stripes: row and column "
+                        "bands (Ding et al. 2009); graycode: the correspondence only")
+    p.add_argument("--projector", type=image_size, required=True, metavar="HxW",
+                   help="the projector's resolution in pixels")
+    p.add_argument("--superpixel", type=integer(1), default=1, metavar="S",
+                   help="super-pixel side in projector pixels (default %(default)s)")
+    p.add_argument("--graycode", action="store_true",
+                   help="add Gray-code patterns: the correspondence by decoding rather than "
+                        "by each camera pixel's maximum response")
+    p.add_argument("-o", "--output", required=True, metavar="DIR")
+    _common(p)
+    p.set_defaults(func=patterns_cmd, command="acquire patterns")
+
+
+def _register_build(sub) -> None:
+    p = sub.add_parser(
+        "build", help="build T from the captures of a pattern set",
+        description="Subtract the black capture, find each projector super-pixel's camera "
+                    "super-pixel (paper §6.1), drop values under the noise floor and write T "
+                    "tile row by tile row into a bigT store, then compare T 1 with the "
+                    "captured white image (paper Fig. 8). An interrupted build resumes.")
+    p.add_argument("patterns", metavar="PATTERNS_DIR")
+    p.add_argument("captures", metavar="CAPTURES_DIR")
+    p.add_argument("-o", "--output", required=True, metavar="T.zarr")
+    p.add_argument("--black", default=None, metavar="FILE",
+                   help="a black-level image to subtract (default: the black pattern's capture)")
+    p.add_argument("--floor", type=number(0), default=None, metavar="T",
+                   help="drop entries of T below this (default 3 x the noise of a camera "
+                        "super-pixel, estimated from the black capture)")
+    p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
+                   help="undo a camera gamma: linear = stored ** gamma (default 1: linear)")
+    p.add_argument("--tile-size", type=integer(1), default=None)
+    p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
+                   help="memory for the entries gathered in one pass over the captures "
+                        "(default 1GiB); more passes when T's entries do not fit")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
+    p.add_argument("--no-figures", action="store_true",
+                   help="do not write the correspondence and validation PNGs")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    _common(p)
+    p.set_defaults(func=build_cmd, command="acquire build")
+
+
+def _register_simulate(sub) -> None:
+    from ..acquisition.simulate import FORMATS
+
+    p = sub.add_parser(
+        "simulate", help="render the captures of a pattern set from a synthetic scene",
+        description="Stand in for a rig: the camera image each pattern would produce on a "
+                    "scene made by bigT scene, at another resolution, each projector "
+                    "super-pixel seen by an uneven patch of camera pixels, with noise, a black "
+                    "level and a gamma. The camera model goes to CAPTURES_DIR/simulation.json.")
+    p.add_argument("scene", metavar="SCENE.zarr")
+    p.add_argument("patterns", metavar="PATTERNS_DIR")
+    p.add_argument("-o", "--output", required=True, metavar="CAPTURES_DIR")
+    p.add_argument("--camera", type=image_size, required=True, metavar="HxW")
+    p.add_argument("--noise", type=number(0), default=0.0, help="noise std (default 0)")
+    p.add_argument("--black", type=number(0, 1), default=0.0, help="black level (default 0)")
+    p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
+                   help="camera gamma: stored = linear ** (1 / gamma) (default 1)")
+    p.add_argument("--format", choices=tuple(FORMATS), default="png16",
+                   help="capture files (default %(default)s)")
+    p.add_argument("--seed", type=integer(0), default=0)
+    _common(p)
+    p.set_defaults(func=simulate_cmd, command="acquire simulate")
+
+
+def _progress(args):
+    return False if args.no_progress else None
+
+
+def patterns_cmd(args) -> int:
+    from ..acquisition import make_manifest, write_patterns
+
+    manifest = make_manifest(args.method, args.projector, args.superpixel, graycode=args.graycode)
+    path = write_patterns(args.output, manifest, progress=_progress(args))
+    print(f"{len(manifest.patterns)} patterns ({args.method}"
+          f"{', Gray code' if manifest.graycode else ''}) for a {manifest.projector[0]}x"
+          f"{manifest.projector[1]} projector, {manifest.grid[0]}x{manifest.grid[1]} super-pixels")
+    print(f"-> {path}")
+    return 0
+
+
+def build_cmd(args) -> int:
+    from ..acquisition import build_transport, load_correspondence
+    from ..acquisition.validate import (check_white, figure_paths, plot_correspondence,
+                                        plot_white_check)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report = build_transport(args.patterns, args.captures, args.output, black=args.black,
+                                 floor=args.floor, gamma=args.gamma, tile_size=args.tile_size,
+                                 memory_bytes=args.memory_limit, overwrite=args.overwrite,
+                                 progress=_progress(args))
+    for w in caught:
+        print(f"bigT acquire build: warning: {w.message}", file=sys.stderr)
+    check = check_white(report.path)
+    figures = []
+    if not args.no_figures:
+        corr_png, val_png = figure_paths(report.path)
+        figures = [plot_correspondence(load_correspondence(report.path), _grid(report),
+                                       corr_png),
+                   plot_white_check(check, val_png)]
+    if args.json:
+        print(json.dumps({**report.settings.to_dict(), "n": report.n, "seen": report.seen,
+                          "nnz": report.nnz, "passes": report.passes,
+                          "saturated_pixels": report.saturated_pixels,
+                          "seconds": report.seconds,
+                          "white_relative_error": check.relative_error,
+                          "figures": [str(f) for f in figures]}, indent=1))
+        return 0
+    print(report.describe())
+    print(f"validation: T 1 against the captured white image, relative error "
+          f"{check.relative_error:.3g}")
+    for f in figures:
+        print(f"-> {f}")
+    print(f"-> {report.path}")
+    return 0
+
+
+def _grid(report) -> tuple[int, int]:
+    s = report.settings
+    return (s.projector[0] // s.superpixel, s.projector[1] // s.superpixel)
+
+
+def simulate_cmd(args) -> int:
+    from ..acquisition import read_manifest, simulate_captures
+
+    model = simulate_captures(args.scene, args.patterns, args.output, camera=args.camera,
+                              noise=args.noise, black=args.black, gamma=args.gamma,
+                              fmt=args.format, seed=args.seed, progress=_progress(args))
+    count = len(read_manifest(args.patterns).patterns)
+    print(f"{count} captures of {args.scene} by a {model.camera[0]}x{model.camera[1]} camera "
+          f"(exposure {model.exposure:.3g}, noise {model.noise:g}, black {model.black:g}, "
+          f"gamma {model.gamma:g})")
+    print(f"-> {args.output}")
+    return 0
