@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 
 from .errors import (  # noqa: F401  (re-exported)
+    AcquisitionError,
     BigTError,
     CorruptStoreError,
     DiskFullError,
@@ -32,6 +33,7 @@ _LAZY = {
     "open": "bigT.storage",
     "from_scipy": "bigT.storage",
     "scenes": "bigT.scenes",
+    "acquisition": "bigT.acquisition",
     "stratified_inverse": "bigT.algorithms",
     "InverseReport": "bigT.algorithms",
     "recover_first_bounce": "bigT.algorithms",
@@ -46,7 +48,7 @@ def __getattr__(name: str):
     if module is None:
         raise AttributeError(f"module 'bigT' has no attribute {name!r}")
     value = importlib.import_module(module)
-    return value if name == "scenes" else getattr(value, name)
+    return value if name in ("scenes", "acquisition") else getattr(value, name)
 
 
 def __dir__():

@@ -147,7 +147,8 @@ MEMORY_WHOLE_SHARE = 0.35
 #: pattern: pixels lit by interreflection alone (no super-pixel dominates) are left out.
 ACQUIRE_MIN_DIRECT_SHARE = 0.2
 #: Default noise floor of T's entries, in units of the noise of one camera super-pixel
-#: (the black capture's robust pixel noise over the square root of the mean group size).
+#: (the black capture's robust pixel noise x sqrt(2 / mean group size): the black
+#: capture's own noise is in every signal).
 ACQUIRE_FLOOR_SIGMAS = 3.0
 #: Memory for the entries of T gathered at once (a pass over the captures fills the
 #: tile rows that fit; more passes when they do not).

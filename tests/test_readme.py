@@ -57,3 +57,13 @@ def test_the_python_example_runs_and_runs_again(tmp_path):
         out = _run([sys.executable, "-c", code], tmp_path).stdout.strip().splitlines()
         error = float(out[-1])  # the compensated error printed last
         assert 0 <= error < 1e-2  # 0.32 uncompensated
+
+
+def test_the_acquisition_walkthrough_runs_line_by_line(tmp_path):
+    lines = [line for line in _block("Measuring T with a projector and a camera", "sh")
+             .splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    assert len(lines) == 5
+    for line in lines:
+        _run(["bash", "-c", line], tmp_path)
+    for made in ("T.zarr", "T-correspondence.png", "T-validation.png", "X.zarr"):
+        assert (tmp_path / made).exists(), made

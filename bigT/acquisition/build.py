@@ -143,12 +143,12 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     cap = Captures(manifest, Path(captures), gamma=gamma, black_file=black and Path(black))
     white = cap.signal(manifest.single("white"))
     noise = cap.pixel_noise()
-    if white.max() <= max(3 * noise, 1e-12):
+    if white.max() <= 2 * cap.pixel_floor() + 1e-12:  # no pixel clearly above the noise
         raise AcquisitionError("the captures are all black: the white pattern's capture is "
                                "no brighter than the black one (projector off? lens cap?)",
                                cap.path(manifest.single("white")))
     bar = _bar(progress)
-    corr = _correspondence(manifest, cap, white, noise, bar)
+    corr = _correspondence(manifest, cap, white, bar)
     order = PixelOrder(manifest.grid, pixel_order)
     means = corr.reducer(order)
     if not means.seen.any():
@@ -156,7 +156,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
                                "camera looking at the projected area?", Path(captures))
     counts = corr.counts
     if floor is None:
-        floor = config.ACQUIRE_FLOOR_SIGMAS * noise / math.sqrt(counts[counts > 0].mean())
+        floor = superpixel_noise(noise, counts) * config.ACQUIRE_FLOOR_SIGMAS
     settings = BuildSettings(
         str(Path(patterns).resolve()), str(Path(captures).resolve()), manifest.method,
         manifest.projector, manifest.superpixel, cap.shape, float(gamma),
@@ -173,16 +173,22 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
                        sum(cap.saturated.values()), time.perf_counter() - t0)
 
 
+def superpixel_noise(pixel_noise: float, counts: np.ndarray) -> float:
+    """Noise std of a camera super-pixel of mean size: a pixel's signal holds the noise of
+    its capture and of the black capture (sqrt 2), averaged over the group's pixels."""
+    return pixel_noise * math.sqrt(2.0 / counts[counts > 0].mean())
+
+
 def _bar(progress):
     def wrap(items, desc="captures"):
         return progress_bar(items, progress=progress, desc=desc, unit="image")
     return wrap
 
 
-def _correspondence(manifest, cap, white, noise, bar) -> Correspondence:
+def _correspondence(manifest, cap, white, bar) -> Correspondence:
     if manifest.graycode:
         return from_graycode(manifest, cap)
-    return from_maximum_response(manifest, cap, white, 3 * noise,
+    return from_maximum_response(manifest, cap, white, cap.pixel_floor(),
                                  progress=lambda it: bar(it, "correspondence"))
 
 
@@ -316,7 +322,7 @@ def _gather_brute_force(writer, manifest, cap, means, floor, budget, missing, co
         if col < 0:
             continue  # unseen super-pixel: its column is left out
         y = means(cap.signal(p))
-        r = np.flatnonzero((y >= floor) & (y > 0) & rows.mask)
+        r = np.flatnonzero((y >= floor) & (y > 0) & rows.mask)  # noise may be negative
         entries.add(r, np.full(len(r), col, dtype=np.int64), y[r])
         while entries.nbytes > budget and len(rows.tiles) > 1:
             rows.give_back_half()
@@ -341,7 +347,8 @@ def _gather_stripes(writer, manifest, cap, means, floor, budget, missing, column
         (H if p.kind == "row-stripe" else V)[:, p.band] = y
     entries = _Entries()
     for k, q in enumerate(index):
-        r, c = np.flatnonzero(H[k] >= floor), np.flatnonzero(V[k] >= floor)
+        r = np.flatnonzero((H[k] >= floor) & (H[k] > 0))
+        c = np.flatnonzero((V[k] >= floor) & (V[k] > 0))
         vals = np.minimum.outer(H[k, r], V[k, c]).ravel()
         cols = column[(r[:, None] * gw + c[None, :]).ravel()]
         keep = (vals >= floor) & (cols >= 0)

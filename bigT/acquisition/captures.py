@@ -72,7 +72,8 @@ class Captures:
         self.files = _match_files(self.manifest, self.folder)
         first = read_raw_image(self.files[self.manifest.single("black").stem])
         self.format = CaptureFormat(tuple(check_image(first).shape), first.dtype.name)
-        self._black = self._linear(self.black_file) if self.black_file else None
+        # a black frame may be an average of many, so of any pixel type
+        self._black = self._linear(self.black_file, any_type=True) if self.black_file else None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -81,9 +82,9 @@ class Captures:
     def path(self, pattern: Pattern) -> Path:
         return self.files[pattern.stem]
 
-    def _linear(self, path: Path) -> np.ndarray:
+    def _linear(self, path: Path, any_type: bool = False) -> np.ndarray:
         raw = read_raw_image(path)
-        if raw.dtype.name != self.format.dtype:
+        if raw.dtype.name != self.format.dtype and not any_type:
             raise AcquisitionError(
                 f"pixel type {raw.dtype.name} differs from the other captures' "
                 f"{self.format.dtype} (mixed bit depths: capture every pattern the same way)",
@@ -94,7 +95,7 @@ class Captures:
                 f"capture of {image.shape[0]}x{image.shape[1]} pixels; the others are "
                 f"{self.format.shape[0]}x{self.format.shape[1]}", path)
         top = self.format.full_scale
-        if top is not None:
+        if top is not None and not any_type:
             count = int(np.count_nonzero(raw == top))
             if count:
                 self.saturated[path.name] = count
@@ -119,19 +120,34 @@ class Captures:
         return self._black
 
     def signal(self, pattern: Pattern) -> np.ndarray:
-        """The capture of ``pattern`` less the black level, negatives (noise) set to 0.
+        """The capture of ``pattern`` less the black level. Negative values (noise) are
+        kept: clipping them before the group means would bias every dark entry of T up.
 
         Returns
         -------
         ndarray, shape (Hc, Wc), float64
         """
-        return np.maximum(self.linear(pattern) - self.black, 0.0)
+        return self.linear(pattern) - self.black
 
     def pixel_noise(self) -> float:
         """Robust standard deviation of one pixel's noise: 1.4826 x the median absolute
-        deviation of the black capture (0 for a noiseless camera)."""
-        b = self.black
+        deviation of the black pattern's capture (0 for a noiseless camera; a separate
+        black frame may be an average, so it is not used). A signal holds it twice, the
+        black level it is measured against being noisy too."""
+        b = self.linear(self.manifest.single("black"))
         return float(1.4826 * np.median(np.abs(b - np.median(b))))
+
+    @property
+    def quantum(self) -> float:
+        """One step of the stored values (1/255, 1/65535), 0 for float captures."""
+        top = self.format.full_scale
+        return 1.0 / top if top else 0.0
+
+    def pixel_floor(self) -> float:
+        """A pixel's signal at or below this is noise: 3 standard deviations of a
+        signal, and at least two steps of the stored values (a black frame averaged
+        to a float level differs from the quantised captures by up to one step)."""
+        return max(3.0 * np.sqrt(2.0) * self.pixel_noise(), 2.0 * self.quantum)
 
     def saturation_warning(self) -> str | None:
         """One line naming the captures with pixels at full scale, or None."""

@@ -47,7 +47,8 @@ def _register_patterns(sub) -> None:
     p.add_argument("--graycode", action="store_true",
                    help="add Gray-code patterns: the correspondence by decoding rather than "
                         "by each camera pixel's maximum response")
-    p.add_argument("-o", "--output", required=True, metavar="DIR")
+    p.add_argument("-o", "--output", required=True, metavar="DIR",
+                   help="folder of the pattern images and manifest.json")
     _common(p)
     p.set_defaults(func=patterns_cmd, command="acquire patterns")
 
@@ -61,7 +62,8 @@ def _register_build(sub) -> None:
                     "captured white image (paper Fig. 8). An interrupted build resumes.")
     p.add_argument("patterns", metavar="PATTERNS_DIR")
     p.add_argument("captures", metavar="CAPTURES_DIR")
-    p.add_argument("-o", "--output", required=True, metavar="T.zarr")
+    p.add_argument("-o", "--output", required=True, metavar="T.zarr",
+                   help="the transport store to write (an interrupted build resumes)")
     p.add_argument("--black", default=None, metavar="FILE",
                    help="a black-level image to subtract (default: the black pattern's capture)")
     p.add_argument("--floor", type=number(0), default=None, metavar="T",
@@ -69,7 +71,8 @@ def _register_build(sub) -> None:
                         "super-pixel, estimated from the black capture)")
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
                    help="undo a camera gamma: linear = stored ** gamma (default 1: linear)")
-    p.add_argument("--tile-size", type=integer(1), default=None)
+    p.add_argument("--tile-size", type=integer(1), default=None,
+                   help="rows/cols of one matrix tile of T (default 8192)")
     p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
                    help="memory for the entries gathered in one pass over the captures "
                         "(default 1GiB); more passes when T's entries do not fit")
@@ -92,15 +95,18 @@ def _register_simulate(sub) -> None:
                     "level and a gamma. The camera model goes to CAPTURES_DIR/simulation.json.")
     p.add_argument("scene", metavar="SCENE.zarr")
     p.add_argument("patterns", metavar="PATTERNS_DIR")
-    p.add_argument("-o", "--output", required=True, metavar="CAPTURES_DIR")
-    p.add_argument("--camera", type=image_size, required=True, metavar="HxW")
+    p.add_argument("-o", "--output", required=True, metavar="CAPTURES_DIR",
+                   help="folder of the captures to write")
+    p.add_argument("--camera", type=image_size, required=True, metavar="HxW",
+                   help="the camera's resolution (any: it need not match the projector's)")
     p.add_argument("--noise", type=number(0), default=0.0, help="noise std (default 0)")
     p.add_argument("--black", type=number(0, 1), default=0.0, help="black level (default 0)")
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
                    help="camera gamma: stored = linear ** (1 / gamma) (default 1)")
     p.add_argument("--format", choices=tuple(FORMATS), default="png16",
                    help="capture files (default %(default)s)")
-    p.add_argument("--seed", type=integer(0), default=0)
+    p.add_argument("--seed", type=integer(0), default=0,
+                   help="seed of the noise (default %(default)s)")
     _common(p)
     p.set_defaults(func=simulate_cmd, command="acquire simulate")
 
