@@ -29,6 +29,7 @@ FULL = [
                        "--method", "power", "--memory-limit", "2GiB"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("compensate", ["bench_compensate.py"]),
+    ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
     ("stability", ["bench_stability.py"]),
     ("reliability", ["bench_reliability.py"]),
 ]
@@ -40,6 +41,7 @@ QUICK = [
     ("out-of-core", ["bench_out_of_core.py", "--n", "32768", "--memory-limit", "2GiB"]),
     ("compensate", ["bench_compensate.py", "--size", "96x128", "--scene-size", "32x48",
                     "--frames", "64", "--no-splu"]),
+    ("acquire", ["bench_acquire.py"]),
     ("stability", ["bench_stability.py", "--quick"]),
     ("reliability", ["bench_reliability.py", "--quick"]),
 ]
