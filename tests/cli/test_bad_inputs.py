@@ -85,6 +85,8 @@ def _assert_one_line_error(argv, capsys, *, names=None, says=None) -> str:
     assert status == 2, (status, text)
     assert len(lines) == 1, lines
     command = f"bigT {argv[0]}" if str(argv[0]) in _subcommands() else "bigT"
+    if str(argv[0]) == "acquire" and len(argv) > 1 and not str(argv[1]).startswith("-"):
+        command += f" {argv[1]}"  # a command with steps names the step
     assert lines[0].startswith(f"{command}: error: "), lines[0]
     if names is not None:
         assert str(names) in lines[0], (str(names), lines[0])
@@ -291,6 +293,14 @@ FILE_CASES = {
     "verify a file": Case("verify {d}/a.npz -q", "a.npz"),
     "verify a foreign folder": Case("verify {d}/mine -q", "mine"),
     "verify a missing store": Case("verify {d}/absent.zarr -q", "absent.zarr"),
+    # acquire: pattern folders without a manifest, a manifest that is not one
+    "acquire build no manifest": Case("acquire build {d}/mine {d}/mine -o {d}/new.zarr -q",
+                                      "mine/manifest.json", "no pattern manifest"),
+    "acquire simulate no manifest": Case(
+        "acquire simulate {d}/T.zarr {d}/absent -o {d}/caps --camera 8x10 -q",
+        "absent", "no pattern manifest"),
+    "acquire patterns -o a file": Case(
+        "acquire patterns --method stripes --projector 4x4 -o {d}/mine.txt -q", "mine.txt"),
     # scene, demo: outputs that exist and are not theirs
     "scene -o existing file": Case("scene corner --size 4x5 -o {d}/mine.txt -q",
                                    "mine.txt"),
