@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import time
 import warnings
 from dataclasses import dataclass
@@ -36,7 +37,9 @@ from .. import config
 from ..errors import AcquisitionError, StoreError
 from ..progress import progress_bar
 from ..storage import BlockCSRWriter, PixelOrder
-from ..storage.writer import read_store_attrs
+from ..storage import open as open_store
+from ..storage.writer import (check_replaceable, move_into_place, read_store_attrs,
+                              temporary_sibling)
 from .captures import Captures
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
 from .manifest import Manifest, read_manifest
@@ -161,11 +164,27 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         str(Path(patterns).resolve()), str(Path(captures).resolve()), manifest.method,
         manifest.projector, manifest.superpixel, cap.shape, float(gamma),
         str(Path(black).resolve()) if black else None, float(floor), noise, corr.source)
-    writer = _open_writer(Path(output), order, settings, tile_size, overwrite)
-    _save_correspondence(writer.path, corr)
-    passes = _fill(writer, manifest, cap, means, float(floor),
-                   memory_bytes or config.ACQUIRE_MEMORY_BYTES, progress)
-    T = writer.finalize()
+    target = Path(output)
+    # with overwrite, an existing store is replaced only by a complete one: a bad capture
+    # first read while filling (Gray code reads T's captures only then) or an interrupt
+    # leaves it as it was
+    aside = overwrite and target.exists()
+    if aside:
+        check_replaceable(target, True)
+    where = temporary_sibling(target) if aside else target
+    try:
+        writer = _open_writer(where, order, settings, tile_size, overwrite and not aside)
+        _save_correspondence(writer.path, corr)
+        passes = _fill(writer, manifest, cap, means, float(floor),
+                       memory_bytes or config.ACQUIRE_MEMORY_BYTES, progress)
+        T = writer.finalize()
+        if aside:
+            move_into_place(where, target)
+            T = open_store(target)
+    except BaseException:
+        if aside:
+            shutil.rmtree(where, ignore_errors=True)
+        raise
     warning = cap.saturation_warning()
     if warning:
         warnings.warn(warning, stacklevel=2)

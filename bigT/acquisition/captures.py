@@ -70,10 +70,24 @@ class Captures:
         if not self.folder.is_dir():
             raise AcquisitionError("no such captures folder", self.folder)
         self.files = _match_files(self.manifest, self.folder)
-        first = read_raw_image(self.files[self.manifest.single("black").stem])
-        self.format = CaptureFormat(tuple(check_image(first).shape), first.dtype.name)
+        self.format = self._reference_format()
         # a black frame may be an average of many, so of any pixel type
         self._black = self._linear(self.black_file, any_type=True) if self.black_file else None
+
+    def _reference_format(self) -> CaptureFormat:
+        """The black capture's size and pixel type, unless the white capture and a third
+        agree on another (then the black capture is the odd one, and is named when read)."""
+        def format_of(pattern):
+            path = self.path(pattern)
+            raw = read_raw_image(path)
+            return CaptureFormat(tuple(check_image(raw, path).shape), raw.dtype.name)
+
+        black = format_of(self.manifest.single("black"))
+        white = format_of(self.manifest.single("white"))
+        others = [p for p in self.manifest.patterns if p.kind not in ("black", "white")]
+        if white != black and others and format_of(others[0]) == white:
+            return white
+        return black
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -141,7 +141,10 @@ class Manifest:
         if method not in METHODS or not isinstance(graycode, bool) or len(projector) != 2:
             raise bad("method, graycode or projector has a wrong value")
         manifest = cls(projector, superpixel, method, graycode, patterns)
-        expected = make_manifest(method, projector, superpixel, graycode=graycode)
+        try:
+            expected = make_manifest(method, projector, superpixel, graycode=graycode)
+        except AcquisitionError as exc:  # a projector the super-pixels do not divide
+            raise bad(exc.problem) from None
         if manifest != expected:
             raise bad("the pattern list is not the one bigT writes for its method and size")
         return manifest
@@ -238,6 +241,9 @@ def read_manifest(folder) -> Manifest:
     except FileNotFoundError:
         raise AcquisitionError("no pattern manifest here (write one with bigT acquire "
                                "patterns)", path) from None
+    except UnicodeDecodeError:
+        raise AcquisitionError("the pattern manifest is not JSON (not UTF-8 text)",
+                               path) from None
     try:
         d = json.loads(text)
     except json.JSONDecodeError as exc:
