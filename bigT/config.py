@@ -119,8 +119,12 @@ SCENE_MAX_BOUNCES = 200
 SCENE_SHARE_TOL = 1e-4
 SCENE_SHARE_MAX_BOUNCES = 30
 #: Relative tolerance of the scenes' ground-truth spectral radii (ARPACK).
-SCENE_SPECTRAL_RTOL = 1e-8
-#: ...computed from T held in memory up to this size, else streamed from its store.
+SCENE_SPECTRAL_RTOL = 1e-6
+#: ...and gives up (the radius "undetermined", never a guess) after this many products
+#: (each one streams T or A once when they do not fit SCENE_IN_MEMORY_BYTES).
+SCENE_SPECTRAL_MAX_PRODUCTS = 600
+#: Memory a scene build may hold of A and T (default of ``memory_limit``): a matrix
+#: within it is read whole once, a larger one tile row by tile row.
 SCENE_IN_MEMORY_BYTES = 2 << 30
 #: Bytes of decoded tiles of X (or T) that compensation keeps between frame batches;
 #: beyond it tiles are re-read from disk on every pass (0: always re-read).

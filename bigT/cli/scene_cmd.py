@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from .. import config
-from ._argtypes import density, image_size, integer, number
+from ._argtypes import density, image_size, integer, memory_size, number
 
 
 def register(subparsers) -> None:
@@ -17,6 +17,7 @@ def register(subparsers) -> None:
                     "Lambertian form factors, paper eq. 6) tile row by tile row into a bigT "
                     "store, with its ground truth (A, F, spectral radius, bounce shares) in "
                     "the store's ground_truth/ group and a preview PNG of T 1 beside it. "
+                    "An interrupted build resumes when run again with the same parameters. "
                     "dihedral4 is the paper's 4x4 example (eq. 34).")
     p.add_argument("name", choices=SCENE_NAMES)
     p.add_argument("--size", type=image_size, default=None, metavar="HxW",
@@ -46,6 +47,10 @@ def register(subparsers) -> None:
                    help="pixel order of the store (default %(default)s)")
     p.add_argument("--dtype", choices=("float32", "float64"), default=None,
                    help="dtype of T's values (default float32; dihedral4 float64)")
+    p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
+                   help="memory the build may hold of A and T (e.g. 4GiB; default "
+                        f"{config.SCENE_IN_MEMORY_BYTES >> 30}GiB): a matrix within it is "
+                        "read whole once, a larger one tile row by tile row")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
     p.add_argument("--no-preview", action="store_true", help="do not write the preview PNG")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -63,7 +68,7 @@ def scene_cmd(args) -> int:
         kwargs.update(albedo=args.albedo, density=args.density, ff_cut=args.ff_cut,
                       threshold=args.threshold, noise=args.noise, noise_floor=args.noise_floor,
                       blur=args.blur, seed=args.seed, tile_size=args.tile_size,
-                      pixel_order=args.pixel_order,
+                      pixel_order=args.pixel_order, memory_limit=args.memory_limit,
                       progress=False if args.no_progress else None)
     scene = make(args.name, args.size, args.output, **kwargs)
     if args.json:

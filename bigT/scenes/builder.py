@@ -29,6 +29,7 @@ when complete: a failed or interrupted call leaves ``path`` as it was.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import shutil
@@ -44,14 +45,11 @@ from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError, StoreErr
 from ..storage import BlockCSRWriter, PixelOrder, from_scipy
 from ..storage import open as open_store
 from ..storage.block_csr import atomic_write_json, group_json
-from ..storage.writer import (
-    check_replaceable,
-    move_into_place,
-    temporary_sibling,
-)
+from ..progress import progress_bar
+from ..storage.writer import check_replaceable, move_into_place, temporary_sibling
 from ..spectral import SpectralRadius, spectral_radius
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES  # noqa: F401 (re-exported)
-from . import geometry, radiosity
+from . import geometry, radiosity, stored
 
 #: The 4x4 transport of the paper's dihedral (eq. 34), true first bounce 1.75 I.
 DIHEDRAL4_T = np.array([
@@ -125,13 +123,18 @@ class Scene:
         """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64."""
         return exact_inverse_rows(self.A, self.F, i)
 
-    def inverse_error(self, X) -> float:
-        """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row.
+    def inverse_error(self, X, sample: int | None = None, seed: int = 0) -> float:
+        """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row, over
+        all rows or a random sample of them.
 
         Parameters
         ----------
         X : BlockCSR of T's shape and pixel order (any tile size), or (n,) ndarray
             An inverse on disk, or the diagonal of a diagonal one (e.g. 1 / diag(T)).
+        sample : int, optional
+            Measure on this many rows drawn uniformly without replacement (seeded by
+            ``seed``) instead of all n: the error of a full-HD inverse in one read of
+            the tile rows, with no row of the exact inverse formed beyond the sample.
 
         Returns
         -------
@@ -141,29 +144,21 @@ class Scene:
             (:attr:`exact`); otherwise this is the distance to that scene's inverse.
         """
         T = self.T
-        if isinstance(X, np.ndarray):
-            if X.shape != (T.shape[0],):
-                raise ShapeMismatchError(f"a diagonal X needs {T.shape[0]} entries, got {X.shape}")
-            diag = np.asarray(X, np.float64)
-
-            def rows(i):
-                r0, r1 = T.tile_row_range(i)
-                return sp.csr_array((diag[r0:r1], np.arange(r0, r1), np.arange(r1 - r0 + 1)),
-                                    shape=(r1 - r0, T.shape[1]))
-        else:
-            where = getattr(X, "path", None)
-            if X.shape != T.shape:
-                raise ShapeMismatchError(f"X is {X.shape}, the scene is {T.shape}", where)
-            if X.pixel_order is not None and X.pixel_order != T.pixel_order:
-                raise ShapeMismatchError(f"X's pixel order {X.pixel_order} is not the scene's "
-                                         f"{T.pixel_order}", where)
-
-            def rows(i):
-                return sp.csr_array(X.get_rows(*T.tile_row_range(i)), dtype=np.float64)
+        n = T.shape[0]
+        rows = _inverse_rows(X, T)
+        chosen = None
+        if sample is not None and sample < n:
+            chosen = np.sort(np.random.default_rng(seed).choice(n, int(sample), replace=False))
         num = den = 0.0
         for i in range(T.grid[0]):
-            ref = self.exact_inverse_rows(i)
-            diff = rows(i) - ref
+            r0, r1 = T.tile_row_range(i)
+            keep = None if chosen is None else chosen[(chosen >= r0) & (chosen < r1)] - r0
+            if keep is not None and not len(keep):
+                continue
+            ref, got = self.exact_inverse_rows(i), rows(i)
+            if keep is not None:
+                ref, got = ref[keep], got[keep]
+            diff = sp.csr_array(got - ref)
             num += float(np.sum(diff.data ** 2))
             den += float(np.sum(ref.data ** 2))
         return math.sqrt(num / den) if den else 0.0
@@ -190,6 +185,31 @@ class Scene:
                                                "holds up to truncation/noise/blur"),
         ]
         return "\n".join(lines)
+
+
+def _inverse_rows(X, T):
+    """``rows(i)``: tile row ``i`` of T's grid of the inverse ``X`` (a store, or the
+    (n,) diagonal of a diagonal inverse), float64 CSR."""
+    if isinstance(X, np.ndarray):
+        if X.shape != (T.shape[0],):
+            raise ShapeMismatchError(f"a diagonal X needs {T.shape[0]} entries, got {X.shape}")
+        diag = np.asarray(X, np.float64)
+
+        def rows(i):
+            r0, r1 = T.tile_row_range(i)
+            return sp.csr_array((diag[r0:r1], np.arange(r0, r1), np.arange(r1 - r0 + 1)),
+                                shape=(r1 - r0, T.shape[1]))
+        return rows
+    where = getattr(X, "path", None)
+    if X.shape != T.shape:
+        raise ShapeMismatchError(f"X is {X.shape}, the scene is {T.shape}", where)
+    if X.pixel_order is not None and X.pixel_order != T.pixel_order:
+        raise ShapeMismatchError(f"X's pixel order {X.pixel_order} is not the scene's "
+                                 f"{T.pixel_order}", where)
+
+    def rows(i):
+        return sp.csr_array(X.get_rows(*T.tile_row_range(i)), dtype=np.float64)
+    return rows
 
 
 def exact_inverse_rows(A, F, i: int) -> sp.csr_array:
@@ -294,41 +314,40 @@ def _uncertainty(value) -> str:
     return "" if value is None else f" +- {value:.1e}"
 
 
-def _spectral_radius_T(T, d) -> SpectralRadius:
+def _spectral_radius_T(times_T, d) -> SpectralRadius:
     """rho(M) for M = I - T diag(d)^-1 on the pixels with d > 0, to
-    ``config.SCENE_SPECTRAL_RTOL`` (streams T once per product)."""
+    ``config.SCENE_SPECTRAL_RTOL``; ``times_T(V)`` is T @ V."""
     inv = np.zeros_like(d)
     inv[d > 0] = 1.0 / d[d > 0]
     lit = d > 0
-    if _csr_bytes(T.nnz, T.shape[0]) <= config.SCENE_IN_MEMORY_BYTES:
-        T = T.to_scipy()  # ARPACK's products then skip reading and decompressing tiles
+
     def minus_M(V):
         # (T - diag(d)) diag(d)^-1 V: the diagonal cancels exactly (V - T diag(d)^-1 V
         # left 1e-16 of rounding on a diagonal T)
         W = V * inv[:, None]
-        return T @ W - d[:, None] * W
+        return times_T(W) - d[:, None] * W
 
-    return spectral_radius(minus_M, T.shape[0], lit, rtol=config.SCENE_SPECTRAL_RTOL)
-
-
-def _csr_bytes(nnz: int, n: int) -> int:
-    """Bytes of a float64 CSR matrix: 8 B values + 4 B (int32) column indices per entry."""
-    return 12 * int(nnz) + 8 * (int(n) + 1)
+    return spectral_radius(minus_M, len(d), lit, rtol=config.SCENE_SPECTRAL_RTOL,
+                           max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
 
 
-def _write_ground_truth(root: Path, A: sp.csr_array, F: np.ndarray, po, tile_size):
-    """The ground-truth group of the scene at ``root``: A (bigT store) and F (array).
-    Its summary attribute is written by :func:`_commit`, once the timings are known."""
-    import zarr
-
+def _write_A(root: Path, A: sp.csr_array, po, tile_size):
+    """The ground-truth group of the scene at ``root`` with A in it (a small scene's A
+    made in memory; built scenes write theirs tile row by tile row)."""
     gt = root / GROUND_TRUTH
     gt.mkdir()
     atomic_write_json(gt / "zarr.json", group_json({}))
     from_scipy(A, gt / "A", tile_size=tile_size, dtype="float64", image_shape=po.image_shape,
                pixel_order=po.order, image_tile=po.image_tile, input_order="matrix")
+
+
+def _write_F(gt: Path, F: np.ndarray) -> None:
+    """F (first bounce, (n,) float64) into the ground-truth group ``gt``."""
+    import zarr
+
     arr = zarr.create_array(store=str(gt / "F"), shape=F.shape, dtype="float64",
                             chunks=(max(1, min(len(F), config.CHUNK_ELEMENTS)),),
-                            fill_value=float("nan"))
+                            fill_value=float("nan"), overwrite=True)
     arr[:] = F
 
 
@@ -387,7 +406,7 @@ def preview_path(path: Path) -> Path:
 def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=None,
           threshold=None, noise=0.0, noise_floor=None, blur=0.0, seed=0, tile_size=None,
           pixel_order="tile-major", dtype="float32", overwrite=False, preview=True,
-          progress=None) -> Scene:
+          progress=None, memory_limit=None) -> Scene:
     """Build a named scene at ``path`` (see :func:`corner` and friends).
 
     Parameters
@@ -430,6 +449,12 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         Write ``<name>-preview.png`` beside the store.
     progress : bool, optional
         Progress bars (None: on a terminal only).
+    memory_limit : int, optional
+        Bytes the build may hold of A and T at once (default
+        ``config.SCENE_IN_MEMORY_BYTES``): a matrix within it is read whole once, a
+        larger one tile row by tile row. The build is resumable: an interrupted call
+        leaves its work in ``.NAME.scene-build`` beside ``path``, and the next call
+        with the same parameters goes on from the tile rows done.
 
     Returns
     -------
@@ -455,85 +480,141 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     perm = po.permutation
     density, cut, thr = _resolve_density(density, ff_cut, threshold, n)
     albedo_vec, albedo_label = _albedo_vector(albedo, size, perm)
+    radiosity.check_all_pairs(n, cut)
 
-    t0 = time.perf_counter()
     P = _patches(name, size).take(perm)
-    FF = radiosity.form_factors(P, cut, progress=progress)
-    A = radiosity.interreflection(FF, albedo_vec)
-    del FF
     f = albedo_vec * P.first_bounce_gain()
     G = radiosity.gaussian_blur_matrix(size, blur, perm) if blur > 0 else None
-    seconds_ff = time.perf_counter() - t0
-
-    fmax = float(f.max()) if n else 0.0
-    prune = config.SCENE_PRUNE_FRACTION * thr / fmax if thr > 0 and fmax > 0 else 0.0
-    stop = thr if thr > 0 else config.SCENE_NEUMANN_TOL
+    memory_limit = int(memory_limit or config.SCENE_IN_MEMORY_BYTES)
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
+    params = {
+        "name": name, "image_shape": [H, W], "n": n, "pixel_order": po.order,
+        "albedo": albedo_label, "density": density, "ff_cut": cut, "threshold": thr,
+        "noise": noise, "noise_floor": floor, "blur": blur, "seed": int(seed),
+        "dtype": str(np.dtype(dtype)), "tile_size": tile_size,
+    }
+    if albedo_label == "texture":  # a texture is not in the parameters: its digest is
+        params["albedo_digest"] = hashlib.sha256(albedo_vec.tobytes()).hexdigest()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_sibling(path)
-    from ..progress import progress_bar
+    work, resumed = stored.work_directory(path, params)
+    tmp = work / "T"
+    timings = {}
+    t0 = time.perf_counter()
+    T = BlockCSRWriter(tmp, (n, n), tile_size=tile_size, dtype=dtype, pixel_order=po,
+                       resume=True)
+    gt = tmp / GROUND_TRUTH
+    if not gt.exists():
+        gt.mkdir()
+        atomic_write_json(gt / "zarr.json", group_json({}))
+    A = stored.write_interreflection(P, albedo_vec, cut, gt / "A", po, T.tile_size,
+                                     progress)
+    timings["seconds_form_factors"] = time.perf_counter() - t0
 
-    try:
-        t0 = time.perf_counter()
-        writer = BlockCSRWriter(tmp, (n, n), tile_size=tile_size, dtype=dtype, pixel_order=po)
-        max_bounces = 0
-        for i in progress_bar(range(writer.grid[0]), progress=progress,
-                              desc=f"{name}: T rows", unit="tile row"):
-            r0, r1 = writer.tile_row_range(i)
-            rows, k = radiosity.transport_rows(A, f, r0, r1, prune=prune, stop=stop,
-                                               max_bounces=config.SCENE_MAX_BOUNCES, G=G)
-            max_bounces = max(max_bounces, k)
-            if thr > 0:
-                rows.data[rows.data < thr] = 0.0
-                rows.eliminate_zeros()
-            if noise > 0 or floor > 0:
-                rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
-            writer.write_tile_row(i, rows)
-        T = writer.finalize()
-        seconds_T = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    times_A = stored.StoredProduct(A, memory_limit)
+    T, max_bounces = _write_transport(T, times_A, f, G, thr, noise, floor, seed, name,
+                                      progress)
+    times_A.release()
+    del times_A
+    timings["seconds_T"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        d = np.asarray(T.diagonal(), np.float64)
-        rho_M = _spectral_radius_T(T, d)
-        rho_A = spectral_radius(lambda V: A @ V, n, rtol=config.SCENE_SPECTRAL_RTOL)
-        white = np.ones(n)
-        T1 = T @ white
-        b0 = f * (G @ white if G is not None else white)
-        bounces = radiosity.bounce_images(A, b0, config.SCENE_SHARE_MAX_BOUNCES,
-                                          config.SCENE_SHARE_TOL)
-        shares = radiosity.light_shares(bounces)
-        seconds_stats = time.perf_counter() - t0
-
-        summary = {
-            "name": name, "image_shape": [H, W], "n": n, "pixel_order": po.order,
-            "albedo": albedo_label, "density": density, "ff_cut": cut, "threshold": thr,
-            "noise": noise, "noise_floor": floor, "blur": blur, "seed": int(seed),
-            "dtype": str(T.dtype),
-            "nnz_T": int(T.nnz), "nnz_A": int(A.nnz), "bounces": int(max_bounces),
-            "spectral_radius": _finite(rho_M.value), "spectral_radius_A": _finite(rho_A.value),
-            "spectral_radius_uncertainty": _finite(rho_M.uncertainty),
-            "spectral_radius_A_uncertainty": _finite(rho_A.uncertainty),
-            "bounce_shares": shares, "exact": bool(exact),
-            "seconds": 0.0, "seconds_form_factors": seconds_ff, "seconds_T": seconds_T,
-            "seconds_stats": seconds_stats,
-            "preview": str(preview_path(path)) if preview else None,
-        }
-        _commit(tmp, path, A, f, po, T.tile_size, summary, t_start)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    t0 = time.perf_counter()
+    stats = _ground_truth_stats(T, A, f, G, memory_limit)
+    timings["seconds_stats"] = time.perf_counter() - t0
+    summary = {
+        **{k: v for k, v in params.items() if k not in ("tile_size", "albedo_digest")},
+        "dtype": str(T.dtype), "nnz_T": int(T.nnz), "nnz_A": int(A.nnz),
+        "bounces": int(max_bounces), **stats.fields(), "exact": bool(exact),
+        "seconds": 0.0, **timings, "resumed": bool(resumed),
+        "preview": str(preview_path(path)) if preview else None,
+    }
+    _commit(tmp, path, f, summary, t_start)
+    shutil.rmtree(work, ignore_errors=True)
     scene = load(path)
     if preview:
-        _preview(preview_path(path), po.to_images(T1), f"{name} {H}x{W}: T 1, "
-                 f"rho(M) = {_radius(rho_M.value)}")
+        _preview(preview_path(path), po.to_images(stats.T1), f"{name} {H}x{W}: T 1, "
+                 f"rho(M) = {_radius(stats.rho_M.value)}")
     return scene
 
 
-def _commit(tmp: Path, path: Path, A, F, po, tile_size: int, summary: dict, t_start: float):
-    """Add the ground truth to the complete T store built at ``tmp``, record the summary
-    (in the ground-truth group and in T's metadata, so ``bigT info`` shows it) and move
-    the scene into place at ``path``."""
-    _write_ground_truth(tmp, A, F, po, tile_size)
+def _write_transport(writer, times_A, f, G, thr, noise, floor, seed, name, progress):
+    """T = (sum_k A^k) F [G] (paper eq. 6/8) tile row by tile row, truncated at
+    ``thr`` and with camera noise, into ``writer`` (the tile rows it still misses).
+
+    Returns
+    -------
+    (BlockCSR of T, int: the most bounces a tile row needed, 0 for rows resumed)
+    """
+    fmax = float(f.max()) if len(f) else 0.0
+    prune = config.SCENE_PRUNE_FRACTION * thr / fmax if thr > 0 and fmax > 0 else 0.0
+    stop = thr if thr > 0 else config.SCENE_NEUMANN_TOL
+    max_bounces = 0
+    for i in progress_bar(writer.missing_tile_rows, progress=progress,
+                          desc=f"{name}: T rows", unit="tile row"):
+        r0, r1 = writer.tile_row_range(i)
+        rows, k = radiosity.transport_rows(times_A, f, r0, r1, prune=prune, stop=stop,
+                                           max_bounces=config.SCENE_MAX_BOUNCES, G=G)
+        max_bounces = max(max_bounces, k)
+        if thr > 0:
+            rows.data[rows.data < thr] = 0.0
+            rows.eliminate_zeros()
+        if noise > 0 or floor > 0:
+            rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
+        writer.write_tile_row(i, rows)
+    return writer.finalize(), max_bounces
+
+
+@dataclass(frozen=True)
+class _GroundTruthStats:
+    """What a scene's summary says of its transport, measured on the stores.
+
+    Attributes
+    ----------
+    rho_M, rho_A : SpectralRadius
+        Of M = I - T diag(T)^-1 and of A.
+    shares : list of float
+        Each bounce's share of the light of a white projector image.
+    T1 : ndarray, (n,) float64
+        T 1, the camera's view of a white projector image (the preview).
+    """
+
+    rho_M: SpectralRadius
+    rho_A: SpectralRadius
+    shares: list
+    T1: np.ndarray
+
+    def fields(self) -> dict:
+        return {"spectral_radius": _finite(self.rho_M.value),
+                "spectral_radius_A": _finite(self.rho_A.value),
+                "spectral_radius_uncertainty": _finite(self.rho_M.uncertainty),
+                "spectral_radius_A_uncertainty": _finite(self.rho_A.uncertainty),
+                "bounce_shares": self.shares}
+
+
+def _ground_truth_stats(T, A, f, G, memory_limit: int) -> _GroundTruthStats:
+    """Spectral radii, bounce shares and T 1 from the stored T and A, one matrix at a
+    time held within ``memory_limit`` (streamed from disk beyond it)."""
+    n = T.shape[0]
+    d = np.asarray(T.diagonal(), np.float64)
+    times_T = stored.stored_apply(T, memory_limit)
+    rho_M = _spectral_radius_T(times_T, d)
+    T1 = times_T(np.ones(n))
+    del times_T
+    times_A = stored.stored_apply(A, memory_limit)
+    rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
+                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
+    white = np.ones(n)
+    b0 = f * (G @ white if G is not None else white)
+    bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
+                                      config.SCENE_SHARE_TOL)
+    return _GroundTruthStats(rho_M, rho_A, radiosity.light_shares(bounces), T1)
+
+
+def _commit(tmp: Path, path: Path, F, summary: dict, t_start: float):
+    """Add F to the ground truth of the complete T store built at ``tmp`` (its A is
+    there already), record the summary (in the ground-truth group and in T's metadata,
+    so ``bigT info`` shows it) and move the scene into place at ``path``."""
+    _write_F(tmp / GROUND_TRUTH, F)
     summary["seconds"] = time.perf_counter() - t_start
     atomic_write_json(tmp / GROUND_TRUTH / "zarr.json", group_json({SCENE_ATTR: summary}))
     open_store(tmp).update_metadata(scene=summary)
@@ -584,7 +665,8 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
     tmp = temporary_sibling(path)
     try:
         from_scipy(sp.csr_array(T), tmp, tile_size=2, dtype=dtype, image_shape=(2, 2))
-        _commit(tmp, path, sp.csr_array(A), F, po, 2, summary, t0)
+        _write_A(tmp, sp.csr_array(A), po, 2)
+        _commit(tmp, path, F, summary, t0)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

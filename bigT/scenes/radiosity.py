@@ -71,9 +71,61 @@ def _visible(P: Patches, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     return ok
 
 
-def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
-                 max_nnz: int | None = None, progress=None) -> sp.csr_array:
-    """The (truncated) form-factor matrix FF, shape (n, n), float64, zero diagonal.
+def face_trees(P: Patches, cut: float):
+    """(r_max, {face: (k-d tree of its centres, their indices)}) for a cut > 0.
+
+    As ``FF_ij <= a_j / (pi r^2)``, only centres within ``r_max`` of each other can
+    reach the cut. One tree per face: when patches of one face cannot exchange light
+    (a planar or convex face), only the other faces are searched."""
+    r_max = math.sqrt(P.areas.max() / (math.pi * cut))
+    trees = {}
+    for g in np.unique(P.face):
+        idx = np.flatnonzero(P.face == g)
+        trees[g] = (cKDTree(P.points[idx]), idx)
+    return r_max, trees
+
+
+def _candidate_pairs(P: Patches, i0: int, i1: int, cut: float, trees, r_max: float):
+    """(i, j) int64 arrays: the pairs of rows i0:i1 that may reach the cut (every pair
+    when cut = 0, less those within a face that exchanges no light)."""
+    n = P.n
+    if cut == 0:
+        i = np.repeat(np.arange(i0, i1), n)
+        j = np.tile(np.arange(n), i1 - i0)
+        if not P.same_face_exchange:
+            keep = P.face[i] != P.face[j]
+            i, j = i[keep], j[keep]
+        return i, j
+    ii, jj = [], []
+    for h in np.unique(P.face[i0:i1]):
+        src = i0 + np.flatnonzero(P.face[i0:i1] == h)
+        sub = cKDTree(P.points[src])
+        for g, (tree, idx) in trees.items():
+            if g == h and not P.same_face_exchange:
+                continue
+            pairs = sub.sparse_distance_matrix(tree, r_max, output_type="ndarray")
+            ii.append(src[pairs["i"]])
+            jj.append(idx[pairs["j"]])
+    i = np.concatenate(ii) if ii else np.zeros(0, np.int64)
+    j = np.concatenate(jj) if jj else np.zeros(0, np.int64)
+    return i, j
+
+
+def check_all_pairs(n: int, cut: float) -> None:
+    """Refuse (MemoryLimitError) a cut of 0 where testing all n^2 pairs is too much."""
+    if cut == 0 and n * n > config.SCENE_MAX_ALL_PAIRS:
+        raise MemoryLimitError(
+            f"cut = 0 tests all {n}^2 pairs, more than config.SCENE_MAX_ALL_PAIRS = "
+            f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. --ff-cut 1e-6) "
+            "or a density preset")
+
+
+def form_factor_rows(P: Patches, cut: float = 0.0, *, rows=None, chunk: int | None = None,
+                     search=None):
+    """Yield the rows of the (truncated) form-factor matrix FF, chunk by chunk.
+
+    Each chunk is searched on its own (a k-d tree of its centres against one tree per
+    face), so memory holds one chunk's candidate pairs, whatever n.
 
     Parameters
     ----------
@@ -81,58 +133,30 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
     cut : float >= 0
         Pairs with ``max(FF_ij, FF_ji) < cut`` are dropped (both directions, so the
         pattern stays symmetric and reciprocity holds for every stored entry).
-        ``cut = 0`` keeps every pair that sees each other (all n^2 pairs are tested,
-        less those within one face when ``P.same_face_exchange`` is False: small
-        scenes only).
-    max_nnz : int, optional
-        Refuse (MemoryLimitError) beyond this many stored entries
-        (default ``config.SCENE_MAX_A_NNZ``).
+        ``cut = 0`` keeps every pair that sees each other (all n^2 pairs are tested).
+    rows : (start, stop), optional
+        The rows wanted (default all).
+    chunk : int, optional
+        Rows per search (default ``config.SCENE_PAIR_CHUNK``).
+    search : (r_max, trees), optional
+        :func:`face_trees` of ``P`` and ``cut``, made once by a caller that asks for
+        many row ranges (made here when not given).
+
+    Yields
+    ------
+    (i0, csr_array of shape (i1 - i0, n), float64, sorted indices, zero diagonal)
     """
     n = P.n
     chunk = chunk or config.SCENE_PAIR_CHUNK
-    max_nnz = config.SCENE_MAX_A_NNZ if max_nnz is None else int(max_nnz)
     if cut < 0 or not math.isfinite(cut):
         raise BigTError(f"cut must be a finite number >= 0, got {cut}")
-    if cut == 0 and n * n > config.SCENE_MAX_ALL_PAIRS:
-        raise MemoryLimitError(
-            f"cut = 0 tests all {n}^2 pairs, more than config.SCENE_MAX_ALL_PAIRS = "
-            f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. --ff-cut 1e-6) "
-            "or a density preset")
-    r_max = math.inf
-    trees = {}
-    if cut > 0:
-        r_max = math.sqrt(P.areas.max() / (math.pi * cut))
-        # one k-d tree per face: when patches of one face cannot exchange light (a
-        # planar or convex face), only the other faces are searched
-        for g in np.unique(P.face):
-            idx = np.flatnonzero(P.face == g)
-            trees[g] = (cKDTree(P.points[idx]), idx)
-    rows, cols, vals = [], [], []
-    total = 0
-    from ..progress import progress_bar
-
-    for i0 in progress_bar(range(0, n, chunk), progress=progress, desc="form factors",
-                           unit="chunk"):
-        i1 = min(n, i0 + chunk)
-        if cut == 0:
-            i = np.repeat(np.arange(i0, i1), n)
-            j = np.tile(np.arange(n), i1 - i0)
-            if not P.same_face_exchange:
-                keep = P.face[i] != P.face[j]
-                i, j = i[keep], j[keep]
-        else:
-            ii, jj = [], []
-            for h in np.unique(P.face[i0:i1]):
-                src = i0 + np.flatnonzero(P.face[i0:i1] == h)
-                sub = cKDTree(P.points[src])
-                for g, (tree, idx) in trees.items():
-                    if g == h and not P.same_face_exchange:
-                        continue
-                    pairs = sub.sparse_distance_matrix(tree, r_max, output_type="ndarray")
-                    ii.append(src[pairs["i"]])
-                    jj.append(idx[pairs["j"]])
-            i = np.concatenate(ii) if ii else np.zeros(0, np.int64)
-            j = np.concatenate(jj) if jj else np.zeros(0, np.int64)
+    if search is None:
+        search = face_trees(P, cut) if cut > 0 else (math.inf, {})
+    r_max, trees = search
+    start, stop = (0, n) if rows is None else (int(rows[0]), int(rows[1]))
+    for i0 in range(start, stop, chunk):
+        i1 = min(stop, i0 + chunk)
+        i, j = _candidate_pairs(P, i0, i1, cut, trees, r_max)
         keep = i != j
         i, j = i[keep], j[keep]
         f_ij, f_ji = _pair_form_factors(P, i, j)
@@ -141,19 +165,46 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
         i, j, f_ij = i[keep], j[keep], f_ij[keep]
         vis = _visible(P, i, j)
         i, j, f_ij = i[vis], j[vis], f_ij[vis]
-        total += len(i)
+        idx = np.int32 if n < 2**31 else np.int64
+        block = sp.coo_array((f_ij, (i.astype(idx) - i0, j.astype(idx))),
+                             shape=(i1 - i0, n)).tocsr()
+        block.sum_duplicates()
+        block.sort_indices()
+        yield i0, block
+
+
+def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
+                 max_nnz: int | None = None, progress=None) -> sp.csr_array:
+    """The (truncated) form-factor matrix FF in memory, shape (n, n), float64, zero
+    diagonal (:func:`form_factor_rows` assembled; scenes write it tile row by tile row
+    instead).
+
+    Parameters
+    ----------
+    P, cut, chunk : as :func:`form_factor_rows`
+    max_nnz : int, optional
+        Refuse (MemoryLimitError) beyond this many stored entries
+        (default ``config.SCENE_MAX_A_NNZ``).
+    """
+    from ..progress import progress_bar
+
+    n = P.n
+    max_nnz = config.SCENE_MAX_A_NNZ if max_nnz is None else int(max_nnz)
+    check_all_pairs(n, cut)
+    chunk = chunk or config.SCENE_PAIR_CHUNK
+    blocks, total = [], 0
+    pieces = form_factor_rows(P, cut, chunk=chunk)
+    for i0, block in progress_bar(pieces, progress=progress, desc="form factors",
+                                  unit="chunk", total=-(-n // chunk)):
+        total += block.nnz
         if total > max_nnz:
             raise MemoryLimitError(
                 f"the form-factor matrix passed {max_nnz} entries (config.SCENE_MAX_A_NNZ) "
-                f"after {i1} of {n} rows; raise the form-factor cut")
-        rows.append(i.astype(np.int32 if n < 2**31 else np.int64))
-        cols.append(j.astype(np.int32 if n < 2**31 else np.int64))
-        vals.append(f_ij)
-    coo = sp.coo_array((np.concatenate(vals) if vals else np.zeros(0),
-                        (np.concatenate(rows) if rows else np.zeros(0, np.int32),
-                         np.concatenate(cols) if cols else np.zeros(0, np.int32))), shape=(n, n))
-    FF = coo.tocsr()
-    FF.sum_duplicates()
+                f"after {i0 + block.shape[0]} of {n} rows; raise the form-factor cut")
+        blocks.append(block)
+    if not blocks:
+        return sp.csr_array((n, n), dtype=np.float64)
+    FF = sp.csr_array(sp.vstack(blocks, format="csr"))
     FF.sort_indices()
     return FF
 
@@ -195,33 +246,35 @@ def gaussian_blur_matrix(size, sigma: float, order: np.ndarray) -> sp.csr_array:
     return G
 
 
-def _product(R, A, threshold):
-    try:
-        from ..kernels import spgemm
-    except ImportError:  # pragma: no cover - the kernels layer is part of bigT
-        C = sp.csr_array(R @ A)
-        if threshold > 0:
-            C.data[np.abs(C.data) < threshold] = 0
-            C.eliminate_zeros()
-        return C
-    return spgemm(R, A, threshold=threshold)
+def in_memory_product(A: sp.csr_array):
+    """``times_A(R, threshold)``: R @ A pruned at ``threshold``, for an A in memory."""
+    from ..kernels import spgemm
+
+    def times_A(R, threshold):
+        return spgemm(R, A, threshold=threshold)
+
+    return times_A
 
 
-def transport_rows(A: sp.csr_array, f: np.ndarray, r0: int, r1: int, *, prune: float,
-                   stop: float, max_bounces: int, G: sp.csr_array | None = None):
+def transport_rows(A, f: np.ndarray, r0: int, r1: int, *, prune: float, stop: float,
+                   max_bounces: int, G: sp.csr_array | None = None):
     """Rows r0:r1 of T = (sum_k A^k) diag(f) [G], float64 CSR, and the bounce count.
 
+    ``A`` is an (n, n) csr_array, or a callable ``times_A(R, threshold)`` giving R @ A
+    pruned with an ``nnz`` attribute (a stored A read tile row by tile row, see
+    ``bigT.scenes.builder``).
     ``R_k`` entries below ``prune`` are dropped inside the product; the series stops
     once the newest bounce's largest entry times max(f) is below ``stop``.
     """
-    n = A.shape[0]
+    times_A = A if callable(A) else in_memory_product(A)
+    n = len(f)
     m = r1 - r0
     R = sp.csr_array((np.ones(m), np.arange(r0, r1), np.arange(m + 1)), shape=(m, n))
     S = R.copy()
     fmax = float(np.abs(f).max()) if len(f) else 0.0
     k = 0
-    while R.nnz and A.nnz:
-        R = _product(R, A, prune)
+    while R.nnz and A.nnz:  # a callable A carries its nnz too
+        R = times_A(R, prune)
         k += 1
         if R.nnz == 0:
             break
@@ -248,12 +301,15 @@ def light_shares(bounces) -> list[float]:
     return (totals / whole).tolist() if whole else [0.0] * len(totals)
 
 
-def bounce_images(A: sp.csr_array, F1: np.ndarray, max_bounces: int, rel_tol: float):
-    """b_k = A^k F 1 for k = 0..K, stopping when ||b_k|| < rel_tol ||b_0||."""
+def bounce_images(A, F1: np.ndarray, max_bounces: int, rel_tol: float):
+    """b_k = A^k F 1 for k = 0..K, stopping when ||b_k|| < rel_tol ||b_0||.
+
+    ``A``: a sparse (n, n) matrix, or a callable ``A(v)`` giving A @ v."""
+    times = A if callable(A) else (lambda v: A @ v)
     out = [np.asarray(F1, np.float64)]
     n0 = np.linalg.norm(out[0])
     while len(out) <= max_bounces:
-        b = A @ out[-1]
+        b = times(out[-1])
         out.append(b)
         if np.linalg.norm(b) < rel_tol * n0:
             break

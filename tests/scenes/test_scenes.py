@@ -67,6 +67,12 @@ def test_untruncated_scene_equals_dense_transport(tmp_path, name, size):
     ref = np.linalg.norm(Y - X) / np.linalg.norm(X)
     got = sc.inverse_error(bigT.from_scipy(sp.csr_array(Y), tmp_path / "Y.zarr", **kw))
     assert got == pytest.approx(ref, rel=1e-9) and got > 0
+    # on a sample of rows: the same rows drawn here, measured densely
+    rows = np.sort(np.random.default_rng(5).choice(n, n // 3, replace=False))
+    ref_rows = np.linalg.norm((Y - X)[rows]) / np.linalg.norm(X[rows])
+    Ys = bigT.from_scipy(sp.csr_array(Y), tmp_path / "Ys.zarr", **kw)
+    assert sc.inverse_error(Ys, sample=n // 3, seed=5) == pytest.approx(ref_rows, rel=1e-9)
+    assert sc.inverse_error(Ys, sample=n) == pytest.approx(ref, rel=1e-9)
     # a diagonal X (F^-1 alone) given as a vector
     assert sc.inverse_error(1.0 / sc.F) == pytest.approx(
         np.linalg.norm(np.diag(1.0 / sc.F) - X) / np.linalg.norm(X), rel=1e-9)

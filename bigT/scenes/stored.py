@@ -1,0 +1,127 @@
+"""The out-of-core parts of a scene build: A written tile row by tile row, T's rows
+multiplied against the stored A, products with stored matrices for the ground truth,
+and the work directory that lets an interrupted build resume.
+
+Memory is bounded by one budget (``memory_limit``, default
+``config.SCENE_IN_MEMORY_BYTES``): a stored matrix is held whole when it fits the
+budget (the common case, read once), else its tile rows are read as each product
+needs them, through a tile cache of half the budget.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import config
+from ..progress import progress_bar
+from ..schedule.cache import TileCache
+from ..schedule.memory import MemoryPlan
+from ..schedule.operators import StoreOperand
+from ..storage import BlockCSRWriter, PixelOrder
+from ..storage.block_csr import atomic_write_json
+from . import radiosity
+from .geometry import Patches
+
+#: The parameters of an interrupted build, compared with those of the next call.
+BUILD_RECORD = "scene-build.json"
+
+
+class StoredProduct:
+    """``times_A(R, threshold)``: R @ A pruned at ``threshold``, A a stored matrix.
+
+    A is read whole (once) when it fits half of ``memory_limit``; else the tile rows a
+    product needs are read in batches (the engine's out-of-core product,
+    :func:`bigT.schedule.worker.row_product`) through a tile cache of the other half.
+
+    Attributes
+    ----------
+    nnz : int
+        A's stored entries (0: every product is empty).
+    """
+
+    def __init__(self, store, memory_limit: int):
+        half = max(1, int(memory_limit) // 2)
+        self.operand = StoreOperand(store, cache=TileCache(half))
+        self.nnz = int(store.nnz)
+        self._plan = MemoryPlan(int(memory_limit), 0, 0, half, half, half, 1)
+
+    def __call__(self, R: sp.csr_array, threshold: float) -> sp.csr_array:
+        from ..schedule.worker import row_product
+
+        out, _, _ = row_product(R, self.operand, threshold, self._plan,
+                                self._plan.whole_bytes, config.KERNEL_THREADS)
+        return out
+
+    def release(self) -> None:
+        self.operand.release()
+
+
+def stored_apply(store, memory_limit: int):
+    """``apply(V)``: store @ V for V of shape (n,) or (n, p), float64, one tile row at
+    a time; tile rows are cached while they fit ``memory_limit`` (so a matrix that
+    fits is decoded once for all the products of an eigenvalue estimate)."""
+    operand = StoreOperand(store, cache=TileCache(int(memory_limit)))
+    rows = [(j, *store.tile_row_range(j)) for j in np.flatnonzero(operand.nonempty)]
+
+    def apply(V: np.ndarray) -> np.ndarray:
+        V = np.asarray(V, np.float64)
+        out = np.zeros((store.shape[0],) + V.shape[1:])
+        for j, a, b in rows:
+            out[a:b] = operand.row(j) @ V
+        return out
+
+    return apply
+
+
+def work_directory(path: Path, params: dict) -> tuple[Path, bool]:
+    """The hidden directory ``.NAME.scene-build`` beside ``path`` where the scene is
+    built, and whether it resumes an interrupted build of the same ``params``.
+
+    A leftover of other parameters is deleted (it is bigT's own, never the user's):
+    the build starts over.
+    """
+    work = path.with_name(f".{path.name}.scene-build")
+    record = work / BUILD_RECORD
+    if work.exists():
+        try:
+            same = json.loads(record.read_text()) == params
+        except (OSError, ValueError):
+            same = False
+        if same:
+            return work, True
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    atomic_write_json(record, params)
+    return work, False
+
+
+def write_interreflection(P: Patches, albedo: np.ndarray, cut: float, path: Path,
+                          pixel_order: PixelOrder, tile_size: int | None,
+                          progress=None):
+    """A = diag(albedo) FF written tile row by tile row at ``path`` (float64 store),
+    resuming an interrupted write; memory holds one tile row's candidate pairs.
+
+    Returns
+    -------
+    BlockCSR, shape (n, n)
+    """
+    n = P.n
+    writer = BlockCSRWriter(path, (n, n), tile_size=tile_size, dtype="float64",
+                            pixel_order=pixel_order, resume=True)
+    missing = writer.missing_tile_rows
+    if missing:
+        search = radiosity.face_trees(P, cut) if cut > 0 else None
+        for i in progress_bar(missing, progress=progress, desc="interreflection A",
+                              unit="tile row"):
+            r0, r1 = writer.tile_row_range(i)
+            pieces = [block for _, block in
+                      radiosity.form_factor_rows(P, cut, rows=(r0, r1), search=search)]
+            FF = sp.csr_array(sp.vstack(pieces, format="csr")) if pieces else \
+                sp.csr_array((r1 - r0, n))
+            writer.write_tile_row(i, radiosity.interreflection(FF, albedo[r0:r1]))
+    return writer.finalize()
