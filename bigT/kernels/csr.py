@@ -189,12 +189,14 @@ class _CSR:
         return int(self.indptr[-1])
 
 
-def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True):
+def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True, check=True):
     """Validate ``A`` and return its raw arrays in the requested dtypes.
 
     ``dtype=None`` keeps A's float dtype; ``index_dtype`` defaults to int32 when the
     shape and nnz allow it. With ``canonical``, rows are sorted and duplicates summed
-    (on a copy) when they are not already.
+    (on a copy) when they are not already. ``check=False`` trusts A to be valid and
+    canonical (read from a bigT store, whose writer checked it): the O(nnz) scan is
+    skipped, which matters when one large right factor meets many small left ones.
     """
     if not sp.issparse(A):
         raise InvalidMatrixError(f"{name} must be a scipy.sparse matrix, got {type(A).__name__}")
@@ -222,6 +224,8 @@ def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True):
     indptr = np.ascontiguousarray(indptr, dtype=idt)
     indices = np.ascontiguousarray(indices, dtype=idt)
     data = np.ascontiguousarray(data, dtype=fdt)
+    if not check:
+        return _CSR((n_rows, n_cols), indptr, indices, data)
     check = _small.check_csr if _small_enough(len(data)) else _numba().check_csr_internal
     status, where, is_canonical = check(indptr, indices, data, n_cols)
     if status != CSR_OK:
@@ -277,7 +281,8 @@ def _csr_result(shape, indptr, indices, data, index_dtype=None):
 
 
 def spgemm(
-    A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None, method=None
+    A, B, *, threshold=0.0, top_k=None, n_threads=None, index_dtype=None, method=None,
+    checked=True,
 ):
     """C = A @ B with pruning fused into the row loop.
 
@@ -309,6 +314,11 @@ def spgemm(
         (``_csr_kernels.spgemm_grouped_internal``), falling back to one row at a
         time in groups whose rows share few columns; ``"rows"`` is one row at a time
         throughout (``_csr_kernels.spgemm_rows_internal``).
+    checked : bool
+        Check both operands (default). False trusts them to be valid CSR, B with
+        sorted duplicate-free rows, all values finite (the engine's operands, read
+        from stores whose writers checked them): the check of B costs O(nnz(B)) per
+        call, and a term calls it once per tile row with the whole right factor.
 
     Returns
     -------
@@ -346,8 +356,8 @@ def spgemm(
     if sp.issparse(A) and sp.issparse(B):
         need = max(max(A.shape), max(B.shape), A.nnz, B.nnz)
         idt = choose_index_dtype(need, 0, index_dtype)
-    a = _as_csr(A, "A", dtype=fdt, index_dtype=idt, canonical=False)
-    b = _as_csr(B, "B", dtype=fdt, index_dtype=idt, canonical=True)
+    a = _as_csr(A, "A", dtype=fdt, index_dtype=idt, canonical=False, check=checked)
+    b = _as_csr(B, "B", dtype=fdt, index_dtype=idt, canonical=True, check=checked)
     m, p = a.shape[0], b.shape[1]
     if a.nnz == 0 or b.nnz == 0 or m == 0 or p == 0:
         return _csr_result(

@@ -120,6 +120,15 @@ def assemble_rows(row_blocks, n_rows: int, n_cols: int, dtype, nnz: int) -> sp.c
     return out
 
 
+def _trusted(right: sp.csr_array) -> bool:
+    """Whether the kernel may skip its O(nnz) check of ``right``: a right factor read
+    from bigT stores (whose writers checked every tile) with sorted rows. scipy works
+    the sortedness out once per matrix and keeps it, and the whole right factor of a
+    pass is one matrix shared by all its tasks, so the check is paid once per pass
+    instead of once per tile row."""
+    return bool(right.has_sorted_indices)
+
+
 def row_product(left_row: sp.csr_array, right: sp.csr_array, threshold: float,
                 n_threads: int = 1) -> sp.csr_array:
     """L_i @ B with entries below ``threshold`` pruned inside the kernel's row loop.
@@ -135,7 +144,8 @@ def row_product(left_row: sp.csr_array, right: sp.csr_array, threshold: float,
     -------
     csr_array, shape (r, n)
     """
-    return spgemm(left_row, right, threshold=threshold, n_threads=n_threads)
+    return spgemm(left_row, right, threshold=threshold, n_threads=n_threads,
+                  checked=not _trusted(right))
 
 
 def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
@@ -170,7 +180,9 @@ def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
     if not batches:
         return empty((r, n), left_row.dtype)
     if len(batches) == 1:
-        return spgemm(left_row, batches[0](), threshold=threshold, n_threads=n_threads)
+        right = batches[0]()
+        return spgemm(left_row, right, threshold=threshold, n_threads=n_threads,
+                      checked=not _trusted(right))
     cum = np.concatenate([[0.0], np.cumsum(np.asarray(work_per_row, dtype=np.float64))])
     ratio = 1.0
     parts, start = [], 0
@@ -181,7 +193,9 @@ def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
         chunk = left_row[start:stop]
         acc = None
         for fetch in batches:
-            part = spgemm(chunk, fetch(), threshold=0.0, n_threads=n_threads)
+            right = fetch()
+            part = spgemm(chunk, right, threshold=0.0, n_threads=n_threads,
+                          checked=not _trusted(right))
             acc = part if acc is None else sp.csr_array(acc + part)
             del part
         work = cum[stop] - cum[start]
