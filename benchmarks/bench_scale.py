@@ -1,0 +1,247 @@
+"""How the cost of a 4-term stratified inverse grows with n, up to a full-HD projector
+(reported, not asserted).
+
+For each size the wall-corner scene is built with its form-factor cut and threshold
+scaled so that T keeps about the same nonzeros per row (~84, the dense preset at
+1080x1920; measured: A's entries per row go as cut^-1.5 n^-0.5 and T's as n^-0.5 at a
+fixed threshold, so the cut scales as n^-1/3 and the threshold as n^-1/2). Then, each
+in a fresh child process:
+
+* the scene build: time and peak RSS;
+* ``bigT.stratified_inverse`` (power form, 4 terms, prune 1e-5, ``--memory-limit``):
+  time per term, peak RSS, X's nonzeros and bytes on disk;
+* the error of X against the exact inverse F^-1 (I - A) on a random sample of rows
+  (``Scene.inverse_error(X, sample=...)``), and the residual estimate;
+* ``bigT compensate --simulate`` of one image of the projector's size, streamed: time
+  and the compensated error.
+
+The fitted exponent of time against n (least squares in log-log) is printed, and a
+log-log plot is written::
+
+    python benchmarks/bench_scale.py --max-size 196608 --workdir bench-out/scale
+    python benchmarks/bench_scale.py --max-size 2073600   # the full-HD point: ~40 min
+
+A ``--workdir`` that already holds a scene reuses it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+#: (H, W) of the sizes measured: n = 49152, 196608, 786432, 2073600.
+SIZES = [(192, 256), (384, 512), (768, 1024), (1080, 1920)]
+#: The dense preset at full HD anchors the scaled densities.
+ANCHOR_N, ANCHOR_CUT, ANCHOR_THRESHOLD = 1080 * 1920, 1e-4, 1e-7
+
+
+def density_for(n: int) -> tuple[float, float]:
+    """(form-factor cut, threshold) keeping T's nonzeros per row about constant."""
+    ratio = n / ANCHOR_N
+    return ANCHOR_CUT * ratio ** (-1 / 3), ANCHOR_THRESHOLD * ratio ** (-1 / 2)
+
+
+def disk_bytes(path: str) -> int:
+    return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
+
+
+def peak_rss() -> int:
+    from bigT.schedule.memory import peak_resident_bytes
+
+    return peak_resident_bytes()
+
+
+def child_build(args) -> dict:
+    import bigT.scenes as scenes
+
+    H, W = args.size
+    cut, thr = density_for(H * W)
+    t0 = time.perf_counter()
+    sc = scenes.corner((H, W), args.scene, ff_cut=cut, threshold=thr, preview=False,
+                       progress=False, memory_limit=args.scene_memory)
+    return {"seconds": time.perf_counter() - t0, "peak_rss_bytes": peak_rss(),
+            "summary": sc.summary}
+
+
+def child_invert(args) -> dict:
+    import bigT
+
+    scene = bigT.scenes.load(args.scene)
+    out = os.path.join(os.path.dirname(args.scene), "X.zarr")
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    rep = bigT.stratified_inverse(scene.T, out, terms=args.terms, prune=args.prune,
+                                  memory_limit=args.memory_limit, progress=False)
+    wall = time.perf_counter() - t0
+    peak = peak_rss()  # before the error is measured: that reads X and A again
+    X = bigT.open(out)
+    t0 = time.perf_counter()
+    err = scene.inverse_error(X, sample=args.sample, seed=0)
+    return {"seconds": wall, "peak_rss_bytes": peak, "nnz_X": int(X.nnz),
+            "X_disk_bytes": disk_bytes(out), "sampled_error": err,
+            "sample_rows": args.sample, "error_seconds": time.perf_counter() - t0,
+            "report": rep.to_dict()}
+
+
+def compensate(scene_path: str, size) -> dict:
+    """``bigT compensate X.zarr image --simulate T.zarr``: wall time and the printed
+    line with the compensated error."""
+    import numpy as np
+    from bigT.images import write_image
+
+    H, W = size
+    work = os.path.dirname(scene_path)
+    y, x = np.mgrid[0:H, 0:W]
+    image = 0.25 + 0.2 * np.sin(x / W * 6 * np.pi) * np.cos(y / H * 4 * np.pi)
+    src = os.path.join(work, "desired.png")
+    write_image(src, image, bits=16)
+    out = os.path.join(work, "compensated.png")
+    cmd = [sys.executable, "-m", "bigT.cli", "compensate", os.path.join(work, "X.zarr"), src,
+           "--simulate", scene_path, "-o", out, "--no-progress"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode:
+        raise SystemExit(f"compensate failed: {proc.stderr.strip()}")
+    text = proc.stdout
+    error = re.search(r"([0-9.e-]+) compensated, ([0-9.e-]+) uncompensated", text)
+    products = re.search(r"frame\(s\) in ([0-9.]+) s of products", text)
+    return {"seconds": wall, "products_s": float(products[1]) if products else None,
+            "error": float(error[1]) if error else None,
+            "uncompensated_error": float(error[2]) if error else None}
+
+
+def run_child(kind: str, args, size, scene: str) -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), "--_child", kind, "--scene", scene,
+           "--size", f"{size[0]}x{size[1]}", "--terms", str(args.terms),
+           "--prune", str(args.prune), "--memory-limit", args.memory_limit,
+           "--sample", str(args.sample), "--scene-memory", str(args.scene_memory)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode:
+        print(proc.stderr, file=sys.stderr)
+        raise SystemExit(f"{kind} {size}: child failed")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def fit_exponent(xs, ys) -> float:
+    """Slope of log y against log x (least squares); nan with fewer than 2 points."""
+    if len(xs) < 2:
+        return math.nan
+    lx = [math.log(x) for x in xs]
+    ly = [math.log(y) for y in ys]
+    mx, my = sum(lx) / len(lx), sum(ly) / len(ly)
+    sxx = sum((a - mx) ** 2 for a in lx)
+    return sum((a - mx) * (b - my) for a, b in zip(lx, ly)) / sxx
+
+
+def plot(rows, path: str) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["n"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    for key, label, marker in (("invert_s", "4-term inverse (s)", "o"),
+                               ("build_s", "scene build (s)", "s"),
+                               ("peak_gib", "inverse peak RSS (GiB)", "^")):
+        ys = [r[key] for r in rows]
+        ax.loglog(n, ys, marker=marker, label=f"{label}, slope {fit_exponent(n, ys):.2f}")
+    ref = [rows[0]["invert_s"] * x / n[0] for x in n]
+    ax.loglog(n, ref, "k:", lw=1, label="slope 1 (linear in n)")
+    ax.set_xlabel("n (projector pixels)")
+    ax.set_title("bigT: cost against n at ~constant nonzeros per row (2 cores)", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--max-size", type=int, default=196608,
+                   help="largest n to run (default 196608; 2073600 for full HD)")
+    p.add_argument("--terms", type=int, default=4)
+    p.add_argument("--prune", type=float, default=1e-5)
+    p.add_argument("--memory-limit", default="4GiB")
+    p.add_argument("--scene-memory", type=int, default=2 << 30,
+                   help="memory_limit of the scene builds, bytes")
+    p.add_argument("--sample", type=int, default=2048,
+                   help="rows of the sampled error against the exact inverse")
+    p.add_argument("--no-compensate", action="store_true")
+    p.add_argument("--workdir", default="bench-out/scale")
+    p.add_argument("--json", default=None)
+    p.add_argument("--_child", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--scene", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--size", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args._child:
+        args.size = tuple(int(s) for s in args.size.split("x"))
+        res = child_build(args) if args._child == "build" else child_invert(args)
+        print(json.dumps(res, default=str))
+        return
+    rows = []
+    for size in [s for s in SIZES if s[0] * s[1] <= args.max_size]:
+        n = size[0] * size[1]
+        work = os.path.join(args.workdir, f"corner-{size[0]}x{size[1]}")
+        os.makedirs(work, exist_ok=True)
+        scene = os.path.join(work, "T.zarr")
+        built = json.load(open(os.path.join(work, "build.json"))) if os.path.exists(
+            os.path.join(work, "build.json")) and os.path.exists(scene) else None
+        if built is None:
+            built = run_child("build", args, size, scene)
+            json.dump(built, open(os.path.join(work, "build.json"), "w"), default=str)
+        inv = run_child("invert", args, size, scene)
+        comp = None if args.no_compensate else compensate(scene, size)
+        s = built["summary"]
+        row = {"size": f"{size[0]}x{size[1]}", "n": n, "nnz_T": s["nnz_T"],
+               "nnz_T_per_row": s["nnz_T"] / n, "nnz_A_per_row": s["nnz_A"] / n,
+               "rho": s["spectral_radius"], "build_s": built["seconds"],
+               "build_peak_gib": built["peak_rss_bytes"] / 2**30,
+               "invert_s": inv["seconds"], "peak_gib": inv["peak_rss_bytes"] / 2**30,
+               "term_s": [h["seconds"] for h in inv["report"]["history"]],
+               "nnz_X": inv["nnz_X"], "X_disk_gib": inv["X_disk_bytes"] / 2**30,
+               "sampled_error": inv["sampled_error"], "sample_rows": inv["sample_rows"],
+               "residual": inv["report"]["history"][-1]["residual"],
+               "compensate_s": comp["seconds"] if comp else None,
+               "compensate_products_s": comp["products_s"] if comp else None,
+               "compensated_error": comp["error"] if comp else None,
+               "uncompensated_error": comp["uncompensated_error"] if comp else None}
+        rows.append(row)
+        print(json.dumps(row, default=str), flush=True)
+    print(f"\n{'size':>10} {'n':>9} {'T/row':>6} {'build s':>8} {'build GiB':>9} "
+          f"{'inverse s':>9} {'per term s':>24} {'peak GiB':>8} {'X GiB':>6} "
+          f"{'error':>9} {'comp s':>7} {'comp err':>8}")
+    for r in rows:
+        terms = " ".join(f"{t:.1f}" for t in r["term_s"])
+        comp = (f"{r['compensate_s']:>7.1f} {r['compensated_error']:>8.4f}"
+                if r["compensate_s"] is not None else f"{'-':>7} {'-':>8}")
+        print(f"{r['size']:>10} {r['n']:>9} {r['nnz_T_per_row']:>6.1f} {r['build_s']:>8.1f} "
+              f"{r['build_peak_gib']:>9.2f} {r['invert_s']:>9.1f} {terms:>24} "
+              f"{r['peak_gib']:>8.2f} {r['X_disk_gib']:>6.2f} {r['sampled_error']:>9.2e} "
+              f"{comp}")
+    ns = [r["n"] for r in rows]
+    if len(rows) > 1:
+        print(f"fitted exponent of the inverse's time in n: "
+              f"{fit_exponent(ns, [r['invert_s'] for r in rows]):.2f}; in nnz(T): "
+              f"{fit_exponent([r['nnz_T'] for r in rows], [r['invert_s'] for r in rows]):.2f}; "
+              f"of its peak RSS in n: {fit_exponent(ns, [r['peak_gib'] for r in rows]):.2f}; "
+              f"of the build's time: {fit_exponent(ns, [r['build_s'] for r in rows]):.2f}")
+        print("plot:", plot(rows, os.path.join(args.workdir, "scale.png")))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1, default=str)
+
+
+if __name__ == "__main__":
+    main()
