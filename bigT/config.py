@@ -62,6 +62,9 @@ DEFAULT_BATCH = 64
 #: Threads the kernel wrappers split row ranges over (None: one per CPU core). Pass
 #: ``n_threads=1`` from code that already runs tiles in parallel (e.g. dask threads).
 KERNEL_THREADS = None
+#: Idle workspaces of the grouped product kernel kept for reuse (each ~100 bytes per
+#: column of the product: one per kernel call in flight is what a run reuses).
+KERNEL_WORKSPACES_KEPT = 4
 #: Row ranges per thread, cut to equal work, so one slow range does not idle a core.
 KERNEL_CHUNKS_PER_THREAD = 4
 #: Kernel calls with at most this many multiply-adds (products) or entries (the rest)

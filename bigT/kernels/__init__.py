@@ -9,10 +9,12 @@ from .csr import (
     choose_index_dtype,
     diagonal,
     prune,
+    release_workspaces,
     scale_cols,
     scale_rows,
     spgemm,
     spmm_dense,
+    workspace_bytes,
 )
 from ._constants import GROUP as SPGEMM_GROUP
 
@@ -26,4 +28,6 @@ __all__ = [
     "spmm_dense",
     "choose_index_dtype",
     "SPGEMM_GROUP",
+    "release_workspaces",
+    "workspace_bytes",
 ]

@@ -488,8 +488,16 @@ def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
     return CSR_OK, 0
 
 
-#: Marked emission of spgemm_grouped_internal visits columns in blocks of this shift.
+#: Marked emission of spgemm_grouped_internal visits columns in blocks of this shift...
 BLOCK_SHIFT = 4
+#: ...found through marks on super-blocks of this shift (1024 columns), so a group's
+#: emission costs span / 1024 + its touched blocks, not span / 16: the span of a row
+#: of the corner runs across the fold, half of n (at full HD the one-level scan cost
+#: ~65 k tests per group, more than its multiply-adds).
+SUPER_SHIFT = 10
+#: A row done alone (a group sharing few columns) lists its columns when its span is
+#: more than this many times its multiply-adds, instead of scanning the span.
+ROW_LIST_RATIO = 8
 #: A group uses marked scatter/emission when its column span exceeds this many times
 #: the previous group's kept entries per row (measured: even at ~6x the plain scan
 #: ties; at ~12x the plain scan costs as much as the scatter).
@@ -536,8 +544,10 @@ def _group_scatter_py(ulist, nu, avals, b_indptr, b_indices, b_data, acc):
             acc[j + 7] = c7 + a7 * b
 
 
-def _group_scatter_marked_py(ulist, nu, avals, b_indptr, b_indices, b_data, acc, touched):
-    """``_group_scatter`` that also sets ``touched[j >> BLOCK_SHIFT] = 1``.
+def _group_scatter_marked_py(ulist, nu, avals, b_indptr, b_indices, b_data, acc, touched,
+                             touched_super):
+    """``_group_scatter`` that also sets ``touched[j >> BLOCK_SHIFT] = 1`` and
+    ``touched_super[j >> SUPER_SHIFT] = 1``.
 
     For rows whose computed entries are a few short runs over a wide column span
     (a product in row-major pixel order on a wide image), so the emission visits only
@@ -557,6 +567,7 @@ def _group_scatter_marked_py(ulist, nu, avals, b_indptr, b_indices, b_data, acc,
         for q in range(b_indptr[k], b_indptr[k + 1]):
             jc = b_indices[q]
             touched[jc >> BLOCK_SHIFT] = 1
+            touched_super[jc >> SUPER_SHIFT] = 1
             j = jc * GROUP
             b = np.float64(b_data[q])
             c0 = acc[j]
@@ -604,7 +615,7 @@ _SCATTER_SIGNATURES = [
     for fx in (types.float32, types.float64)
 ]
 _MARKED_SIGNATURES = [
-    types.void(*sig.args, types.uint8[::1]) for sig in _SCATTER_SIGNATURES
+    types.void(*sig.args, types.uint8[::1], types.uint8[::1]) for sig in _SCATTER_SIGNATURES
 ]
 with _slp_vectorizer():
     _group_scatter = njit(_SCATTER_SIGNATURES, nogil=True, cache=True,
@@ -634,29 +645,79 @@ def _group_emit(acc, lo, hi, n_rows, threshold, cursor, out_j, out_v):
 
 
 @njit(nogil=True, cache=True)
-def _group_emit_marked(acc, touched, lo, hi, n_rows, threshold, cursor, out_j, out_v):
-    """``_group_emit`` over the column blocks marked in ``touched`` only (unmarking)."""
+def _group_emit_marked(acc, touched, touched_super, lo, hi, n_rows, threshold, cursor,
+                       out_j, out_v):
+    """``_group_emit`` over the column blocks marked in ``touched`` only, found through
+    the super-blocks marked in ``touched_super`` (unmarking both)."""
     n_cols = acc.shape[0] // GROUP
-    for blk in range(lo >> BLOCK_SHIFT, (hi >> BLOCK_SHIFT) + 1):
-        if touched[blk] == 0:
+    per_super = 1 << (SUPER_SHIFT - BLOCK_SHIFT)
+    for sb in range(lo >> SUPER_SHIFT, (hi >> SUPER_SHIFT) + 1):
+        if touched_super[sb] == 0:
             continue
-        touched[blk] = 0
-        for j in range(blk << BLOCK_SHIFT, min((blk + 1) << BLOCK_SHIFT, n_cols)):
-            o = j * GROUP
-            for r in range(n_rows):
-                c = cursor[r]
-                out_v[c] = acc[o + r]
-                out_j[c] = j
-                v = out_v[c]
-                cursor[r] = c + ((v != 0) & (abs(v) >= threshold))
-            for r in range(GROUP):
-                acc[o + r] = 0.0
+        touched_super[sb] = 0
+        for blk in range(sb * per_super, min((sb + 1) * per_super, touched.shape[0])):
+            if touched[blk] == 0:
+                continue
+            touched[blk] = 0
+            for j in range(blk << BLOCK_SHIFT, min((blk + 1) << BLOCK_SHIFT, n_cols)):
+                o = j * GROUP
+                for r in range(n_rows):
+                    c = cursor[r]
+                    out_v[c] = acc[o + r]
+                    out_j[c] = j
+                    v = out_v[c]
+                    cursor[r] = c + ((v != 0) & (abs(v) >= threshold))
+                for r in range(GROUP):
+                    acc[o + r] = 0.0
+
+
+def grouped_workspace(n_cols: int, n_rows_b: int):
+    """The accumulators and markers of :func:`spgemm_grouped_internal` for a B of
+    shape (n_rows_b, n_cols), clean: (acc (n_cols * GROUP,) float64, acc1 (n_cols,)
+    float64, stamp (n_rows_b,) int64, slot (n_rows_b,) int64, touched and
+    touched_super uint8 block marks, mark (n_cols,) int64, listed (n_cols,) int64,
+    epoch (1,) int64). ``bigT.kernels.workspace_bytes`` bounds its size."""
+    return (np.zeros(n_cols * GROUP, np.float64), np.zeros(n_cols, np.float64),
+            np.full(n_rows_b, -1, np.int64), np.zeros(n_rows_b, np.int64),
+            np.zeros((n_cols >> BLOCK_SHIFT) + 1, np.uint8),
+            np.zeros((n_cols >> SUPER_SHIFT) + 1, np.uint8),
+            np.full(n_cols, -1, np.int64), np.empty(n_cols, np.int64),
+            np.zeros(1, np.int64))
+
+
+@njit(nogil=True, cache=True)
+def _row_listed(i, tag, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, acc, mark,
+                listed, threshold, pos, out_j, out_v):
+    """Row i of A @ B with its columns listed on first touch (``mark[j] == tag``), for a
+    row whose span is much wider than its multiply-adds; the kept entries are written
+    from ``pos`` on in column order (the listed columns sorted). Returns the new pos."""
+    nt = 0
+    for p in range(a_indptr[i], a_indptr[i + 1]):
+        k = a_indices[p]
+        a = np.float64(a_data[p])
+        for q in range(b_indptr[k], b_indptr[k + 1]):
+            j = b_indices[q]
+            if mark[j] != tag:
+                mark[j] = tag
+                listed[nt] = j
+                nt += 1
+            acc[j] += a * b_data[q]
+    cols = np.sort(listed[:nt])
+    for t in range(nt):
+        j = cols[t]
+        out_v[pos] = acc[j]
+        acc[j] = 0.0
+        out_j[pos] = j
+        if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
+            pos += 1
+    return pos
 
 
 @njit(nogil=True, cache=True)
 def spgemm_grouped_internal(
     r0, r1, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, n_cols,
-    threshold, min_efficiency, capacity,
+    threshold, min_efficiency, capacity, acc, acc1, stamp, slot, touched, touched_super,
+    mark, listed, epoch,
 ):
     """Rows ``[r0, r1)`` of A @ B, pruned, GROUP rows at a time.
 
@@ -672,38 +733,46 @@ def spgemm_grouped_internal(
 
     A group whose rows share too little (useful multiply-adds / (GROUP x union
     multiply-adds) < ``min_efficiency``) is done row by row instead, with the scalar
-    scatter of ``spgemm_rows_internal`` (dense-scan emission).
+    scatter of ``spgemm_rows_internal``: dense-scan emission, or list emission
+    (:func:`_row_listed`) when the row's span exceeds ``ROW_LIST_RATIO`` times its
+    multiply-adds (a row reaching across the corner's fold spans half of n: scanning
+    it made the row cost O(n)).
 
     Rows are emitted by scanning the group's column span in order (sorted output, no
     sort), one pass for all GROUP rows, keeping ``v != 0 and |v| >= threshold`` (v
     rounded to the output dtype), so the result is the same set as
     ``spgemm_rows_internal``'s. When the span is much wider than the rows (more than
     ``MARKED_SPAN_RATIO`` times the previous group's kept entries per row), the
-    scatter also marks 16-column blocks and the scan visits the marked ones only.
+    scatter also marks 16-column blocks and their 1024-column super-blocks, and the
+    scan visits the marked ones only.
 
     Time on the 96x128 stand-in corner (1 thread, CPU s): scatter 0.55, emission +
     buffers 0.39, set-up and checks < 0.05; scipy's whole product 2.15.
 
+    The accumulators and markers span B's columns (rows), so they are the caller's
+    workspace (:func:`grouped_workspace`), reused from call to call: allocating and
+    zeroing ~100 bytes per column for every tile row cost more than the products of a
+    full-HD term. They are left as found: the accumulators and block marks zeroed by
+    the emission, and ``stamp``/``mark`` compared with tags that grow with ``epoch``
+    (never a tag of an earlier call).
+
     Parameters and returns as ``spgemm_rows_internal`` (``min_efficiency`` in [0, 1]
-    replaces ``dense_scan_ratio``).
+    replaces ``dense_scan_ratio``), and the workspace arrays of
+    :func:`grouped_workspace`.
     """
     n = r1 - r0
     row_nnz = np.zeros(n, np.int64)
     cap = max(capacity, 16)
     out_j = np.empty(cap, b_indices.dtype)
     out_v = np.empty(cap, a_data.dtype)
-    acc = np.zeros(n_cols * GROUP, np.float64)
-    acc1 = np.zeros(n_cols, np.float64)
-    n_k = b_indptr.shape[0] - 1
-    stamp = np.full(n_k, -1, np.int64)
-    slot = np.zeros(n_k, np.int64)
+    tag0 = epoch[0]  # tags of this call: tag0 + (row - r0), all above the last call's
+    epoch[0] = tag0 + n + 1
     max_row = 0
     for i in range(r0, r1):
         max_row = max(max_row, a_indptr[i + 1] - a_indptr[i])
     ulist = np.empty(GROUP * max_row + 1, np.int64)
     avals = np.zeros((GROUP * max_row + 1) * GROUP, np.float64)
     cursor = np.zeros(GROUP, np.int64)
-    touched = np.zeros((n_cols >> BLOCK_SHIFT) + 1, np.uint8)
     prev_per_row = n_cols
     pos = 0
     for g0 in range(r0, r1, GROUP):
@@ -715,8 +784,8 @@ def spgemm_grouped_internal(
             for p in range(a_indptr[i], a_indptr[i + 1]):
                 k = a_indices[p]
                 useful += b_indptr[k + 1] - b_indptr[k]
-                if stamp[k] != g0:
-                    stamp[k] = g0
+                if stamp[k] != tag0 + g0 - r0:
+                    stamp[k] = tag0 + g0 - r0
                     slot[k] = nu
                     ulist[nu] = k
                     for c in range(GROUP):
@@ -745,7 +814,7 @@ def spgemm_grouped_internal(
             marked = span > MARKED_SPAN_RATIO * prev_per_row
             if marked:
                 _group_scatter_marked(ulist, nu, avals, b_indptr, b_indices, b_data, acc,
-                                      touched)
+                                      touched, touched_super)
             else:
                 _group_scatter(ulist, nu, avals, b_indptr, b_indices, b_data, acc)
             # One pass over the span reads each accumulator line once and writes
@@ -755,8 +824,8 @@ def spgemm_grouped_internal(
             for r in range(g1 - g0):
                 cursor[r] = pos + r * bound
             if marked:
-                _group_emit_marked(acc, touched, lo, hi, g1 - g0, threshold, cursor,
-                                   out_j, out_v)
+                _group_emit_marked(acc, touched, touched_super, lo, hi, g1 - g0, threshold,
+                                   cursor, out_j, out_v)
             else:
                 _group_emit(acc, lo, hi, g1 - g0, threshold, cursor, out_j, out_v)
             base = pos
@@ -774,18 +843,29 @@ def spgemm_grouped_internal(
         else:
             for r in range(g1 - g0):
                 i = g0 + r
-                start = pos
                 rlo = n_cols
                 rhi = -1
+                work = 0
                 for p in range(a_indptr[i], a_indptr[i + 1]):
                     k = a_indices[p]
-                    a = np.float64(a_data[p])
                     bs = b_indptr[k]
                     be = b_indptr[k + 1]
                     if be > bs:
                         rlo = min(rlo, b_indices[bs])
                         rhi = max(rhi, b_indices[be - 1])
-                    for q in range(bs, be):
+                        work += be - bs
+                if rhi - rlo + 1 > ROW_LIST_RATIO * work:
+                    start = pos
+                    pos = _row_listed(i, tag0 + i - r0, a_indptr, a_indices, a_data, b_indptr, b_indices,
+                                      b_data, acc1, mark, listed, threshold, pos, out_j,
+                                      out_v)
+                    row_nnz[i - r0] = pos - start
+                    continue
+                start = pos
+                for p in range(a_indptr[i], a_indptr[i + 1]):
+                    k = a_indices[p]
+                    a = np.float64(a_data[p])
+                    for q in range(b_indptr[k], b_indptr[k + 1]):
                         acc1[b_indices[q]] += a * b_data[q]
                 for j in range(rlo, rhi + 1):
                     out_v[pos] = acc1[j]

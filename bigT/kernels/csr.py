@@ -30,6 +30,7 @@ works for every kernel.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -53,10 +54,62 @@ __all__ = [
     "prune",
     "spmm_dense",
     "choose_index_dtype",
+    "release_workspaces",
+    "workspace_bytes",
 ]
 
 
 # --- helpers -----------------------------------------------------------------------
+
+
+class _WorkspacePool:
+    """Workspaces of the grouped product kernel, lent one per kernel call in flight
+    and reused: each spans B's columns (~100 bytes per column: 200 MB at full HD),
+    and allocating and zeroing one per tile row cost more than that row's product.
+
+    A workspace is only ever lent to one call at a time; one whose call raised is
+    dropped (it may be dirty). At most ``config.KERNEL_WORKSPACES_KEPT`` are kept idle,
+    those of other sizes first let go.
+    """
+
+    def __init__(self):
+        self._idle: list = []
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def lend(self, n_cols: int, n_rows_b: int):
+        ws = None
+        with self._lock:
+            for k, (shape, held) in enumerate(self._idle):
+                if shape == (n_cols, n_rows_b):
+                    ws = self._idle.pop(k)[1]
+                    break
+        if ws is None:
+            ws = _numba().grouped_workspace(n_cols, n_rows_b)
+        yield ws  # an exception here leaves ws out of the pool
+        with self._lock:
+            self._idle.insert(0, ((n_cols, n_rows_b), ws))
+            del self._idle[config.KERNEL_WORKSPACES_KEPT:]
+
+    def clear(self) -> None:
+        """Let every idle workspace go (their memory back to the system)."""
+        with self._lock:
+            self._idle.clear()
+
+
+_WORKSPACES = _WorkspacePool()
+
+
+def workspace_bytes(n_cols: int, n_rows_b: int) -> int:
+    """Bytes of one workspace of the grouped product kernel for a right factor of
+    shape (n_rows_b, n_cols): (GROUP + 1) float64 accumulators, a mark and a list per
+    column, a stamp and a slot per row, block marks (at most 1/8 byte per column)."""
+    return (GROUP + 1) * 8 * n_cols + 16 * n_cols + 16 * n_rows_b + n_cols // 8 + 64
+
+
+def release_workspaces() -> None:
+    """Free the product kernel's idle workspaces (see :class:`_WorkspacePool`)."""
+    _WORKSPACES.clear()
 
 def _numba():
     """The numba kernels, imported (and their cache loaded) on first use."""
@@ -396,10 +449,12 @@ def spgemm(
             int(a.indptr[r1] - a.indptr[r0]) + 16 * (r1 - r0),
             (r1 - r0) * p,
         )
-        return kernel(
-            r0, r1, a.indptr, a.indices, a.data, b.indptr, b.indices, b.data, p,
-            threshold, tuning, cap,
-        )
+        args = (r0, r1, a.indptr, a.indices, a.data, b.indptr, b.indices, b.data, p,
+                threshold, tuning, cap)
+        if method != "grouped":
+            return kernel(*args)
+        with _WORKSPACES.lend(p, b.shape[0]) as ws:
+            return kernel(*args, *ws)
 
     pieces = _run_ranges(run, bounds, n_threads)
     row_nnz = np.concatenate([pc[0] for pc in pieces])

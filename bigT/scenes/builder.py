@@ -496,6 +496,44 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     if albedo_label == "texture":  # a texture is not in the parameters: its digest is
         params["albedo_digest"] = hashlib.sha256(albedo_vec.tobytes()).hexdigest()
     path.parent.mkdir(parents=True, exist_ok=True)
+    recipe = _Recipe(path, params, P, albedo_vec, f, G, cut, thr, noise, floor, int(seed),
+                     tile_size, dtype, po, memory_limit, exact)
+    with stored.disk_full_names(path):
+        return _build_resumable(recipe, preview, progress, t_start)
+
+
+@dataclass(frozen=True)
+class _Recipe:
+    """Everything a scene build writes from, checked and fixed before anything is
+    written (``params`` is its JSON record, compared when a build resumes)."""
+
+    path: Path
+    params: dict
+    patches: geometry.Patches
+    albedo: np.ndarray
+    f: np.ndarray
+    G: sp.csr_array | None
+    cut: float
+    threshold: float
+    noise: float
+    floor: float
+    seed: int
+    tile_size: int | None
+    dtype: str
+    pixel_order: PixelOrder
+    memory_limit: int
+    exact: bool
+
+
+def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
+    """The steps of :func:`build` that write, in its resumable work directory."""
+    r = recipe
+    path, params, P, albedo_vec, f, G = r.path, r.params, r.patches, r.albedo, r.f, r.G
+    cut, thr, noise, floor, seed = r.cut, r.threshold, r.noise, r.floor, r.seed
+    tile_size, dtype, po, memory_limit, exact = (r.tile_size, r.dtype, r.pixel_order,
+                                                 r.memory_limit, r.exact)
+    name, n = params["name"], params["n"]
+    H, W = params["image_shape"]
     work, resumed = stored.work_directory(path, params)
     tmp = work / "T"
     timings = {}

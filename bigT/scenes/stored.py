@@ -10,6 +10,8 @@ needs them, through a tile cache of half the budget.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import shutil
 from pathlib import Path
@@ -18,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
+from ..errors import DiskFullError
 from ..progress import progress_bar
 from ..schedule.cache import TileCache
 from ..schedule.memory import MemoryPlan
@@ -78,6 +81,27 @@ def stored_apply(store, memory_limit: int):
     return apply
 
 
+def work_path(path: Path) -> Path:
+    """The hidden work directory of the scene built at ``path``."""
+    return path.with_name(f".{path.name}.scene-build")
+
+
+@contextlib.contextmanager
+def disk_full_names(path: Path):
+    """A disk that fills during the build becomes one DiskFullError naming the scene's
+    ``path`` (not a file inside the work directory), saying that the finished tile rows
+    are kept for the rerun."""
+    full = (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC))
+    try:
+        yield
+    except (OSError, DiskFullError) as exc:
+        if isinstance(exc, OSError) and exc.errno not in full:
+            raise
+        raise DiskFullError(f"no space left on device while building the scene; the tile "
+                            f"rows finished are kept in {work_path(path).name} beside it: "
+                            "free space and rerun the same command to resume", path) from None
+
+
 def work_directory(path: Path, params: dict) -> tuple[Path, bool]:
     """The hidden directory ``.NAME.scene-build`` beside ``path`` where the scene is
     built, and whether it resumes an interrupted build of the same ``params``.
@@ -85,7 +109,7 @@ def work_directory(path: Path, params: dict) -> tuple[Path, bool]:
     A leftover of other parameters is deleted (it is bigT's own, never the user's):
     the build starts over.
     """
-    work = path.with_name(f".{path.name}.scene-build")
+    work = work_path(path)
     record = work / BUILD_RECORD
     if work.exists():
         try:

@@ -7,8 +7,9 @@ What a run holds, and why each part is budgeted the way it is:
   not guessed: it is ~190 MB on Linux with every library imported.
 * per task in flight (``workers`` of them), a **fixed** part that no plan can shrink:
   making one tile row of M from T's (``M_ROW_BYTES_PER_ENTRY`` per entry of T's
-  largest tile row) and the product kernel's dense accumulators ((GROUP + 1) float64
-  per column, see :mod:`bigT.kernels`).
+  largest tile row) and the product kernel's workspace (dense accumulators, (GROUP +
+  1) float64 per column, and markers: ``bigT.kernels.workspace_bytes``), kept between
+  tasks rather than made per tile row.
 * the **tile cache**: tile rows of M, reused by every term and every mat-vec.
 * the **shared right factor**: P_{k-1} (or S, R) held whole and shared by the tasks
   when it fits, read once per pass.
@@ -31,7 +32,7 @@ from .. import config
 import warnings
 
 from ..errors import MemoryLimitError, MemoryLimitWarning
-from ._backend import SPGEMM_GROUP
+from ._backend import workspace_bytes
 
 #: Bytes per entry of T's tile row while it becomes M's: the decoded tiles and the
 #: assembled row (8 + 8), the scaled copy (8), the row and mask arrays of the diagonal
@@ -157,7 +158,7 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     """
     workers = max(1, int(workers))
     fixed = (M_ROW_BYTES_PER_ENTRY * int(max_tile_row_nnz)
-             + (SPGEMM_GROUP + 1) * 8 * int(n_cols) + 16 * int(n_cols))
+             + workspace_bytes(int(n_cols), int(n_cols)))
     baseline = resident_bytes() if baseline is None else int(baseline)
     if limit is None:
         return MemoryPlan(None, baseline, fixed, 1 << 30, 1 << 30, 1 << 30, workers)

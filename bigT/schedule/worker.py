@@ -24,7 +24,8 @@ import scipy.sparse as sp
 
 from ..errors import BigTError, DiskFullError, TaskError
 from . import blocks
-from ._backend import open_store, read_store_attrs, row_marker, write_tile_row
+from ._backend import (open_store, read_store_attrs, release_workspaces, row_marker,
+                       write_tile_row)
 from .cache import TileCache
 from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
 from .operators import MOperand, StoreOperand, needed_rows
@@ -143,6 +144,8 @@ class _ProcessState:
             ended = [self.passes.pop(k) for k in keys if k in self.passes]
         for state in ended:
             state.release()
+        if pass_id is None:  # the run is over: the kernel's workspaces go too
+            release_workspaces()
         forget = tuple(str(p) for p in forget)
 
         def gone(path) -> bool:

@@ -23,7 +23,10 @@ def test_resident_bytes_is_this_process():
 def test_plan_shares_what_is_left_after_baseline_and_fixed_parts():
     plan = plan_memory(1024 * MiB, 2, n_cols=100_000, max_tile_row_nnz=1_000_000,
                        baseline=200 * MiB)
-    fixed = M_ROW_BYTES_PER_ENTRY * 1_000_000 + 9 * 8 * 100_000 + 16 * 100_000
+    # the kernel's workspace: 9 float64 accumulators, a mark and a list entry per
+    # column, a stamp and a slot per row of the right factor (n x n), block marks
+    workspace = 9 * 8 * 100_000 + 16 * 100_000 + 16 * 100_000 + 100_000 // 8 + 64
+    fixed = M_ROW_BYTES_PER_ENTRY * 1_000_000 + workspace
     assert plan.fixed_per_task == fixed
     total = (plan.baseline + 2 * (plan.fixed_per_task + plan.work_bytes_per_task)
              + plan.cache_bytes + plan.whole_bytes)
