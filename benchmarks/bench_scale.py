@@ -18,8 +18,8 @@ in a fresh child process:
 The fitted exponent of time against n (least squares in log-log) is printed, and a
 log-log plot is written::
 
-    python benchmarks/bench_scale.py --max-size 196608 --workdir bench-out/scale
-    python benchmarks/bench_scale.py --max-size 2073600   # the full-HD point: ~40 min
+    python benchmarks/bench_scale.py --max-size 49152    # make bench --quick: ~1 min
+    python benchmarks/bench_scale.py --max-size 2073600  # the full-HD point: ~30 min
 
 A ``--workdir`` that already holds a scene reuses it.
 """
@@ -38,8 +38,9 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-#: (H, W) of the sizes measured: n = 49152, 196608, 786432, 2073600.
-SIZES = [(192, 256), (384, 512), (768, 1024), (1080, 1920)]
+#: (H, W) of the sizes measured: n = 12288 (for a quick fit), 49152, 196608, 786432,
+#: 2073600.
+SIZES = [(96, 128), (192, 256), (384, 512), (768, 1024), (1080, 1920)]
 #: The dense preset at full HD anchors the scaled densities.
 ANCHOR_N, ANCHOR_CUT, ANCHOR_THRESHOLD = 1080 * 1920, 1e-4, 1e-7
 
@@ -185,6 +186,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--max-size", type=int, default=196608,
                    help="largest n to run (default 196608; 2073600 for full HD)")
+    p.add_argument("--min-size", type=int, default=0, help="smallest n to run")
     p.add_argument("--terms", type=int, default=4)
     p.add_argument("--prune", type=float, default=1e-5)
     p.add_argument("--memory-limit", default="4GiB")
@@ -206,7 +208,7 @@ def main(argv=None):
         return
     warm_up()
     rows = []
-    for size in [s for s in SIZES if s[0] * s[1] <= args.max_size]:
+    for size in [s for s in SIZES if args.min_size <= s[0] * s[1] <= args.max_size]:
         n = size[0] * size[1]
         work = os.path.join(args.workdir, f"corner-{size[0]}x{size[1]}")
         os.makedirs(work, exist_ok=True)

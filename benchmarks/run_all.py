@@ -28,6 +28,9 @@ FULL = [
     ("inverse-dense", ["bench_inverse.py", "--size", "384x512", "--density", "dense",
                        "--method", "power", "--memory-limit", "2GiB"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
+    # the full-HD point (--max-size 2073600, ~40 min) is run on its own
+    ("scale", ["bench_scale.py", "--min-size", "49152", "--max-size", "786432",
+               "--workdir", "bench-out/scale"]),
     ("compensate", ["bench_compensate.py"]),
     ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
     ("stability", ["bench_stability.py"]),
@@ -39,6 +42,7 @@ QUICK = [
     ("scenes", ["bench_scenes.py"]),
     ("inverse", ["bench_inverse.py", "--size", "96x128", "--method", "power,horner"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "32768", "--memory-limit", "2GiB"]),
+    ("scale", ["bench_scale.py", "--max-size", "49152", "--workdir", "bench-out/scale-quick"]),
     ("compensate", ["bench_compensate.py", "--size", "96x128", "--scene-size", "32x48",
                     "--frames", "64", "--no-splu"]),
     ("acquire", ["bench_acquire.py"]),
