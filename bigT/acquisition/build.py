@@ -3,27 +3,29 @@
 The steps, each reading one capture at a time:
 
 1. the black level, the white capture's signal (all black: refused), the camera's pixel
-   noise (robust, from the black capture) and the noise floor of T's entries;
+   noise (robust, from neighbour differences of the black capture, with the
+   quantisation's) and the noise floor of T's entries, row by row (3 sigma of the mean of
+   the row's camera super-pixel, so a small group gets a higher floor);
 2. the correspondence (:mod:`.correspondence`): Gray code when the pattern set has it,
    else each camera pixel's maximum response;
 3. T, tile row by tile row. A pass streams the captures and keeps, for the tile rows it
    fills, the camera super-pixel means at or above the floor; when those entries
-   outgrow the memory budget the pass gives back its last tile rows to a later pass
-   (CombBLAS's "phases", by rows). Brute force: column p of T is the capture of
-   super-pixel p. Stripes (Ding et al. 2009): the response to super-pixel (r, c) is the
-   element-wise minimum of the responses to row stripe r and column stripe c, which
-   holds the direct light of (r, c) and over-estimates the rest (both stripes' light
-   reaches a pixel; the smaller is still more than (r, c)'s share).
+   outgrow the memory budget the pass gives back its last half of tile rows to a later
+   pass (CombBLAS's "phases", by rows), down to one tile row (a tile row alone over the
+   budget is gathered whole, with one MemoryLimitWarning). Brute force: column p of T is
+   the capture of super-pixel p. Stripes (Ding et al. 2009): the response to
+   super-pixel (r, c) is the element-wise minimum of the responses to row stripe r and
+   column stripe c, which holds the direct light of (r, c) and over-estimates the rest
+   (both stripes' light reaches a pixel; the smaller is still more than (r, c)'s share).
 
 A tile row is written whole by :class:`bigT.BlockCSRWriter` and only then marked done,
-so an interrupted build resumes with the tile rows not yet written.
+so an interrupted build resumes with the tile rows not yet written -- when the settings
+and the capture files (names, sizes, modification times) are the same.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import os
 import shutil
 import time
 import warnings
@@ -34,7 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..errors import AcquisitionError, StoreError
+from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
 from ..storage import BlockCSRWriter, PixelOrder
 from ..storage import open as open_store
@@ -42,16 +44,30 @@ from ..storage.writer import (check_replaceable, move_into_place, read_store_att
                               temporary_sibling)
 from .captures import Captures
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
-from .manifest import Manifest, read_manifest
+from .manifest import Manifest, patterns_folder, read_manifest
 
 ACQUISITION_KEY = "acquisition"
 CORRESPONDENCE = "correspondence.npy"
 
 
+class AcquisitionWarning(UserWarning):
+    """Something in the captures that makes T less accurate (saturated pixels)."""
+
+
 @dataclass(frozen=True)
 class BuildSettings:
     """How captures became T; recorded in the store's metadata[\"acquisition\"] and
-    compared when an interrupted build resumes."""
+    compared when an interrupted build resumes.
+
+    Attributes
+    ----------
+    floor : float
+        The highest floor of any row: ``--floor``, or by default that of the smallest
+        camera super-pixel (every entry kept is at least its row's floor).
+    floor_min : float, the lowest floor of any row (``floor`` with ``--floor``)
+    pixel_noise : float, a camera pixel's noise as estimated (quantisation not added)
+    capture_files : str, a hash of the capture files' names, sizes and modification times
+    """
 
     patterns: str
     captures: str
@@ -64,6 +80,8 @@ class BuildSettings:
     floor: float
     pixel_noise: float
     correspondence: str
+    floor_min: float
+    capture_files: str
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -85,6 +103,8 @@ class BuildReport:
     passes : int, passes over the captures that filled tile rows (0: all were done)
     saturated_pixels : int, pixels at full scale over all captures read
     seconds : float
+    black_level : float, mean of the black level subtracted (the black capture's or
+        ``--black``'s)
     """
 
     path: Path
@@ -95,6 +115,7 @@ class BuildReport:
     passes: int
     saturated_pixels: int
     seconds: float
+    black_level: float = 0.0
 
     def describe(self) -> str:
         s = self.settings
@@ -104,8 +125,12 @@ class BuildReport:
             f"super-pixels; camera {s.camera[0]}x{s.camera[1]})",
             f"correspondence: {s.correspondence}; {self.seen} of {self.n} super-pixels seen, "
             f"{self.n - self.seen} left out",
-            f"noise: {s.pixel_noise:.3g} per camera pixel; floor {s.floor:.3g}; "
-            f"{self.nnz} entries ({self.nnz / max(self.n, 1):.1f} per row)",
+            f"black level {self.black_level:.3g} (from "
+            f"{'--black ' + Path(s.black).name if s.black else 'the black capture'}); "
+            f"noise: {s.pixel_noise:.3g} per camera pixel; floor "
+            + (f"{s.floor:.3g}" if s.floor_min == s.floor else
+               f"{s.floor_min:.3g} to {s.floor:.3g} (by camera super-pixel size)")
+            + f"; {self.nnz} entries ({self.nnz / max(self.n, 1):.1f} per row)",
             f"{self.passes} pass(es) over the captures, {self.seconds:.1f} s"
             + (f"; {self.saturated_pixels} saturated pixels" if self.saturated_pixels else ""),
         ])
@@ -124,9 +149,11 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     output : path of the T store to write (resumed when an interrupted build of the
         same captures left it)
     black : path, optional, a black-level image instead of the black pattern's capture
+        (values on the captures' scale)
     floor : float, optional
-        Entries of T below it are dropped. Default ``config.ACQUIRE_FLOOR_SIGMAS`` times
-        the noise of a camera super-pixel.
+        Entries of T below it are dropped. Default: per row, ``config.ACQUIRE_FLOOR_SIGMAS``
+        times the noise of the row's camera super-pixel, sqrt(2 (sigma^2 + q^2/12) /
+        count) for a group of ``count`` camera pixels of noise sigma and quantum q.
     gamma : float, the camera's gamma (captures are raised to it)
     tile_size, pixel_order : the store's layout
     memory_bytes : budget for the entries gathered in one pass
@@ -135,6 +162,15 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     Returns
     -------
     BuildReport
+
+    Notes
+    -----
+    A build into ``output`` that is interrupted resumes when run again with the same
+    settings and capture files; with other ones it is refused (naming what differs)
+    unless ``overwrite``. An ``overwrite`` build of an *existing* store is not
+    resumable: it builds in a hidden sibling, so that the old store stays whole until
+    the new one is, and an interrupted or failed one is removed; run again, it starts
+    over.
     """
     t0 = time.perf_counter()
     manifest = read_manifest(patterns)
@@ -143,6 +179,11 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
             "Gray-code patterns give the correspondence, not T: acquire T with "
             "--method brute-force or stripes (add --graycode for the correspondence)",
             Path(patterns))
+    if Path(captures).resolve() == patterns_folder(patterns).resolve():
+        # the patterns have the captures' names: they would be read as the captures
+        raise AcquisitionError(
+            "the captures folder is the pattern folder: put the camera's captures in a "
+            "folder of their own", Path(captures))
     cap = Captures(manifest, Path(captures), gamma=gamma, black_file=black and Path(black))
     white = cap.signal(manifest.single("white"))
     noise = cap.pixel_noise()
@@ -157,13 +198,15 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     if not means.seen.any():
         raise AcquisitionError("no camera pixel is lit directly by any super-pixel: is the "
                                "camera looking at the projected area?", Path(captures))
-    counts = corr.counts
     if floor is None:
-        floor = superpixel_noise(noise, counts) * config.ACQUIRE_FLOOR_SIGMAS
+        floors = superpixel_noise(cap.noise(), means.counts) * config.ACQUIRE_FLOOR_SIGMAS
+    else:
+        floors = np.full(order.n, float(floor))
     settings = BuildSettings(
         str(Path(patterns).resolve()), str(Path(captures).resolve()), manifest.method,
         manifest.projector, manifest.superpixel, cap.shape, float(gamma),
-        str(Path(black).resolve()) if black else None, float(floor), noise, corr.source)
+        str(Path(black).resolve()) if black else None, float(floors[means.seen].max()),
+        noise, corr.source, float(floors[means.seen].min()), cap.fingerprint())
     target = Path(output)
     # with overwrite, an existing store is replaced only by a complete one: a bad capture
     # first read while filling (Gray code reads T's captures only then) or an interrupt
@@ -175,7 +218,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     try:
         writer = _open_writer(where, order, settings, tile_size, overwrite and not aside)
         _save_correspondence(writer.path, corr)
-        passes = _fill(writer, manifest, cap, means, float(floor),
+        passes = _fill(writer, manifest, cap, means, floors,
                        memory_bytes or config.ACQUIRE_MEMORY_BYTES, progress)
         T = writer.finalize()
         if aside:
@@ -187,15 +230,25 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         raise
     warning = cap.saturation_warning()
     if warning:
-        warnings.warn(warning, stacklevel=2)
+        warnings.warn(warning, AcquisitionWarning, stacklevel=2)
     return BuildReport(T.path, settings, order.n, int(means.seen.sum()), int(T.nnz), passes,
-                       sum(cap.saturated.values()), time.perf_counter() - t0)
+                       sum(cap.saturated.values()), time.perf_counter() - t0,
+                       float(cap.black.mean()))
 
 
-def superpixel_noise(pixel_noise: float, counts: np.ndarray) -> float:
-    """Noise std of a camera super-pixel of mean size: a pixel's signal holds the noise of
-    its capture and of the black capture (sqrt 2), averaged over the group's pixels."""
-    return pixel_noise * math.sqrt(2.0 / counts[counts > 0].mean())
+def superpixel_noise(pixel_noise: float, counts: np.ndarray) -> np.ndarray:
+    """Noise std of each camera super-pixel: a pixel's signal holds the noise of its
+    capture and of the black capture (sqrt 2), averaged over the group's own ``counts``
+    pixels (a group of 4 pixels is twice as noisy as one of 16, so one floor for all
+    would keep the small groups' noise and drop the large groups' light).
+
+    Returns
+    -------
+    ndarray, shape counts.shape, float64: inf for an empty group (nothing measured)
+    """
+    counts = np.asarray(counts)
+    safe = np.maximum(counts, 1)
+    return np.where(counts > 0, pixel_noise * np.sqrt(2.0 / safe), np.inf)
 
 
 def _bar(progress):
@@ -213,7 +266,8 @@ def _correspondence(manifest, cap, white, bar) -> Correspondence:
 
 def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings, tile_size,
                  overwrite: bool) -> BlockCSRWriter:
-    """A new store, or the interrupted build of the same settings resumed."""
+    """A new store, or the interrupted build of the same settings resumed (refused,
+    naming the settings that differ, when they are not the same)."""
     meta = {ACQUISITION_KEY: settings.to_dict()}
     shape = (order.n, order.n)
     if path.exists() and not overwrite:
@@ -222,14 +276,24 @@ def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings, tile_si
         except StoreError:
             old = None
         if old is not None and not old.complete:
-            if old.metadata.get(ACQUISITION_KEY) != json.loads(json.dumps(meta[ACQUISITION_KEY])):
+            differ = _differing(old.metadata.get(ACQUISITION_KEY),
+                                json.loads(json.dumps(meta[ACQUISITION_KEY])))
+            if differ:
                 raise AcquisitionError(
-                    "holds an interrupted build of other captures or settings; pass "
-                    "--overwrite to start again", path)
+                    f"holds an interrupted build of other captures or settings "
+                    f"({', '.join(differ)} differ); pass --overwrite to start again", path)
             return BlockCSRWriter(path, shape, tile_size=old.tile_size, pixel_order=order,
                                   metadata=meta, resume=True)
     return BlockCSRWriter(path, shape, tile_size=tile_size, pixel_order=order, metadata=meta,
                           overwrite=overwrite)
+
+
+def _differing(old, new: dict) -> list[str]:
+    """The keys of the settings ``new`` whose values ``old`` does not share (all of them
+    when ``old`` records none)."""
+    if not isinstance(old, dict):
+        return sorted(new)
+    return sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
 
 
 def _save_correspondence(store: Path, corr: Correspondence) -> None:
@@ -256,15 +320,20 @@ def load_correspondence(store) -> np.ndarray:
 # --- filling the tile rows ---------------------------------------------------------
 
 def _fill(writer: BlockCSRWriter, manifest: Manifest, cap: Captures, means: GroupMeans,
-          floor: float, budget: int, progress) -> int:
-    """Write every missing tile row; returns the number of passes over the captures."""
+          floors: np.ndarray, budget: int, progress) -> int:
+    """Write every missing tile row; returns the number of passes over the captures.
+
+    ``floors`` : (n,) the floor of each row of T (matrix order)."""
     column = _column_of(manifest, writer.pixel_order, means.seen)
+    gather = _gather_stripes if manifest.method == "stripes" else _gather_brute_force
+    limit = _Budget(budget)
     passes = 0
     missing = writer.missing_tile_rows
     while missing:
-        gather = _gather_stripes if manifest.method == "stripes" else _gather_brute_force
-        done = gather(writer, manifest, cap, means, floor, budget, missing, column, progress)
-        missing = [i for i in missing if i not in done]
+        rows = _Rows(writer, missing)
+        entries = gather(rows, manifest, cap, means, floors, limit, column, progress)
+        rows.write(*entries.arrays(), writer.shape[1])
+        missing = [i for i in missing if i not in rows.tiles]
         passes += 1
     return passes
 
@@ -305,6 +374,29 @@ class _Rows:
             self.writer.write_tile_row(i, block)
 
 
+class _Budget:
+    """The bytes one pass may gather, shared by the passes of a build."""
+
+    def __init__(self, nbytes: int):
+        self.nbytes = int(nbytes)
+        self.warned = False
+
+    def fit(self, rows: "_Rows", entries: "_Entries", reserved: int = 0) -> None:
+        """Give back half of the pass's tile rows (and their entries) while the entries
+        and ``reserved`` bytes outgrow the budget; a single tile row is kept whatever it
+        holds (a tile row is written whole), with one warning per build."""
+        while entries.nbytes + reserved > self.nbytes and len(rows.tiles) > 1:
+            rows.give_back_half()
+            entries.keep_rows(rows.mask)
+        if entries.nbytes + reserved > self.nbytes and not self.warned:
+            self.warned = True
+            warnings.warn(MemoryLimitWarning(
+                f"tile row {rows.tiles[0]} of T alone holds more entries than the memory "
+                f"limit of {self.nbytes} bytes for one pass; it is gathered whole (a "
+                "smaller --tile-size or a larger --memory-limit keeps to the limit)"),
+                stacklevel=2)
+
+
 class _Entries:
     """COO entries gathered by a pass, with their bytes (12 per entry as CSR + 8 here)."""
 
@@ -331,9 +423,10 @@ class _Entries:
         return tuple(np.concatenate(x) for x in zip(*self.parts))
 
 
-def _gather_brute_force(writer, manifest, cap, means, floor, budget, missing, column,
-                        progress) -> list[int]:
-    rows = _Rows(writer, missing)
+def _gather_brute_force(rows: _Rows, manifest: Manifest, cap: Captures, means: GroupMeans,
+                        floors: np.ndarray, budget: _Budget, column: np.ndarray,
+                        progress) -> _Entries:
+    """One pass of brute force: column p of T is the capture of super-pixel p."""
     entries = _Entries()
     for p in progress_bar(manifest.of_kind("superpixel"), progress=progress, desc="T columns",
                           unit="image"):
@@ -341,21 +434,22 @@ def _gather_brute_force(writer, manifest, cap, means, floor, budget, missing, co
         if col < 0:
             continue  # unseen super-pixel: its column is left out
         y = means(cap.signal(p))
-        r = np.flatnonzero((y >= floor) & (y > 0) & rows.mask)  # noise may be negative
+        r = np.flatnonzero((y >= floors) & (y > 0) & rows.mask)  # noise may be negative
         entries.add(r, np.full(len(r), col, dtype=np.int64), y[r])
-        while entries.nbytes > budget and len(rows.tiles) > 1:
-            rows.give_back_half()
-            entries.keep_rows(rows.mask)
-    rows.write(*entries.arrays(), writer.shape[1])
-    return rows.tiles
+        budget.fit(rows, entries)
+    return entries
 
 
-def _gather_stripes(writer, manifest, cap, means, floor, budget, missing, column,
-                    progress) -> list[int]:
+def _gather_stripes(rows: _Rows, manifest: Manifest, cap: Captures, means: GroupMeans,
+                    floors: np.ndarray, budget: _Budget, column: np.ndarray,
+                    progress) -> _Entries:
+    """One pass of stripes: row q of T at super-pixel (r, c) is min(H[q, r], V[q, c]),
+    H and V row q's responses to the row and column stripes. The responses of the
+    pass's rows are held first; the entries they make (up to n a row) count against
+    the budget with them as they are made."""
     gh, gw = manifest.grid
-    row_bytes = 8 * (gh + gw) * 2  # the stripe responses, and the entries they make
-    rows = _Rows(writer, missing)
-    while rows.mask.sum() * row_bytes > budget and len(rows.tiles) > 1:
+    response_bytes = 8 * (gh + gw)  # a row of H and V
+    while rows.mask.sum() * response_bytes > budget.nbytes and len(rows.tiles) > 1:
         rows.give_back_half()
     index = np.flatnonzero(rows.mask)
     H = np.zeros((len(index), gh))
@@ -364,13 +458,17 @@ def _gather_stripes(writer, manifest, cap, means, floor, budget, missing, column
     for p in progress_bar(stripes, progress=progress, desc="stripes", unit="image"):
         y = means(cap.signal(p))[index]
         (H if p.kind == "row-stripe" else V)[:, p.band] = y
+    reserved = H.nbytes + V.nbytes
     entries = _Entries()
     for k, q in enumerate(index):
+        if not rows.mask[q]:
+            continue  # its tile row was given back to a later pass
+        floor = floors[q]
         r = np.flatnonzero((H[k] >= floor) & (H[k] > 0))
         c = np.flatnonzero((V[k] >= floor) & (V[k] > 0))
         vals = np.minimum.outer(H[k, r], V[k, c]).ravel()
         cols = column[(r[:, None] * gw + c[None, :]).ravel()]
         keep = (vals >= floor) & (cols >= 0)
         entries.add(np.full(int(keep.sum()), q, dtype=np.int64), cols[keep], vals[keep])
-    rows.write(*entries.arrays(), writer.shape[1])
-    return rows.tiles
+        budget.fit(rows, entries, reserved)
+    return entries

@@ -8,12 +8,13 @@ when it is needed and dropped after, so the captures are never all in memory.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import AcquisitionError, ImageError
+from ..errors import AcquisitionError
 from ..images import IMAGE_SUFFIXES, check_image, is_image_file, read_raw_image
 from .manifest import Manifest, Pattern
 
@@ -47,14 +48,16 @@ class Captures:
     manifest : Manifest
     folder : path of the captures folder
     gamma : float, the camera's encoding gamma (1: linear captures)
-    black : path, optional
-        A black-level image to subtract instead of the capture of the ``black`` pattern.
+    black_file : path, optional
+        A black-level image to subtract instead of the capture of the ``black`` pattern
+        (on the captures' scale: values in 0-1 for floats).
 
     Raises
     ------
     AcquisitionError
         A capture missing or one without a pattern (naming the first few), two files
-        for one pattern; captures of different sizes or bit depths (naming the file).
+        for one pattern; captures of different sizes or bit depths, a colour capture, a
+        black frame in raw counts (naming the file).
     """
 
     manifest: Manifest
@@ -70,24 +73,47 @@ class Captures:
         if not self.folder.is_dir():
             raise AcquisitionError("no such captures folder", self.folder)
         self.files = _match_files(self.manifest, self.folder)
-        self.format = self._reference_format()
-        # a black frame may be an average of many, so of any pixel type
-        self._black = self._linear(self.black_file, any_type=True) if self.black_file else None
+        self._noise: float | None = None
+        raw_black = self._reference_format()
+        # the black pattern's capture is needed by the noise estimate, every signal
+        # (without --black) and the Gray-code decoding: read once, kept
+        self._black_capture = self._linear(self.path(self.manifest.single("black")),
+                                           raw=raw_black)
+        self._black_level = self._black_capture
+        if self.black_file:
+            # a black frame may be an average of many, so of any pixel type
+            raw = read_raw_image(self.black_file)
+            self._black_level = self._linear(self.black_file, any_type=True, raw=raw)
+            self._check_black_scale(raw.dtype)
 
-    def _reference_format(self) -> CaptureFormat:
-        """The black capture's size and pixel type, unless the white capture and a third
-        agree on another (then the black capture is the odd one, and is named when read)."""
+    def _reference_format(self) -> np.ndarray:
+        """Set :attr:`format`: the black capture's size and pixel type, unless the white
+        capture and a third agree on another (then the black capture is the odd one, and
+        is named when converted). Returns the black capture as stored."""
         def format_of(pattern):
             path = self.path(pattern)
-            raw = read_raw_image(path)
-            return CaptureFormat(tuple(check_image(raw, path).shape), raw.dtype.name)
+            raw = _grayscale(read_raw_image(path), path)
+            return CaptureFormat(tuple(check_image(raw, path).shape), raw.dtype.name), raw
 
-        black = format_of(self.manifest.single("black"))
-        white = format_of(self.manifest.single("white"))
+        black, raw_black = format_of(self.manifest.single("black"))
+        white, _ = format_of(self.manifest.single("white"))
         others = [p for p in self.manifest.patterns if p.kind not in ("black", "white")]
-        if white != black and others and format_of(others[0]) == white:
-            return white
-        return black
+        self.format = black
+        if white != black and others and format_of(others[0])[0] == white:
+            self.format = white
+        return raw_black
+
+    def _check_black_scale(self, dtype: np.dtype) -> None:
+        """A ``--black`` frame of floats above the integer captures' full scale holds raw
+        counts (the mean of 8- or 16-bit frames taken in numpy keeps their scale): every
+        signal would come out negative and the white capture be blamed for being black."""
+        top = self.format.full_scale
+        level = self._black_level
+        if top is not None and dtype.kind == "f" and level.max() > 1.0:
+            raise AcquisitionError(
+                f"black level up to {level.max():.6g}, above the {self.format.dtype} "
+                f"captures' full scale of 1: a float black frame holds values on the "
+                f"captures' 0-1 scale, not raw counts (divide it by {top})", self.black_file)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -96,8 +122,9 @@ class Captures:
     def path(self, pattern: Pattern) -> Path:
         return self.files[pattern.stem]
 
-    def _linear(self, path: Path, any_type: bool = False) -> np.ndarray:
-        raw = read_raw_image(path)
+    def _linear(self, path: Path, any_type: bool = False,
+                raw: np.ndarray | None = None) -> np.ndarray:
+        raw = _grayscale(read_raw_image(path) if raw is None else raw, path)
         if raw.dtype.name != self.format.dtype and not any_type:
             raise AcquisitionError(
                 f"pixel type {raw.dtype.name} differs from the other captures' "
@@ -122,16 +149,16 @@ class Captures:
 
         Returns
         -------
-        ndarray, shape (Hc, Wc), float64
+        ndarray, shape (Hc, Wc), float64 (the black pattern's is kept: do not modify)
         """
+        if pattern.kind == "black":
+            return self._black_capture
         return self._linear(self.path(pattern))
 
     @property
     def black(self) -> np.ndarray:
         """The black level, shape (Hc, Wc): ``--black`` or the black pattern's capture."""
-        if self._black is None:
-            self._black = self.linear(self.manifest.single("black"))
-        return self._black
+        return self._black_level
 
     def signal(self, pattern: Pattern) -> np.ndarray:
         """The capture of ``pattern`` less the black level. Negative values (noise) are
@@ -144,18 +171,43 @@ class Captures:
         return self.linear(pattern) - self.black
 
     def pixel_noise(self) -> float:
-        """Robust standard deviation of one pixel's noise: 1.4826 x the median absolute
-        deviation of the black pattern's capture (0 for a noiseless camera; a separate
-        black frame may be an average, so it is not used). A signal holds it twice, the
-        black level it is measured against being noisy too."""
-        b = self.linear(self.manifest.single("black"))
-        return float(1.4826 * np.median(np.abs(b - np.median(b))))
+        """Robust standard deviation of one pixel's noise, from the black pattern's
+        capture (a separate black frame may be an average, so it is not used): 1.4826 x
+        the median absolute deviation of the differences of horizontal neighbours, over
+        sqrt 2. Differences, because a smooth black level (a ramp, vignetting of stray
+        light) is no noise but spreads the values themselves; a difference of two pixels
+        holds two pixels' noise, hence sqrt 2. 0 for a noiseless camera. A signal holds
+        the noise twice, the black level it is measured against being noisy too."""
+        if self._noise is None:
+            b = self._black_capture
+            d = np.diff(b, axis=1 if b.shape[1] > 1 else 0)
+            self._noise = (float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+                           if d.size else 0.0)
+        return self._noise
 
     @property
     def quantum(self) -> float:
         """One step of the stored values (1/255, 1/65535), 0 for float captures."""
         top = self.format.full_scale
         return 1.0 / top if top else 0.0
+
+    def noise(self) -> float:
+        """A pixel's noise with the quantisation's: sqrt(sigma^2 + q^2 / 12), q one
+        :attr:`quantum`. The median estimate of :meth:`pixel_noise` is 0 when the noise
+        is under one step (an 8-bit black capture of few distinct values), yet every
+        capture is still off by up to half a step: the rounding's variance is q^2/12."""
+        return float(np.sqrt(self.pixel_noise() ** 2 + self.quantum ** 2 / 12.0))
+
+    def fingerprint(self) -> str:
+        """Name, size and modification time of every capture file (and ``--black``),
+        hashed: a resumed build must read the very captures the interrupted one read."""
+        h = hashlib.sha256()
+        files = sorted(self.files.values()) + ([Path(self.black_file)] if self.black_file
+                                               else [])
+        for path in files:
+            st = path.stat()
+            h.update(f"{path.name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        return h.hexdigest()[:32]
 
     def pixel_floor(self) -> float:
         """A pixel's signal at or below this is noise: 3 standard deviations of a
@@ -200,8 +252,18 @@ def _match_files(manifest: Manifest, folder: Path) -> dict[str, Path]:
     return found
 
 
+def _grayscale(raw: np.ndarray, path: Path) -> np.ndarray:
+    """``raw`` unless it is a colour capture, refused as such (before its pixel type is
+    compared: an 8-bit RGB capture among 16-bit ones is colour, not a bit depth)."""
+    if raw.ndim == 3 and raw.shape[2] != 1:
+        raise AcquisitionError(
+            f"a colour capture ({raw.shape[2]} channels): T is grayscale; capture every "
+            "pattern in grayscale (one channel)", path)
+    return raw
+
+
 def _some(names: list[str], k: int = 3) -> str:
     return ", ".join(names[:k]) + (f", ... ({len(names) - k} more)" if len(names) > k else "")
 
 
-__all__ = ["Captures", "CaptureFormat", "ImageError"]
+__all__ = ["Captures", "CaptureFormat"]

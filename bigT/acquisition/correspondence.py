@@ -60,6 +60,12 @@ class GroupMeans:
     ----------
     correspondence : Correspondence
     order : PixelOrder of T (its image shape is the super-pixel grid)
+
+    Attributes
+    ----------
+    n : int
+    counts : ndarray, shape (n,), int64, matrix order: camera pixels of each group
+    seen : ndarray, shape (n,), bool, matrix order: groups with at least one pixel
     """
 
     def __init__(self, correspondence: Correspondence, order: PixelOrder):
@@ -68,9 +74,9 @@ class GroupMeans:
         # matrix index of each grouped pixel: grid index -> matrix index
         self._rows = order.inverse_permutation[labels[self._pixels]]
         self.n = order.n
-        counts = np.bincount(self._rows, minlength=self.n).astype(np.float64)
-        self.seen = counts > 0
-        self._scale = np.divide(1.0, counts, out=np.zeros(self.n), where=self.seen)
+        self.counts = np.bincount(self._rows, minlength=self.n)
+        self.seen = self.counts > 0
+        self._scale = np.divide(1.0, self.counts, out=np.zeros(self.n), where=self.seen)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """Returns ndarray, shape (n,), float64: 0 on unseen rows."""
@@ -79,8 +85,9 @@ class GroupMeans:
 
 
 def from_graycode(manifest: Manifest, captures: Captures) -> Correspondence:
-    """Decode the Gray-code captures (OpenCV's thresholds, :mod:`.patterns`)."""
-    labels = decode_graycode(manifest, captures.linear)
+    """Decode the Gray-code captures (thresholds relative to the camera's noise and each
+    pixel's contrast, :func:`.patterns.decode_graycode`)."""
+    labels = decode_graycode(manifest, captures.linear, noise=captures.noise())
     return Correspondence(labels, manifest.grid, "graycode")
 
 

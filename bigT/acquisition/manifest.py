@@ -38,6 +38,10 @@ MANIFEST = "manifest.json"
 FORMAT = "bigT-acquisition-patterns"
 VERSION = 1
 METHODS = ("brute-force", "stripes", "graycode")
+#: The most patterns bigT lists: brute force on a 3840x2160 projector in 1x1 super-pixels
+#: (8.3 M, days of capturing) fits; a manifest edited to a far larger projector is
+#: refused at once instead of being rebuilt pattern by pattern to compare.
+MAX_PATTERNS = 1 << 23
 KINDS = ("black", "white", "superpixel", "row-stripe", "col-stripe", "graycode")
 AXES = ("col", "row")
 
@@ -142,12 +146,20 @@ class Manifest:
             raise bad("method, graycode or projector has a wrong value")
         manifest = cls(projector, superpixel, method, graycode, patterns)
         try:
-            expected = make_manifest(method, projector, superpixel, graycode=graycode)
-        except AcquisitionError as exc:  # a projector the super-pixels do not divide
+            check_geometry(projector, superpixel)
+            # counted first: a huge projector is refused at once, not listed to compare
+            count = checked_pattern_count(method, projector, superpixel, graycode=graycode)
+        except AcquisitionError as exc:  # super-pixels not dividing it, too many patterns
             raise bad(exc.problem) from None
+        if count != len(patterns):
+            raise bad(f"the pattern list is not the one bigT writes for its method and size "
+                      f"({len(patterns)} patterns listed, {count} expected)")
+        expected = make_manifest(method, projector, superpixel, graycode=graycode)
         if manifest != expected:
             raise bad("the pattern list is not the one bigT writes for its method and size")
-        return manifest
+        # the canonical one: equal is not identical (an index of 5.0 equals 5 but is no
+        # array index, inverted: 1 equals True)
+        return expected
 
 
 def _count(value, what) -> int:
@@ -176,6 +188,28 @@ def check_geometry(projector, superpixel: int) -> None:
             "super-pixels: choose --superpixel dividing both sides")
 
 
+def pattern_count(method: str, projector, superpixel: int = 1, *,
+                  graycode: bool | None = None) -> int:
+    """How many patterns :func:`make_manifest` lists, without listing them."""
+    gh, gw = int(projector[0]) // superpixel, int(projector[1]) // superpixel
+    count = 2 + {"brute-force": gh * gw, "stripes": gh + gw}.get(method, 0)
+    if method == "graycode" or graycode:
+        count += 2 * (graycode_bits(gw) + graycode_bits(gh))
+    return count
+
+
+def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
+                          graycode: bool | None = None) -> int:
+    """:func:`pattern_count`, refused (AcquisitionError) above :data:`MAX_PATTERNS`."""
+    count = pattern_count(method, projector, superpixel, graycode=graycode)
+    if count > MAX_PATTERNS:
+        raise AcquisitionError(
+            f"{method} on a {projector[0]}x{projector[1]} projector in {superpixel}x"
+            f"{superpixel} super-pixels needs {count} patterns, more than bigT lists "
+            f"({MAX_PATTERNS}): choose a larger --superpixel or --method stripes")
+    return count
+
+
 def make_manifest(method: str, projector, superpixel: int = 1, *,
                   graycode: bool | None = None) -> Manifest:
     """The patterns bigT projects for ``method``.
@@ -195,11 +229,18 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
     Manifest
         Black and white first, then the method's patterns, then the Gray code (column
         bits then row bits, each pattern followed by its inverse).
+
+    Raises
+    ------
+    AcquisitionError
+        An unknown method, super-pixels not dividing the projector, more than
+        :data:`MAX_PATTERNS` patterns.
     """
     if method not in METHODS:
         raise AcquisitionError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
     projector = (int(projector[0]), int(projector[1]))
     check_geometry(projector, superpixel)
+    checked_pattern_count(method, projector, superpixel, graycode=graycode)
     graycode = method == "graycode" or bool(graycode)
     gh, gw = projector[0] // superpixel, projector[1] // superpixel
     patterns = [Pattern("black.png", "black"), Pattern("white.png", "white")]
@@ -229,6 +270,12 @@ def write_manifest(folder: Path, manifest: Manifest) -> Path:
             json.dump(manifest.to_dict(), f, indent=1)
             f.write("\n")
     return path
+
+
+def patterns_folder(patterns) -> Path:
+    """The pattern folder of ``patterns`` (the folder, or its manifest file)."""
+    path = Path(patterns)
+    return path if path.is_dir() else path.parent
 
 
 def read_manifest(folder) -> Manifest:

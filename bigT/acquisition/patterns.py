@@ -5,9 +5,13 @@ of the manifest's grid is lit. The Gray code follows OpenCV's
 ``structured_light.GrayCodePattern``: the code of a grid coordinate x is
 ``x ^ (x >> 1)``, bits most significant first, every pattern followed by its inverse;
 a camera pixel reads bit b as 1 where the pattern is brighter than its inverse, and is
-left undecoded where the all-white and all-black captures differ by less than a black
-threshold (a shadow) or any bit's pattern and inverse differ by less than a white
-threshold (ambiguous), OpenCV's ``blackThreshold`` and ``whiteThreshold``.
+left undecoded where the all-white and all-black captures differ by too little (a
+shadow) or any bit's pattern and inverse differ by too little (ambiguous), the roles of
+OpenCV's ``blackThreshold`` and ``whiteThreshold``. OpenCV's are absolute (40 and 5 of
+255), which leaves a dim capture (a dark surface, a short exposure, a 16-bit camera
+using a tenth of its range) all in shadow; here they are relative: a shadow is a contrast
+within the noise, an ambiguous bit one whose difference is within the noise or a small
+share of the pixel's own contrast (white - black).
 """
 
 from __future__ import annotations
@@ -20,9 +24,17 @@ from ..images import write_image
 from ..progress import progress_bar
 from .manifest import Manifest, Pattern, write_manifest
 
-#: OpenCV's defaults (40 and 5 on 8-bit values), as fractions of full scale.
-GRAYCODE_BLACK_THRESHOLD = 40 / 255
-GRAYCODE_WHITE_THRESHOLD = 5 / 255
+#: A pixel is in shadow unless white - black exceeds this many standard deviations of
+#: the difference of two captures (sqrt 2 x a pixel's noise).
+GRAYCODE_SHADOW_SIGMAS = 6.0
+#: A bit is ambiguous unless |pattern - inverse| exceeds this many standard deviations
+#: of the difference of two captures ...
+GRAYCODE_AMBIGUITY_SIGMAS = 3.0
+#: ... and this share of the pixel's contrast white - black (OpenCV's 5 of its least
+#: contrast, 40, is 0.125). A pixel lit by the projector directly differs by most of its
+#: contrast (0.48 or more on the corner scene), one seen by interreflected light alone
+#: differs by little on the finest bits, whose stripes light its surroundings evenly.
+GRAYCODE_AMBIGUITY_SHARE = 0.1
 
 
 def gray(x: np.ndarray) -> np.ndarray:
@@ -93,8 +105,10 @@ def write_patterns(folder, manifest: Manifest, *, progress: bool | None = None) 
     return write_manifest(folder, manifest)
 
 
-def decode_graycode(manifest: Manifest, read, *, black_threshold: float = GRAYCODE_BLACK_THRESHOLD,
-                    white_threshold: float = GRAYCODE_WHITE_THRESHOLD) -> np.ndarray:
+def decode_graycode(manifest: Manifest, read, *, noise: float = 0.0,
+                    shadow_sigmas: float = GRAYCODE_SHADOW_SIGMAS,
+                    ambiguity_sigmas: float = GRAYCODE_AMBIGUITY_SIGMAS,
+                    ambiguity_share: float = GRAYCODE_AMBIGUITY_SHARE) -> np.ndarray:
     """The projector super-pixel each camera pixel sees, from the Gray-code captures.
 
     Parameters
@@ -104,8 +118,13 @@ def decode_graycode(manifest: Manifest, read, *, black_threshold: float = GRAYCO
         ``read(pattern) -> ndarray (Hc, Wc)``: the linear capture of a pattern (black
         level not subtracted; only differences are used). Called once per pattern, so
         at most four captures are in memory at a time.
-    black_threshold, white_threshold : float
-        Shadow and ambiguity thresholds (see the module docstring).
+    noise : float
+        Standard deviation of one pixel of one capture (quantisation included); 0 for
+        noiseless captures (then any positive contrast counts).
+    shadow_sigmas, ambiguity_sigmas, ambiguity_share : float
+        A pixel is decoded where ``white - black > shadow_sigmas * sqrt(2) * noise`` and,
+        for every bit, ``|pattern - inverse| > max(ambiguity_sigmas * sqrt(2) * noise,
+        ambiguity_share * (white - black))`` (see the module docstring).
 
     Returns
     -------
@@ -114,14 +133,18 @@ def decode_graycode(manifest: Manifest, read, *, black_threshold: float = GRAYCO
         ambiguous bit, or a code beyond the grid).
     """
     white, black = read(manifest.single("white")), read(manifest.single("black"))
-    valid = (white - black) > black_threshold
+    contrast = white - black
+    del white
+    difference_noise = np.sqrt(2.0) * noise  # of a difference of two captures
+    valid = contrast > shadow_sigmas * difference_noise
+    ambiguous = np.maximum(ambiguity_sigmas * difference_noise, ambiguity_share * contrast)
     coords = {}
     for axis in ("col", "row"):
         bits = manifest.graycode_bits(axis)
-        code = np.zeros(white.shape, dtype=np.int64)
+        code = np.zeros(contrast.shape, dtype=np.int64)
         for bit in range(bits):
             on, off = (read(_graycode_pattern(manifest, axis, bit, inv)) for inv in (False, True))
-            valid &= np.abs(on - off) >= white_threshold
+            valid &= np.abs(on - off) > ambiguous
             code = (code << 1) | (on > off)
         coords[axis] = gray_to_binary(code, bits)
     gh, gw = manifest.grid

@@ -29,7 +29,8 @@ from ..errors import AcquisitionError
 from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..storage import PixelOrder
-from .manifest import Manifest, read_manifest
+from .correspondence import Correspondence
+from .manifest import Manifest, patterns_folder, read_manifest
 
 MARGIN = 0.05
 PEAK = 0.9
@@ -81,13 +82,9 @@ class CameraModel:
         """(n,) float64, matrix order: exposure x mean gain of each super-pixel's camera
         pixels (0 for super-pixels no pixel sees) -- the row scale a noise-free build
         recovers T_scene with."""
-        sp = self.superpixel_of().ravel()
-        g = self.gain().ravel()
-        keep = sp >= 0
-        rows = order.inverse_permutation[sp[keep]]
-        sums = np.bincount(rows, weights=g[keep], minlength=order.n)
-        counts = np.bincount(rows, minlength=order.n)
-        return self.exposure * np.divide(sums, counts, out=np.zeros(order.n), where=counts > 0)
+        # the same group means a build takes, over the true correspondence
+        groups = Correspondence(self.superpixel_of(), self.grid, "simulation").reducer(order)
+        return self.exposure * groups(self.gain())
 
     def render(self, light: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Camera images of scene light.
@@ -130,7 +127,8 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     scene_path : a store written by ``bigT scene`` (its T maps the projector's
         super-pixel grid, which must be the scene's image shape)
     patterns : the pattern folder
-    output : the captures folder (created; existing captures of the same names replaced)
+    output : the captures folder (created; existing captures of the same names replaced;
+        not the pattern folder, whose patterns have the captures' names)
     camera : (int, int), the camera's (Hc, Wc)
     noise, black, gamma : the camera's noise std, black level and gamma
     fmt : one of :data:`FORMATS`
@@ -143,6 +141,11 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     from ..scenes import load
 
     manifest = read_manifest(patterns)
+    if Path(output).resolve() == patterns_folder(patterns).resolve():
+        raise AcquisitionError(
+            "the captures folder is the pattern folder: the captures, named as the "
+            "patterns, would overwrite them; write the captures to a folder of their own",
+            Path(output))
     scene = load(scene_path)
     order = scene.pixel_order
     if order is None or tuple(order.image_shape) != manifest.grid:

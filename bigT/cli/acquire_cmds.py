@@ -3,6 +3,7 @@ camera to try it without a rig (bigT.acquisition)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import warnings
@@ -132,14 +133,11 @@ def build_cmd(args) -> int:
     from ..acquisition.validate import (check_white, figure_paths, plot_correspondence,
                                         plot_white_check)
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with _own_warnings("bigT acquire build"):
         report = build_transport(args.patterns, args.captures, args.output, black=args.black,
                                  floor=args.floor, gamma=args.gamma, tile_size=args.tile_size,
                                  memory_bytes=args.memory_limit, overwrite=args.overwrite,
                                  progress=_progress(args))
-    for w in caught:
-        print(f"bigT acquire build: warning: {w.message}", file=sys.stderr)
     check = check_white(report.path)
     figures = []
     if not args.no_figures:
@@ -150,6 +148,7 @@ def build_cmd(args) -> int:
     if args.json:
         print(json.dumps({**report.settings.to_dict(), "n": report.n, "seen": report.seen,
                           "nnz": report.nnz, "passes": report.passes,
+                          "black_level": report.black_level,
                           "saturated_pixels": report.saturated_pixels,
                           "seconds": report.seconds,
                           "white_relative_error": check.relative_error,
@@ -162,6 +161,27 @@ def build_cmd(args) -> int:
         print(f"-> {f}")
     print(f"-> {report.path}")
     return 0
+
+
+@contextlib.contextmanager
+def _own_warnings(command: str):
+    """Print bigT's own warnings (saturated pixels, a tile row over the memory limit) as
+    ``COMMAND: warning: ...`` lines on stderr once the block has run (a failure's one
+    line stays the only one); any other warning (a library's) is handed on to Python's
+    own handling, as it would be without bigT."""
+    from ..acquisition.build import AcquisitionWarning
+    from ..errors import MemoryLimitWarning
+
+    own = (AcquisitionWarning, MemoryLimitWarning)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", own)
+        yield
+    for w in caught:
+        if issubclass(w.category, own):
+            print(f"{command}: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno,
+                                   source=w.source)
 
 
 def _grid(report) -> tuple[int, int]:

@@ -23,6 +23,7 @@ from bigT.acquisition import Manifest, read_manifest
 from bigT.cli import main
 from bigT.errors import AcquisitionError
 from bigT.images import read_raw_image, write_image
+from bigT.storage import open as open_store
 
 CAMERA = (30, 40)
 PROJECTOR = "24x32"  # 2x2 super-pixels: the scene's 12x16 grid
@@ -193,6 +194,31 @@ def test_a_black_frame_of_the_wrong_size(work, capsys):
            names=work / "black-frame.npy", says=["40x30", "30x40"], world=work)
 
 
+def test_a_black_frame_in_raw_counts(work, capsys):
+    """The mean of 16-bit black frames taken in numpy keeps their counts (1300, not
+    0.02): it was subtracted as it was, and the white capture blamed for being black."""
+    counts = read_raw_image(work / "bf-captures" / "black.png").astype(np.float32)
+    np.save(work / "black-counts.npy", counts)
+    _fails(_build(work, "bf", "--black", work / "black-counts.npy"), capsys, step="build",
+           names=work / "black-counts.npy",
+           says=["black level up to", "not raw counts", "divide it by 65535"], world=work)
+
+
+def test_the_captures_folder_cannot_be_the_pattern_folder(work, capsys):
+    """The patterns have the captures' names: they would be read as captures."""
+    for patterns in (work / "bf-patterns", work / "bf-patterns" / "manifest.json"):
+        _fails([patterns, work / "bf-patterns", "-o", work / "T.zarr", "--overwrite"], capsys,
+               step="build", names=work / "bf-patterns",
+               says="the captures folder is the pattern folder", world=work)
+
+
+def test_simulating_into_the_pattern_folder_is_refused(work, rig, capsys):
+    _fails([rig / "scene.zarr", work / "bf-patterns", "-o", work / "bf-patterns", "--camera",
+            "30x40"], capsys, step="simulate", names=work / "bf-patterns",
+           says=["the captures folder is the pattern folder", "would overwrite them"],
+           world=work)
+
+
 def test_a_missing_black_frame(work, capsys):
     _fails(_build(work, "bf", "--black", work / "nope.png"), capsys, step="build",
            names=work / "nope.png", says="no such file", world=work)
@@ -209,6 +235,20 @@ def test_a_capture_of_another_bit_depth(work, rig, capsys, name, odd):
     assert read_raw_image(work / f"{name}-captures" / odd).dtype == np.uint8
     _fails(_build(work, name), capsys, step="build", names=work / f"{name}-captures" / odd,
            says=["pixel type uint8", "uint16", "mixed bit depths"], world=work)
+
+
+@pytest.mark.parametrize("odd", ["sp_123.png", "white.png", "black.png"])
+def test_a_colour_capture_is_called_colour_not_another_bit_depth(work, capsys, odd):
+    """An 8-bit RGB PNG among 16-bit grayscale captures: its pixel type differs too,
+    but what to fix is the colour."""
+    import imageio.v3 as iio
+
+    path = work / "bf-captures" / odd
+    path.unlink()
+    iio.imwrite(path, np.full(CAMERA + (3,), 80, np.uint8))
+    line = _fails(_build(work), capsys, step="build", names=path,
+                  says=["a colour capture (3 channels)", "grayscale"], world=work)
+    assert "bit depth" not in line
 
 
 def test_a_float_capture_among_16_bit_ones(work, capsys):
@@ -347,6 +387,54 @@ def test_an_edited_manifest_is_refused_by_simulate_too(work, rig, capsys):
            capsys, step="simulate", names=manifest, says="not a valid bigT pattern manifest",
            world=work)
     assert not (work / "new").exists()
+
+
+def test_a_float_index_in_the_manifest_builds_as_its_integer(work, rig, capsys):
+    """5.0 equals 5, so the manifest passes; the canonical manifest is what is used (a
+    float reached numpy as an index: a traceback)."""
+    manifest = work / "bf-patterns" / "manifest.json"
+    d = json.loads(manifest.read_text())
+    for entry in d["patterns"]:
+        if "index" in entry:
+            entry["index"] = float(entry["index"])
+    manifest.write_text(json.dumps(d))
+    assert read_manifest(work / "bf-patterns").of_kind("superpixel")[7].index == 7
+    argv = _build(work, "bf", "--no-figures", "-q", output="new.zarr")
+    argv.remove("--overwrite")
+    assert main(["acquire", "build", *map(str, argv)]) == 0, capsys.readouterr().err
+    assert np.array_equal(open_store(work / "new.zarr").to_scipy().toarray(),
+                          open_store(rig / "T.zarr").to_scipy().toarray())
+
+
+@pytest.mark.parametrize("step", ["build", "patterns"])
+def test_a_huge_projector_is_refused_at_once(work, capsys, step):
+    """A manifest edited to a 100000x100000 projector (10^10 brute-force patterns), or
+    asked for: refused in one line before any pattern is listed. Run in a child process
+    with a time and memory limit, so that a regression fails rather than hangs."""
+    import resource
+    import subprocess
+    import sys
+
+    manifest = work / "bf-patterns" / "manifest.json"
+    _edited(manifest, projector=[100000, 100000], superpixel=1)
+    before = _fingerprint(work)
+    if step == "build":
+        argv = [*map(str, _build(work))]
+    else:
+        argv = ["--method", "brute-force", "--projector", "100000x100000", "-o",
+                str(work / "huge")]
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (8 << 30, 8 << 30))
+
+    proc = subprocess.run([sys.executable, "-m", "bigT.cli", "acquire", step, *argv],
+                          capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
+    assert "needs 10000000002 patterns" in lines[0] and "--superpixel" in lines[0]
+    if step == "build":
+        assert lines[0].startswith(f"bigT acquire build: error: {manifest}: not a valid")
+    assert _fingerprint(work) == before
 
 
 def test_an_edited_pattern_entry(work, capsys):

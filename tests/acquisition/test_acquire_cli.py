@@ -1,8 +1,10 @@
 """``bigT acquire`` through bigT.cli.main: the loop end to end, every bad input of the
-issue as one line naming the file (exit 2) with nothing written lost, and a build
-interrupted half way resuming to the same T."""
+issue as one line naming the file (exit 2) with nothing written lost, a build
+interrupted half way resuming to the same T, and the warnings printed (bigT's own
+only)."""
 
 import shutil
+import warnings
 
 import numpy as np
 import pytest
@@ -193,3 +195,35 @@ def test_an_interrupted_build_of_other_captures_is_not_resumed(work, monkeypatch
     assert _build(work, "--tile-size", "32", "--floor", "0.01") == 2
     _one_line_error(capsys, "T.zarr", "interrupted build of other captures or settings")
     assert _build(work, "--tile-size", "32", "--floor", "0.01", "--overwrite") == 0
+
+
+def test_the_summary_names_the_black_level_and_where_it_came_from(work, capsys):
+    black = work / "black.npy"
+    np.save(black, np.full((30, 40), 0.02, np.float32))
+    assert _build(work, "--black", str(black), "--no-figures") == 0
+    out = capsys.readouterr().out
+    assert "black level 0.02 (from --black black.npy)" in out
+    assert _build(work, "-o", str(work / "T2.zarr"), "--no-figures") == 0
+    assert "(from the black capture)" in capsys.readouterr().out
+
+
+def test_only_bigTs_own_warnings_are_printed_as_the_commands(work, monkeypatch, capsys):
+    """A library's warning during the build is not bigT's to print under its name: it
+    goes to Python's warning machinery as usual. bigT's (a tile row over the memory
+    limit) is printed once, as ``bigT acquire build: warning: ...``."""
+    import bigT.acquisition
+
+    real = bigT.acquisition.build_transport
+
+    def build(*args, **kwargs):
+        warnings.warn("some library's deprecation", DeprecationWarning)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bigT.acquisition, "build_transport", build)
+    with pytest.warns(DeprecationWarning, match="some library's"):
+        assert _build(work, "--tile-size", "32", "--memory-limit", "1KiB", "--no-figures",
+                      "-q") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("bigT acquire build: warning: tile row 0 of T alone holds more "
+                             "entries than the memory limit of 1024 bytes")

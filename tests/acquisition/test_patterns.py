@@ -77,6 +77,47 @@ def test_decoding_leaves_shadows_and_ambiguous_pixels_out():
     assert labels[0, 0] == -1 and labels[1, 1] == -1 and (labels >= 0).sum() == 14
 
 
+def _grid_labels(h, w, s):
+    rows, cols = np.meshgrid(np.arange(h) // s, np.arange(w) // s, indexing="ij")
+    return rows * (w // s) + cols
+
+
+@pytest.mark.parametrize("black, contrast, noise", [
+    (0.01, 0.04, 0.001),    # dim: under OpenCV's 40/255, all shadow with its thresholds
+    (0.002, 0.01, 0.0002),  # dimmer still, a quiet camera
+    (0.05, 0.85, 0.01),     # bright and noisy: decoded as before
+])
+def test_decoding_thresholds_are_relative_to_the_noise_and_the_contrast(black, contrast,
+                                                                          noise):
+    m = make_manifest("graycode", (12, 20), 2)
+    rng = np.random.default_rng(1)
+
+    def read(p):
+        return black + contrast * pattern_image(m, p) + rng.normal(0, noise, (12, 20))
+
+    labels = decode_graycode(m, read, noise=noise)
+    assert np.array_equal(labels, _grid_labels(12, 20, 2))
+
+
+def test_decoding_leaves_noise_and_interreflected_light_out():
+    """A pixel whose contrast is within the noise is a shadow; one whose pattern and
+    inverse differ by a small share of its contrast (light from the surroundings,
+    nearly even under fine stripes) is ambiguous."""
+    m = make_manifest("graycode", (4, 4), 1)
+    rng = np.random.default_rng(2)
+
+    def read(p):
+        img = 0.01 + 0.5 * pattern_image(m, p)
+        img[0, 0] = 0.01 + (0.004 if p.kind == "white" else 0.0)  # 2.8 sigma of contrast
+        img[1, 1] = 0.2 + 0.03 * pattern_image(m, p)[1, 1]  # 7 % of a contrast of 0.45
+        if p.kind == "white":
+            img[1, 1] = 0.65
+        return img + rng.normal(0, 0.001, (4, 4))
+
+    labels = decode_graycode(m, read, noise=0.001)
+    assert labels[0, 0] == -1 and labels[1, 1] == -1 and (labels >= 0).sum() == 14
+
+
 def test_written_patterns_and_manifest_read_back(tmp_path):
     m = make_manifest("stripes", (12, 16), 1, graycode=True)
     path = write_patterns(tmp_path, m, progress=False)
@@ -93,6 +134,31 @@ def test_a_manifest_edited_to_another_projector_is_refused(tmp_path):
     d["projector"] = [4, 8]
     with pytest.raises(AcquisitionError, match="pattern list"):
         Manifest.from_dict(d, tmp_path / "manifest.json")
+
+
+def test_a_manifest_is_read_as_the_canonical_one(tmp_path):
+    """Numbers that equal bigT's but are not of its type (an index of 5.0, inverted: 1)
+    pass the comparison; what comes back is bigT's own (an int index to index arrays)."""
+    write_patterns(tmp_path, make_manifest("brute-force", (4, 4), 1, graycode=True),
+                   progress=False)
+    d = json.loads((tmp_path / "manifest.json").read_text())
+    d["patterns"][5]["index"] = 3.0
+    d["patterns"][-1]["inverted"] = 1
+    m = Manifest.from_dict(d, tmp_path / "manifest.json")
+    assert type(m.patterns[5].index) is int and m.patterns[-1].inverted is True
+    assert m == make_manifest("brute-force", (4, 4), 1, graycode=True)
+
+
+def test_too_many_patterns_are_refused_before_they_are_listed():
+    from bigT.acquisition.manifest import MAX_PATTERNS, pattern_count
+
+    assert pattern_count("brute-force", (2160, 3840), 1, graycode=True) <= MAX_PATTERNS
+    with pytest.raises(AcquisitionError, match="needs 10000000002 patterns"):
+        make_manifest("brute-force", (100000, 100000), 1)
+    for method in ("brute-force", "stripes", "graycode"):
+        for graycode in (False, True):
+            m = make_manifest(method, (12, 20), 2, graycode=graycode)
+            assert pattern_count(method, (12, 20), 2, graycode=graycode) == len(m.patterns)
 
 
 @pytest.mark.parametrize("projector, s", [((6, 8), 4), ((6, 8), 7), ((5, 8), 2)])
