@@ -659,16 +659,8 @@ def _group_emit_marked(acc, touched, touched_super, lo, hi, n_rows, threshold, c
             if touched[blk] == 0:
                 continue
             touched[blk] = 0
-            for j in range(blk << BLOCK_SHIFT, min((blk + 1) << BLOCK_SHIFT, n_cols)):
-                o = j * GROUP
-                for r in range(n_rows):
-                    c = cursor[r]
-                    out_v[c] = acc[o + r]
-                    out_j[c] = j
-                    v = out_v[c]
-                    cursor[r] = c + ((v != 0) & (abs(v) >= threshold))
-                for r in range(GROUP):
-                    acc[o + r] = 0.0
+            _group_emit(acc, blk << BLOCK_SHIFT, min((blk + 1) << BLOCK_SHIFT, n_cols) - 1,
+                        n_rows, threshold, cursor, out_j, out_v)
 
 
 def grouped_workspace(n_cols: int, n_rows_b: int):
