@@ -4,11 +4,13 @@ A scene is built in four steps, each in bounded memory:
 
 1. geometry (:mod:`.geometry`): the surface patch seen by every pixel, renumbered into
    the store's pixel order (image-tile-major by default, docs/DESIGN.md "Pixel order");
-2. interreflection (:mod:`.radiosity`): A = diag(albedo) FF, sparse, in memory (its
-   size is capped by ``config.SCENE_MAX_A_NNZ``);
+2. interreflection (:mod:`.radiosity`, :mod:`.stored`): A = diag(albedo) FF, written
+   tile row by tile row into the ground truth's store;
 3. transport: T = (sum_k A^k) F [G] (paper eq. 6/8) one tile row at a time with the
-   pruned products of the kernels layer, each tile row written by
-   :class:`bigT.BlockCSRWriter` as soon as it is done, so T never sits in memory whole;
+   pruned products of the kernels layer against the stored A (held whole only within
+   ``memory_limit``), each tile row written by :class:`bigT.BlockCSRWriter` as soon as
+   it is done, so T never sits in memory whole; the ground truth (spectral radii,
+   bounce shares) is then computed from the stores;
 4. acquisition (optional): Gaussian defocus G of the projector, additive camera noise
    on every stored entry and a noise floor below which entries are dropped.
 
@@ -23,8 +25,10 @@ truth in its subgroup ``ground_truth/``::
 For a noise-free scene without truncation (``threshold=0``) and without blur, the
 exact inverse is F^-1 (I - A); :func:`exact_inverse_rows` gives it tile row by tile
 row, so the error of an inverse can be measured at full scale without any dense
-inversion. The whole scene is written under a temporary sibling and moved into place
-when complete: a failed or interrupted call leaves ``path`` as it was.
+inversion (or on a sample of rows: :meth:`Scene.inverse_error`). The whole scene is
+written in the hidden work directory ``.NAME.scene-build`` beside ``path`` and moved
+into place when complete: a failed or interrupted call leaves ``path`` as it was, and
+the next call with the same parameters resumes from the tile rows done.
 """
 
 from __future__ import annotations
