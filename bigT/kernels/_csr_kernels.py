@@ -178,30 +178,8 @@ def spgemm_rows_internal(
                 if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
                     pos += 1
         else:
-            cnt = 0
-            for p in range(a_start, a_stop):
-                k = a_indices[p]
-                a = np.float64(a_data[p])
-                for q in range(b_indptr[k], b_indptr[k + 1]):
-                    j = b_indices[q]
-                    if mark[j] != marker:
-                        mark[j] = marker
-                        touched[cnt] = j
-                        cnt += 1
-                    acc[j] += a * b_data[q]
-            for t in range(cnt):
-                j = touched[t]
-                out_v[pos] = acc[j]
-                if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
-                    out_j[pos] = j
-                    pos += 1
-                else:
-                    acc[j] = 0.0
-            out_j[start:pos].sort()
-            for p in range(start, pos):
-                j = out_j[p]
-                out_v[p] = acc[j]
-                acc[j] = 0.0
+            pos = _row_listed(i, marker, a_indptr, a_indices, a_data, b_indptr, b_indices,
+                              b_data, acc, mark, touched, threshold, pos, out_j, out_v)
         row_nnz[ii] = pos - start
     return row_nnz, out_j, out_v
 
@@ -682,7 +660,9 @@ def _row_listed(i, tag, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data
                 listed, threshold, pos, out_j, out_v):
     """Row i of A @ B with its columns listed on first touch (``mark[j] == tag``), for a
     row whose span is much wider than its multiply-adds; the kept entries are written
-    from ``pos`` on in column order (the listed columns sorted). Returns the new pos."""
+    from ``pos`` on in column order (only the kept columns sorted). Returns the new pos.
+    The list emission of both product kernels."""
+    start = pos
     nt = 0
     for p in range(a_indptr[i], a_indptr[i + 1]):
         k = a_indices[p]
@@ -694,14 +674,19 @@ def _row_listed(i, tag, a_indptr, a_indices, a_data, b_indptr, b_indices, b_data
                 listed[nt] = j
                 nt += 1
             acc[j] += a * b_data[q]
-    cols = np.sort(listed[:nt])
     for t in range(nt):
-        j = cols[t]
+        j = listed[t]
         out_v[pos] = acc[j]
-        acc[j] = 0.0
-        out_j[pos] = j
         if out_v[pos] != 0 and abs(out_v[pos]) >= threshold:
+            out_j[pos] = j
             pos += 1
+        else:
+            acc[j] = 0.0
+    out_j[start:pos].sort()
+    for p in range(start, pos):
+        j = out_j[p]
+        out_v[p] = acc[j]
+        acc[j] = 0.0
     return pos
 
 
