@@ -67,17 +67,26 @@ def diag_task(ctx: TaskContext):
 
 
 def power_task(ctx: TaskContext):
-    """P_k = (M P_{k-1}) pruned, X_k = X_{k-1} + F^-1 P_k on the block's rows. Term 1
-    needs no product: P_1 = M P_0 = M, pruned. Rows whose every factor met a
-    converged (empty) row of P_{k-1} carry X over."""
+    """Q_k = (M P_{k-1}) pruned, X_k = X_{k-1} + F^-1 Q_k on the block's rows, and
+    P_k = Q_k, or Q_k pruned again at the spec's ``feed_threshold``. Term 1 needs no
+    product: Q_1 = M P_0 = M, pruned. Rows whose every factor met a converged (empty)
+    row of P_{k-1} carry X over.
+
+    Why two thresholds: an entry dropped from Q_k only stays in X, so its error
+    reaches the residual through M times it (the next terms miss M D_k, M^2 D_k, ...),
+    not as D_k itself: P_k, which sets the next product's cost, may be pruned harder
+    for the same error (:mod:`.stratified`, "Carrying")."""
     M = ctx.M.rows(ctx.start, ctx.stop)
     computed = skipped = 0
-    if "P" in dict(ctx.spec.inputs):
-        P, computed, skipped = ctx.product(M, "P", ctx.spec.threshold)
+    spec = ctx.spec
+    if "P" in dict(spec.inputs):
+        Q, computed, skipped = ctx.product(M, "P", spec.threshold)
     else:
-        P = prune(M, threshold=ctx.spec.threshold)
+        Q = prune(M, threshold=spec.threshold)
+    feed = spec.threshold if spec.feed_threshold is None else spec.feed_threshold
+    P = prune(Q, threshold=feed) if feed > spec.threshold and Q.nnz else Q
     X_prev = _read_rows(ctx, "X")
-    X = blocks.add_scaled(X_prev, ctx.finv[ctx.start:ctx.stop], P) if P.nnz else X_prev
+    X = blocks.add_scaled(X_prev, ctx.finv[ctx.start:ctx.stop], Q) if Q.nnz else X_prev
     ctx.write("P", P)
     ctx.write("X", X)
     carried = "P" in dict(ctx.spec.inputs) and computed == 0

@@ -42,6 +42,15 @@ so the power form's advantage is bounded by (c_1 + 3c) / (c_1 + c) < 3x. That ho
 even if the later products cost nothing. On the dense 384x512 corner, Horner wins at
 equal error (README, "Measured").
 
+Carrying (``prune_feed``): the power form may prune P_k, the factor of the next
+product, at a higher threshold than the term Q_k = M P_{k-1} it adds to X. With
+D_k = Q_k - P_k the entries carried in X but not fed on, X_n = F^-1 (I + sum_k Q_k)
+and the residual is M P_n - sum_k D'_k + M sum_k D_k, where D'_k are the entries below
+``prune`` (dropped from both): the fed-on pruning reaches the residual multiplied by
+M (one more bounce, a factor ~rho(M)), not as itself, so P_k can be pruned harder,
+and the next product costs less, for the same error. The multiply-adds and the
+error it buys are measured in ``benchmarks/bench_speed.py``.
+
 Residual: after every term, ||I - T X||_F is estimated from p = config.RESIDUAL_PROBES
 Rademacher probes z (z_i = +-1 on the pixels kept): r = z - T (X z); since
 E[z z^T] = D, E||r||^2 = ||(I - T X) D||_F^2, so (1/p) sum ||r||^2 is an unbiased
@@ -146,24 +155,34 @@ class InverseReport:
     task_overhead_ms: float = 0.0
     peak_memory: tuple[tuple[str, int], ...] = ()
     spectral_uncertainty: float | None = None
+    threads: int = 1
+    prune_feed: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     def table(self) -> str:
-        head = (f"{'term':>4} {'time s':>8} {'nnz(P)':>12} {'nnz(X)':>12} "
-                f"{'tiles done':>10} {'skipped':>8} {'residual':>10}")
+        """The per-term table: time (its residual estimate's share), entries, tiles,
+        residual, and the products' multiply-adds with two rates per core: over the
+        term's wall time (everything the user waits for) and inside the kernel only."""
+        head = (f"{'term':>4} {'time s':>8} {'resid s':>7} {'nnz(P)':>12} {'nnz(X)':>12} "
+                f"{'tiles done':>10} {'skipped':>8} {'residual':>10} {'mult-adds':>10} "
+                f"{'rate/core':>9} {'kernel/core':>11}")
         lines = [head, "-" * len(head)]
         for r in self.history:
             res = "-" if r.residual is None else f"{r.residual:.3e}"
-            lines.append(f"{r.term:>4} {r.seconds:>8.2f} {r.nnz_P:>12d} {r.nnz_X:>12d} "
-                         f"{r.tiles_computed:>10d} {r.tiles_skipped:>8d} {res:>10}")
+            lines.append(f"{r.term:>4} {r.seconds:>8.2f} {r.residual_seconds:>7.2f} "
+                         f"{r.nnz_P:>12d} {r.nnz_X:>12d} {r.tiles_computed:>10d} "
+                         f"{r.tiles_skipped:>8d} {res:>10} {_count(r.multiply_adds):>10} "
+                         f"{_rate(r.multiply_adds, r.seconds * self.threads):>9} "
+                         f"{_rate(r.multiply_adds, r.kernel_seconds):>11}")
         rho = "-" if self.spectral_radius is None else f"{self.spectral_radius:.4f}"
         if self.spectral_radius is not None and self.spectral_uncertainty is not None:
             rho += f" +- {self.spectral_uncertainty:.1e}"
         lines.append(f"spectral radius estimate {self.seconds_spectral_radius:.2f} s, "
                      f"total {self.seconds:.2f} s")
-        lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}, "
+        feed = "" if self.prune_feed is None else f", P_k pruned at {self.prune_feed:g}"
+        lines.append(f"held term {self.terms} ({self.method}, prune {self.prune:g}{feed}, "
                      f"first bounce {self.first_bounce}), spectral radius of M {rho}, "
                      f"{self.excluded_pixels} pixels left out, stopped: {self.stopped}")
         lines.append(f"ran on {self.scheduler}, row blocks of {self.tile_size} rows, "
@@ -177,6 +196,18 @@ class InverseReport:
 
 
 # --- helpers ------------------------------------------------------------------------------
+
+def _count(n: int) -> str:
+    """1.23e9 style for a table cell; '-' for none."""
+    return f"{n:.3g}" if n else "-"
+
+
+def _rate(multiply_adds: int, seconds: float) -> str:
+    """Multiply-adds per second (per core when ``seconds`` are core-seconds)."""
+    if not multiply_adds or seconds <= 0:
+        return "-"
+    return f"{multiply_adds / seconds:.3g}"
+
 
 def parse_bytes(value) -> int | None:
     """``2GiB``, ``500MB``, ``1e9`` or an int -> bytes."""
@@ -193,12 +224,15 @@ def parse_bytes(value) -> int | None:
     return int(num * mult)
 
 
-def _fingerprint(T, fb: FirstBounce, prune: float, method: str) -> dict:
+def _fingerprint(T, fb: FirstBounce, prune: float, method: str,
+                 prune_feed: float | None = None) -> dict:
     """What the inverse depends on: a run whose fingerprint differs is refused."""
     h = hashlib.sha1()
     h.update(np.asarray(T.tile_indptr, dtype=np.int64).tobytes())
     h.update(np.asarray(T.tile_indices, dtype=np.int64).tobytes())
     h.update(np.asarray(T.tile_nnz, dtype=np.int64).tobytes())
+    # a feed threshold is recorded only when set, so stores made before it resume
+    feed = {} if prune_feed is None else {"prune_feed": float(prune_feed)}
     return {
         "format": _FORMAT,
         "T": {"path": os.path.abspath(T.path), "shape": list(T.shape), "nnz": int(T.nnz),
@@ -207,6 +241,7 @@ def _fingerprint(T, fb: FirstBounce, prune: float, method: str) -> dict:
         "prune": float(prune),
         "method": method,
         "first_bounce": {"kind": fb.kind, "digest": fb.digest},
+        **feed,
     }
 
 
@@ -259,9 +294,10 @@ class _Options:
     force: bool
     seed: int
     overwrite: bool = False
+    prune_feed: float | None = None
 
 
-def _check_arguments(method, terms, prune, tol) -> SeriesMethod:
+def _check_arguments(method, terms, prune, tol, prune_feed=None) -> SeriesMethod:
     if method not in SERIES_METHODS:
         raise BigTError(f"method must be one of {', '.join(SERIES_METHODS)}, got {method!r}")
     if isinstance(terms, bool) or int(terms) != terms or terms < 0:
@@ -270,13 +306,19 @@ def _check_arguments(method, terms, prune, tol) -> SeriesMethod:
         raise BigTError(f"prune must be >= 0, got {prune!r}")
     if tol is not None and not tol >= 0:
         raise BigTError(f"tol must be >= 0, got {tol!r}")
+    if prune_feed is not None:
+        if method != "power":
+            raise BigTError(f"prune_feed is a threshold of the power form's P_k; the "
+                            f"{method} method has none")
+        if not prune_feed >= prune:
+            raise BigTError(f"prune_feed must be >= prune ({prune:g}), got {prune_feed!r}")
     return SERIES_METHODS[method]
 
 
 def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        first_bounce="diag", method="power", client=None, memory_limit=None,
                        progress=True, force=False, *, workers=2, seed=0,
-                       scheduler=None, overwrite=False) -> InverseReport:
+                       scheduler=None, overwrite=False, prune_feed=None) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -295,6 +337,10 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     terms : int >= 0
     prune : float >= 0
         Entries of each new (dimensionless) term below this are dropped in the product.
+    prune_feed : float >= prune, optional
+        Power form only: P_k, the factor of the next product, is pruned at this
+        instead, while X keeps the term's entries down to ``prune`` ("Carrying" in
+        the module docstring: less work for the same error). Default: ``prune``.
     tol : float, optional
         Stop once the estimated relative residual ||I - T X||_F / sqrt(n) <= tol.
     first_bounce : "diag", "identity", (n,) array or path of a .npy
@@ -340,7 +386,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         The scheduler cannot be reached, or its workers cannot see the stores.
     """
     t_start = time.perf_counter()
-    series = _check_arguments(method, terms, prune, tol)
+    prune_feed = None if prune_feed is None else float(prune_feed)
+    series = _check_arguments(method, terms, prune, tol, prune_feed)
     scheduler = client if scheduler is None else scheduler
     if isinstance(T, (str, os.PathLike)):
         T = open_store(local_path(T, "transport T"))
@@ -348,7 +395,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         raise NotSquareError(f"T is {T.shape[0]} x {T.shape[1]}; the inverse needs a square "
                              "T (apply the pixel correspondence first)", T.path)
     out = local_path(out, "inverse store")
-    opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite)
+    opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite,
+                    prune_feed)
     memory_limit = parse_bytes(memory_limit)
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
     store = InverseStore(out)
@@ -410,7 +458,8 @@ class _Engine:
         self.store = store
         self.created = not store.path.exists() or opts.overwrite
         self.record = self.store.open_or_create(
-            _fingerprint(T, self.fb, opts.prune, series.name), overwrite=opts.overwrite)
+            _fingerprint(T, self.fb, opts.prune, series.name, opts.prune_feed),
+            overwrite=opts.overwrite)
         runner.check_paths([str(store.path)])
         if self.record.tile_size is None:
             ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads)
@@ -567,7 +616,8 @@ class _Engine:
             block_rows=self.tile_size, dtype=np.dtype(self.T.dtype).name, memory=self.policy,
             inputs=inputs, scaled=p.scaled,
             outputs=tuple((name, str(path)) for name, path in paths.items()),
-            right=p.right, threshold=self.opts.prune, kernel_threads=self.kernel_threads,
+            right=p.right, threshold=self.opts.prune, feed_threshold=self.opts.prune_feed,
+            kernel_threads=self.kernel_threads,
             pass_id=new_pass_id())
 
     def _term_attrs(self, k: int) -> StoreAttrs:
@@ -583,17 +633,22 @@ class _Engine:
     def _finish_term(self, k: int, stats: list[BlockStats], t0: float) -> None:
         """Estimate term k's residual, then publish it (redirect and record)."""
         X = open_store(self.store.term_path(k, "X"))
+        t_res = time.perf_counter()
         # the same probes at every term, so that two terms' residuals compare exactly
         res_rel, res_abs = estimate_residual(self._apply_M, lambda V: self._apply_X(X, V),
                                              self.fb, seed=self.opts.seed)
         self._check_residual_falls(k, res_rel)
+        now = time.perf_counter()
         rec = TermRecord(
-            term=k, seconds=time.perf_counter() - t0,
+            term=k, seconds=now - t0,
             nnz_P=int(sum(s.nnz_P for s in stats)), nnz_X=int(X.nnz),
             tiles_computed=int(sum(s.computed for s in stats)),
             tiles_skipped=int(sum(s.skipped for s in stats)),
             rows_skipped=int(sum(1 for s in stats if s.row_skipped)),
-            residual=res_rel, residual_abs=res_abs)
+            residual=res_rel, residual_abs=res_abs,
+            multiply_adds=int(sum(s.multiply_adds for s in stats)),
+            kernel_seconds=float(sum(s.kernel_seconds for s in stats)),
+            residual_seconds=now - t_res)
         record = self.record.replace(term=k, dir=k, residual=res_rel,
                                      history=self.record.history + (rec,))
         meta = {**self._term_metadata(), "term": k, "dir": k, "residual": res_rel,
@@ -653,13 +708,15 @@ class _Engine:
         rec = self.record
         return InverseReport(
             path=str(self.store.path), terms=rec.term, requested_terms=self.opts.terms,
-            method=self.series.name, prune=self.opts.prune, first_bounce=self.fb.kind,
+            method=self.series.name, prune=self.opts.prune, prune_feed=self.opts.prune_feed,
+            first_bounce=self.fb.kind,
             spectral_radius=rho.value, spectral_uncertainty=rho.uncertainty,
             excluded_pixels=self.fb.excluded, residual=rec.residual,
             stopped=stopped, resumed_from=resumed_from, products=self.products,
             seconds=seconds, n=self.T.shape[0], nnz_T=int(self.T.nnz), history=rec.history,
             seconds_spectral_radius=t_rho, memory=self._memory_text(),
-            scheduler=self.runner.describe(), tile_size=self.tile_size,
+            scheduler=self.runner.describe(), threads=self.runner.threads,
+            tile_size=self.tile_size,
             tasks=self.timing.tasks, task_overhead_ms=self.timing.overhead_ms(),
             peak_memory=tuple(sorted(self.runner.peak_memory().items())))
 

@@ -32,6 +32,10 @@ def register(subparsers) -> None:
     p.add_argument("--prune", type=number(0), default=config.DEFAULT_PRUNE,
                    help="drop entries below this (absolute, on the dimensionless terms "
                         "M^k) inside each product (default %(default)g)")
+    p.add_argument("--prune-feed", dest="prune_feed", type=number(0), default=None,
+                   help="power form: prune P_k, the factor of the next product, at this "
+                        "(>= --prune) while X keeps each term's entries down to --prune: "
+                        "less work for about the same error (default: --prune)")
     p.add_argument("--tol", type=number(0), default=None,
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
     p.add_argument("--method", choices=tuple(METHODS), default="power",
@@ -79,6 +83,7 @@ def invert_cmd(args) -> int:
                         args.json)
     report = stratified_inverse(
         args.T, args.output, terms=args.terms, prune=args.prune, tol=args.tol,
+        prune_feed=args.prune_feed,
         first_bounce=fb, method=args.method, scheduler=args.scheduler,
         memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
         workers=args.workers, overwrite=args.overwrite)

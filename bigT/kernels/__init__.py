@@ -10,6 +10,7 @@ from .csr import (
     diagonal,
     prune,
     release_workspaces,
+    row_work,
     scale_cols,
     scale_rows,
     spgemm,
@@ -30,4 +31,5 @@ __all__ = [
     "SPGEMM_GROUP",
     "release_workspaces",
     "workspace_bytes",
+    "row_work",
 ]

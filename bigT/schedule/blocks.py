@@ -11,10 +11,40 @@ diagonal 0/1 mask of active pixels, M = D - T F^-1.
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
-from ._backend import add_diag_scaled, prune, scale_cols, spgemm
+from ._backend import add_diag_scaled, prune, row_work, scale_cols, spgemm
+
+
+@dataclass
+class KernelTally:
+    """What one task's products cost: the multiply-adds the kernel did (a left entry
+    (i, k) times the row k of the right factor is len(row k) of them) and the seconds
+    spent inside it. Per task, so never shared between threads; the engine adds them
+    up per term to set the bare kernel's rate beside the term's whole time.
+
+    Attributes
+    ----------
+    multiply_adds : int
+    seconds : float
+    """
+
+    multiply_adds: int = 0
+    seconds: float = 0.0
+
+    def spgemm(self, left: sp.csr_array, right: sp.csr_array, threshold: float,
+               n_threads: int) -> sp.csr_array:
+        """``left @ right`` pruned at ``threshold`` (the kernel), counted."""
+        t0 = time.perf_counter()
+        out = spgemm(left, right, threshold=threshold, n_threads=n_threads,
+                     checked=not _trusted(right))
+        self.seconds += time.perf_counter() - t0
+        self.multiply_adds += int(row_work(left.indptr, left.indices, right.indptr).sum())
+        return out
 
 
 def empty(shape, dtype) -> sp.csr_array:
@@ -130,7 +160,7 @@ def _trusted(right: sp.csr_array) -> bool:
 
 
 def row_product(left_row: sp.csr_array, right: sp.csr_array, threshold: float,
-                n_threads: int = 1) -> sp.csr_array:
+                n_threads: int = 1, tally: KernelTally | None = None) -> sp.csr_array:
     """L_i @ B with entries below ``threshold`` pruned inside the kernel's row loop.
 
     Parameters
@@ -139,18 +169,19 @@ def row_product(left_row: sp.csr_array, right: sp.csr_array, threshold: float,
     right : csr_array, shape (n, n)
     n_threads : int
         Threads of the kernel (1 when dask already runs tile rows in parallel).
+    tally : KernelTally, optional
+        Counts the product's multiply-adds and kernel time.
 
     Returns
     -------
     csr_array, shape (r, n)
     """
-    return spgemm(left_row, right, threshold=threshold, n_threads=n_threads,
-                  checked=not _trusted(right))
+    return (tally or KernelTally()).spgemm(left_row, right, threshold, n_threads)
 
 
 def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
                         work_per_row: np.ndarray, max_partial_entries: int,
-                        n_threads: int = 1) -> sp.csr_array:
+                        n_threads: int = 1, tally: KernelTally | None = None) -> sp.csr_array:
     """L_i @ B when B is at hand only in batches of its tile rows (the memory bound).
 
     A product cannot be pruned before all of B has been seen (an entry's sum is only
@@ -170,6 +201,8 @@ def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
         of its unpruned entries; the chunks are sized from it, then from the ratio of
         entries to multiply-adds seen in the chunks done).
     max_partial_entries : int
+    tally : KernelTally, optional
+        Counts the multiply-adds and kernel time of every partial product.
 
     Returns
     -------
@@ -177,12 +210,11 @@ def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
     (up to rounding: partial sums are added in the output dtype).
     """
     r, n = left_row.shape
+    tally = tally or KernelTally()
     if not batches:
         return empty((r, n), left_row.dtype)
     if len(batches) == 1:
-        right = batches[0]()
-        return spgemm(left_row, right, threshold=threshold, n_threads=n_threads,
-                      checked=not _trusted(right))
+        return tally.spgemm(left_row, batches[0](), threshold, n_threads)
     cum = np.concatenate([[0.0], np.cumsum(np.asarray(work_per_row, dtype=np.float64))])
     ratio = 1.0
     parts, start = [], 0
@@ -193,9 +225,7 @@ def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
         chunk = left_row[start:stop]
         acc = None
         for fetch in batches:
-            right = fetch()
-            part = spgemm(chunk, right, threshold=0.0, n_threads=n_threads,
-                          checked=not _trusted(right))
+            part = tally.spgemm(chunk, fetch(), 0.0, n_threads)
             acc = part if acc is None else sp.csr_array(acc + part)
             del part
         work = cum[stop] - cum[start]

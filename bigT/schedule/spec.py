@@ -81,6 +81,9 @@ class PassSpec:
         The input multiplied from the right (held whole or read in batches).
     threshold : float
         Prune threshold of the pass's products.
+    feed_threshold : float or None
+        The power form's threshold on P_k, the factor of the next product, when it
+        is pruned harder than the term added to X (None: ``threshold``).
     kernel_threads : int
         Threads of one product (1 when tasks already fill the threads).
     pass_id : str
@@ -107,6 +110,7 @@ class PassSpec:
     outputs: tuple[tuple[str, str], ...] = ()
     right: str | None = None
     threshold: float = 0.0
+    feed_threshold: float | None = None
     kernel_threads: int = 1
     pass_id: str = ""
     cache_bytes: int | None = None
@@ -135,6 +139,8 @@ class BlockStats:
     computed, skipped : int, tile products done, and pairs skipped (a zero factor)
     row_skipped : bool, the rows were carried over (every factor met a converged row)
     y : (stop - start, k) ndarray or None, a mat-vec's rows
+    multiply_adds : int, the multiply-adds of the task's sparse products
+    kernel_seconds : float, the time spent inside the product kernel
     """
 
     index: int
@@ -146,6 +152,8 @@ class BlockStats:
     skipped: int = 0
     row_skipped: bool = False
     y: np.ndarray | None = None
+    multiply_adds: int = 0
+    kernel_seconds: float = 0.0
 
     def replace(self, **changes) -> "BlockStats":
         return dataclasses.replace(self, **changes)

@@ -217,6 +217,7 @@ class TaskContext:
         self.cache = STATE.cache
         self.dtype = np.dtype(spec.dtype)
         self._pass = STATE.pass_state(spec)
+        self.tally = blocks.KernelTally()
 
     def _cast(self, name: str) -> np.ndarray:
         """Shared vector ``name`` in the pass's dtype, cast once per pass."""
@@ -260,7 +261,7 @@ class TaskContext:
         :func:`row_product`."""
         right = self.operand(right_name)
         return row_product(left, right, threshold, self.plan, _whole_limit(self.plan, right),
-                           self.spec.kernel_threads)
+                           self.spec.kernel_threads, self.tally)
 
     def minus_finv_v(self, V) -> np.ndarray:
         """-F^-1 V, computed once per pass in this process."""
@@ -281,7 +282,10 @@ class TaskContext:
         return _cache_budget(self.plan, None) if not spec.outputs else self.plan.cache_bytes
 
     def stats(self, **fields) -> BlockStats:
-        return BlockStats(self.block.index, **fields)
+        """The task's :class:`BlockStats`, with its products' multiply-adds and kernel
+        time."""
+        return BlockStats(self.block.index, multiply_adds=self.tally.multiply_adds,
+                          kernel_seconds=self.tally.seconds, **fields)
 
 
 def _whole_limit(plan: MemoryPlan, right: StoreOperand) -> int:
@@ -306,14 +310,16 @@ def _cache_budget(plan: MemoryPlan, right: StoreOperand | None) -> int:
 
 
 def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
-                plan: MemoryPlan, whole_limit: int, kernel_threads: int = 1):
+                plan: MemoryPlan, whole_limit: int, kernel_threads: int = 1,
+                tally: blocks.KernelTally | None = None):
     """``left @ right`` pruned at ``threshold``; only tile pairs with both factors
     nonzero count (and are read).
 
     The right factor is read whole, once per pass and shared by the process's tasks,
     when it fits ``whole_limit``; else the tile rows this product needs, in batches of
     at most a third of the task's work share, multiplied against chunks of the output
-    rows (:func:`~.blocks.row_product_batched`).
+    rows (:func:`~.blocks.row_product_batched`). ``tally`` counts the kernel's
+    multiply-adds and time.
 
     Returns
     -------
@@ -323,7 +329,7 @@ def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
     if not len(use):
         return blocks.empty(left.shape, left.dtype), 0, skipped
     if right.nbytes <= whole_limit:
-        out = blocks.row_product(left, right.whole(), threshold, kernel_threads)
+        out = blocks.row_product(left, right.whole(), threshold, kernel_threads, tally)
         return out, len(use), skipped
     batch_bytes = max(plan.work_bytes_per_task // 3, 1)
     groups, cur, cur_bytes = [], [], 0
@@ -337,7 +343,7 @@ def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
     batches = [lambda js=js: right.assembled(js) for js in groups]
     partial = max((plan.work_bytes_per_task - batch_bytes) // PARTIAL_BYTES_PER_ENTRY, 1)
     out = blocks.row_product_batched(left, batches, threshold, right.work_per_row(left),
-                                     partial, kernel_threads)
+                                     partial, kernel_threads, tally)
     return out, len(use), skipped
 
 

@@ -73,7 +73,13 @@ def jsonable(obj):
 
 @dataclass(frozen=True)
 class TermRecord:
-    """One row of the report: the state after term ``term``."""
+    """One row of the report: the state after term ``term``.
+
+    ``seconds`` is the term's wall time, its residual estimate's ``residual_seconds``
+    included; ``multiply_adds`` counts its sparse products' multiply-adds and
+    ``kernel_seconds`` the time its tasks spent inside the product kernel (summed over
+    tasks: thread-seconds). Records written before these were counted read 0.
+    """
 
     term: int
     seconds: float
@@ -84,6 +90,9 @@ class TermRecord:
     rows_skipped: int
     residual: float | None
     residual_abs: float | None
+    multiply_adds: int = 0
+    kernel_seconds: float = 0.0
+    residual_seconds: float = 0.0
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "TermRecord":
@@ -91,10 +100,10 @@ class TermRecord:
         record: :meth:`InverseRecord.from_dict` names the store)."""
         values = {}
         for f in dataclasses.fields(cls):
-            v = d.get(f.name)
+            v = d.get(f.name, None if f.default is dataclasses.MISSING else f.default)
             if f.name in ("residual", "residual_abs"):
                 values[f.name] = None if v is None else float(v)
-            elif f.name == "seconds":
+            elif f.type == "float":
                 values[f.name] = float(v or 0.0)
             else:
                 values[f.name] = _count(v, f.name)

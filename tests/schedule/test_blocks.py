@@ -45,3 +45,34 @@ def test_assemble_rows_refuses_overlapping_or_out_of_range_blocks():
         assemble_rows(iter([(2, A), (3, A)]), 6, 2, np.float32, nnz=4)
     with pytest.raises(ValueError, match="passes row 3"):
         assemble_rows(iter([(2, A)]), 3, 2, np.float32, nnz=2)
+
+
+def _brute_multiply_adds(L, R):
+    """Multiply-adds of L @ R, one left entry at a time."""
+    L, R = sp.csr_array(L), sp.csr_array(R)
+    lens = np.diff(R.indptr)
+    return sum(int(lens[k]) for k in L.indices)
+
+
+def test_kernel_tally_counts_whole_and_batched_products_alike():
+    from bigT.schedule.blocks import KernelTally, row_product, row_product_batched
+
+    rng = np.random.default_rng(4)
+    L = sp.csr_array(sp.random(20, 50, density=0.2, random_state=rng))
+    R = sp.csr_array(sp.random(50, 50, density=0.15, random_state=rng))
+    R.sort_indices()
+    want = _brute_multiply_adds(L, R)
+    whole = KernelTally()
+    ref = row_product(L, R, 0.0, tally=whole)
+    assert whole.multiply_adds == want and whole.seconds > 0
+    halves = []
+    for lo, hi in ((0, 25), (25, 50)):
+        part = R.tolil()
+        part[:lo], part[hi:] = 0, 0
+        halves.append(sp.csr_array(part))
+    batched = KernelTally()
+    work = np.array([_brute_multiply_adds(L[[i]], R) for i in range(20)], float)
+    out = row_product_batched(L, [lambda h=h: h for h in halves], 0.0, work, 30, tally=batched)
+    np.testing.assert_allclose(out.toarray(), ref.toarray(), rtol=1e-12)
+    # every chunk of rows meets every batch: the batches' work adds up to the whole
+    assert batched.multiply_adds == want

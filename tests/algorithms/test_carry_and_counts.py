@@ -1,0 +1,109 @@
+"""The power form with a separate threshold for the factor it feeds on (``prune_feed``)
+against its recurrence evaluated densely, and the per-term multiply-add counts against
+a count made from the dense factors."""
+
+import numpy as np
+import pytest
+
+import bigT
+from bigT.errors import BigTError, StoreError
+from bigT.storage.inverse_store import TermRecord
+
+from inverse_helpers import dense, random_dominant
+
+
+def _pruned(A, t):
+    return np.where(np.abs(A) >= t, A, 0.0)
+
+
+def dense_carried_power(T, n, prune, feed):
+    """Q_k = prune(M P_{k-1}, prune), X_k = X_{k-1} + F^-1 Q_k, P_k = prune(Q_k, feed),
+    with P_0 = I and Q_1 = prune(M, prune): the carried power form, densely.
+
+    Returns (X, [M-row nnz x P row lengths per term]): the multiply-adds of the
+    product M P_{k-1} are sum over M's entries (i, j) of nnz(P_{k-1}[j, :]).
+    """
+    f = np.diag(T)
+    M = np.eye(len(T)) - T / f[None, :]
+    np.fill_diagonal(M, 0.0)
+    X = np.diag(1 / f)
+    P = np.eye(len(T))
+    madds = [0]
+    for k in range(1, n + 1):
+        if k == 1:
+            Q, work = _pruned(M, prune), 0
+        else:
+            Q = _pruned(M @ P, prune)
+            work = int(((M != 0) * np.count_nonzero(P, axis=1)[None, :]).sum())
+        X = X + Q / f[:, None]
+        P = _pruned(Q, feed)
+        madds.append(work)
+    return X, madds
+
+
+@pytest.mark.parametrize("prune,feed", [(1e-4, 1e-4), (1e-5, 1e-3), (0.0, 3e-3)])
+def test_carried_power_matches_dense_recurrence(tmp_path, make_store, prune, feed):
+    A = random_dominant(80, seed=21, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=4, prune=prune,
+                                  prune_feed=feed, progress=False)
+    want, madds = dense_carried_power(A, 4, prune, feed)
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), want, rtol=1e-10, atol=1e-13)
+    # a P_k pruned to nothing ends the series: the terms after it add nothing
+    held = len(rep.history)
+    assert [h.multiply_adds for h in rep.history] == madds[:held]
+    assert not any(madds[held:])
+    assert rep.prune_feed == feed
+
+
+def test_feeding_on_less_does_less_work_for_the_same_x_threshold(tmp_path, make_store):
+    A = random_dominant(96, seed=5, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=32)
+    plain = bigT.stratified_inverse(T, tmp_path / "a.zarr", terms=3, prune=1e-5,
+                                    progress=False)
+    carried = bigT.stratified_inverse(T, tmp_path / "b.zarr", terms=3, prune=1e-5,
+                                      prune_feed=1e-3, progress=False)
+    work = [sum(h.multiply_adds for h in r.history) for r in (plain, carried)]
+    assert 0 < work[1] < work[0]
+
+
+def test_feed_threshold_checked(tmp_path, make_store):
+    T = make_store(random_dominant(32, seed=1), tile_size=16)
+    with pytest.raises(BigTError, match="prune_feed must be >= prune"):
+        bigT.stratified_inverse(T, tmp_path / "X.zarr", prune=1e-3, prune_feed=1e-4,
+                                progress=False)
+    with pytest.raises(BigTError, match="horner method has none"):
+        bigT.stratified_inverse(T, tmp_path / "X.zarr", method="horner", prune_feed=1e-3,
+                                progress=False)
+
+
+def test_another_feed_threshold_is_not_resumed(tmp_path, make_store):
+    T = make_store(random_dominant(32, seed=2), tile_size=16)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=1, prune=1e-5, progress=False)
+    with pytest.raises(StoreError):
+        bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=1e-5,
+                                prune_feed=1e-3, progress=False)
+
+
+def test_counts_of_each_term_and_the_table(tmp_path, make_store):
+    A = random_dominant(64, seed=3, density=0.4)
+    T = make_store(A, tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=3, prune=0.0,
+                                  progress=False)
+    _, madds = dense_carried_power(A, 3, 0.0, 0.0)
+    assert [h.multiply_adds for h in rep.history] == madds
+    assert all(h.kernel_seconds > 0 for h in rep.history[2:])
+    assert all(0 < h.residual_seconds < h.seconds for h in rep.history)
+    lines = rep.table().splitlines()
+    assert "mult-adds" in lines[0] and "kernel/core" in lines[0]
+    assert f"{madds[2]:.3g}" in lines[4]  # term 2's row
+
+
+def test_a_record_from_before_the_counts_reads_zero():
+    old = {"term": 2, "seconds": 1.5, "nnz_P": 10, "nnz_X": 20, "tiles_computed": 1,
+           "tiles_skipped": 0, "rows_skipped": 0, "residual": 1e-3, "residual_abs": 0.1}
+    rec = TermRecord.from_dict(old)
+    assert (rec.multiply_adds, rec.kernel_seconds, rec.residual_seconds) == (0, 0.0, 0.0)
+    assert TermRecord.from_dict(rec.to_dict()) == rec
+    with pytest.raises(TypeError):
+        TermRecord.from_dict({**old, "multiply_adds": 1.5})
