@@ -1,13 +1,22 @@
 """Benchmark of the stratified inverse on a synthetic wall-corner scene (reported, not
 asserted).
 
-For each method (default: power and horner side by side) a fresh child process runs
-``bigT.stratified_inverse`` on the scene's T and reports: time per term, nnz of P and
-X, the residual estimate, the error against the known true inverse F^-1 (I - A)
-(relative Frobenius, computed tile row by tile row) and the child's peak RSS.
+For each setting (default: power and horner side by side at ``--prune``) a fresh
+child process runs ``bigT.stratified_inverse`` on the scene's T and reports: time per
+term (its residual estimate's share), nnz of P and X, the residual estimate, the
+multiply-adds of the term's products with two rates per core (over the term's wall
+time, everything a user waits for, and inside the product kernel only, the bare
+kernel on the same tiles), the error against the known true inverse F^-1 (I - A)
+(relative Frobenius, tile row by tile row, on ``--sample`` rows or all) and the
+child's peak RSS.
 
     python benchmarks/bench_inverse.py --size 192x256 --terms 4 --prune 1e-5 \
         --method power,horner
+    python benchmarks/bench_inverse.py --size 384x512 --density dense \
+        --settings power:1e-5,power:1e-5:1e-4,horner:4e-5 --sample 2048
+
+A setting is ``method:prune`` or ``power:prune:prune_feed`` (the power form feeding
+on P_k pruned at ``prune_feed``, see ``bigT.algorithms.stratified``, "Carrying").
 
 The scene comes from ``bigT.scenes.corner(size=..., path=..., density=...)`` (a
 ``--workdir`` that already holds it is reused); the error is
@@ -63,16 +72,57 @@ def child(args):
         shutil.rmtree(out)
     t0 = time.perf_counter()
     rep = bigT.stratified_inverse(T, out, terms=args.terms, prune=args.prune,
-                                  method=args.method, memory_limit=args.memory_limit,
-                                  progress=False)
+                                  prune_feed=args.prune_feed, method=args.method,
+                                  memory_limit=args.memory_limit, progress=False)
     wall = time.perf_counter() - t0
     peak = peak_rss()
     X = bigT.open(out)
-    err = scene.inverse_error(X)
-    res = {"method": args.method, "wall_s": wall, "peak_rss_bytes": peak,
+    err = scene.inverse_error(X, sample=args.sample)
+    res = {"method": args.method, "setting": args.setting, "wall_s": wall,
+           "peak_rss_bytes": peak,
            "error_vs_true_inverse": err, "nnz_X": int(X.nnz), "n": int(X.shape[0]),
            "report": rep.to_dict()}
     print(json.dumps(res, default=str))
+
+
+def run_setting(setting: str, scene_path: str, workdir: str, args) -> dict:
+    """One setting in a fresh child; prints its per-term table and returns its result."""
+    method, prune, *feed = setting.split(":")
+    cmd = [sys.executable, os.path.abspath(__file__), "--_child", "--scene", scene_path,
+           "--workdir", workdir, "--method", method, "--terms", str(args.terms),
+           "--prune", prune, "--setting", setting]
+    cmd += ["--prune-feed", feed[0]] if feed else []
+    cmd += ["--memory-limit", args.memory_limit] if args.memory_limit else []
+    cmd += ["--sample", str(args.sample)] if args.sample else []
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode:
+        print(proc.stderr, file=sys.stderr)
+        raise SystemExit(f"{setting}: child failed")
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    rep = r["report"]
+    print(f"\n== {setting}: {r['wall_s']:.1f} s (spectral radius estimate "
+          f"{rep['seconds_spectral_radius']:.1f} s), peak RSS "
+          f"{r['peak_rss_bytes'] / 2**30:.2f} GiB, nnz(X)/row {r['nnz_X'] / r['n']:.0f}, "
+          f"relative error vs F^-1(I-A) {r['error_vs_true_inverse']:.3e}, "
+          f"rho(M) {rep['spectral_radius']:.3f}, load {os.getloadavg()[0]:.1f}")
+    print_terms(rep)
+    return r
+
+
+def print_terms(rep: dict) -> None:
+    """The per-term table of a report (as a dict), multiply-adds and rates per core."""
+    threads = rep.get("threads", 1)
+    print("| term | time s | residual s | nnz(P) | nnz(X) | residual | multiply-adds | "
+          "rate/core (wall) | kernel rate/core | kernel share |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for h in rep["history"]:
+        madds, kern = h.get("multiply_adds", 0), h.get("kernel_seconds", 0.0)
+        wall_rate = madds / (h["seconds"] * threads) if madds else 0.0
+        kern_rate = madds / kern if madds and kern else 0.0
+        share = kern / (h["seconds"] * threads) if h["seconds"] else 0.0
+        print(f"| {h['term']} | {h['seconds']:.2f} | {h.get('residual_seconds', 0.0):.2f} | "
+              f"{h['nnz_P']} | {h['nnz_X']} | {h['residual']:.3e} | {madds:.3g} | "
+              f"{wall_rate:.3g} | {kern_rate:.3g} | {share:.0%} |")
 
 
 def main(argv=None):
@@ -83,12 +133,18 @@ def main(argv=None):
     p.add_argument("--terms", type=int, default=4)
     p.add_argument("--prune", type=float, default=1e-5)
     p.add_argument("--method", default="power,horner",
-                   help="comma-separated: power, horner, newton-schulz")
+                   help="comma-separated: power, horner, newton-schulz (at --prune)")
+    p.add_argument("--settings", default=None,
+                   help="comma-separated method:prune[:prune_feed] (instead of --method)")
+    p.add_argument("--sample", type=int, default=None,
+                   help="measure the error on this many random rows (default: all)")
     p.add_argument("--memory-limit", default=None)
     p.add_argument("--workdir", default=None)
     p.add_argument("--json", default=None)
     p.add_argument("--_child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--scene", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--setting", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--prune-feed", type=float, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args._child:
         return child(args)
@@ -105,34 +161,19 @@ def main(argv=None):
         print(f"built in {t_scene:.1f} s: " + sc.describe())
     else:
         print("reused: " + bigT.scenes.load(scene_path).describe())
-    results = []
-    for method in args.method.split(","):
-        cmd = [sys.executable, os.path.abspath(__file__), "--_child", "--scene", scene_path,
-               "--workdir", workdir, "--method", method, "--terms", str(args.terms),
-               "--prune", str(args.prune)]
-        if args.memory_limit:
-            cmd += ["--memory-limit", args.memory_limit]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode:
-            print(proc.stderr, file=sys.stderr)
-            raise SystemExit(f"{method}: child failed")
-        r = json.loads(proc.stdout.strip().splitlines()[-1])
-        results.append(r)
+    settings = (args.settings.split(",") if args.settings
+                else [f"{m}:{args.prune:g}" for m in args.method.split(",")])
+    results = [run_setting(setting, scene_path, workdir, args) for setting in settings]
+    print("\n| setting | total s | spectral radius s | 4-term products s | multiply-adds | "
+          "error vs F^-1(I-A) | nnz(X)/row | peak RSS GiB |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results:
         rep = r["report"]
-        print(f"\n== {method}: {r['wall_s']:.1f} s, peak RSS {r['peak_rss_bytes'] / 2**30:.2f} GiB, "
-              f"nnz(X)/row {r['nnz_X'] / r['n']:.0f}, relative error vs F^-1(I-A) "
-              f"{r['error_vs_true_inverse']:.3e}, rho(M) {rep['spectral_radius']:.3f}")
-        print(f"{'term':>4} {'time s':>8} {'nnz(P)':>12} {'nnz(X)':>12} {'tiles':>7} "
-              f"{'skipped':>7} {'residual':>10}")
-        for h in rep["history"]:
-            print(f"{h['term']:>4} {h['seconds']:>8.2f} {h['nnz_P']:>12d} {h['nnz_X']:>12d} "
-                  f"{h['tiles_computed']:>7d} {h['tiles_skipped']:>7d} {h['residual']:>10.3e}")
-    if len(results) > 1:
-        base = results[0]
-        for r in results[1:]:
-            print(f"{base['method']} is {r['wall_s'] / base['wall_s']:.2f}x faster than "
-                  f"{r['method']} (error {base['error_vs_true_inverse']:.2e} vs "
-                  f"{r['error_vs_true_inverse']:.2e})")
+        madds = sum(h.get("multiply_adds", 0) for h in rep["history"])
+        print(f"| {r['setting']} | {r['wall_s']:.1f} | {rep['seconds_spectral_radius']:.1f} | "
+              f"{sum(h['seconds'] for h in rep['history']):.1f} | {madds:.3g} | "
+              f"{r['error_vs_true_inverse']:.2e} | {r['nnz_X'] / r['n']:.0f} | "
+              f"{r['peak_rss_bytes'] / 2**30:.2f} |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1, default=str)

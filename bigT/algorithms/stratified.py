@@ -49,7 +49,7 @@ and the residual is M P_n - sum_k D'_k + M sum_k D_k, where D'_k are the entries
 ``prune`` (dropped from both): the fed-on pruning reaches the residual multiplied by
 M (one more bounce, a factor ~rho(M)), not as itself, so P_k can be pruned harder,
 and the next product costs less, for the same error. The multiply-adds and the
-error it buys are measured in ``benchmarks/bench_speed.py``.
+error it buys are measured by ``benchmarks/bench_inverse.py --settings``.
 
 Residual: after every term, ||I - T X||_F is estimated from p = config.RESIDUAL_PROBES
 Rademacher probes z (z_i = +-1 on the pixels kept): r = z - T (X z); since
