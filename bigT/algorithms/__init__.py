@@ -11,9 +11,10 @@ from .stratified import (
     estimate_residual,
     stratified_inverse,
 )
+from .target import TargetReport, invert_to_target
 
 __all__ = [
     "METHODS", "FirstBounce", "InverseReport", "SeriesMethod", "SpectralRadius", "TermRecord",
     "estimate_residual", "recover_first_bounce", "resolve_first_bounce", "spectral_radius",
-    "stratified_inverse",
+    "stratified_inverse", "TargetReport", "invert_to_target",
 ]

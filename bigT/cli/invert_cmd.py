@@ -28,18 +28,30 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="X.zarr",
                    help="the inverse store (created, or resumed when it holds the same "
                         "T and parameters)")
-    p.add_argument("--terms", type=integer(0), default=4, help=TERMS_HELP)
-    p.add_argument("--prune", type=number(0), default=config.DEFAULT_PRUNE,
+    # --terms, --prune and --method default to None so that --target-error can tell
+    # what was given explicitly; invert_cmd fills in the defaults
+    p.add_argument("--terms", type=integer(0), default=None, help=TERMS_HELP)
+    p.add_argument("--prune", type=number(0), default=None,
                    help="drop entries below this (absolute, on the dimensionless terms "
-                        "M^k) inside each product (default %(default)g)")
+                        f"M^k) inside each product (default {config.DEFAULT_PRUNE:g}; with "
+                        "--target-error, the first prune tried)")
     p.add_argument("--prune-feed", dest="prune_feed", type=number(0), default=None,
                    help="power form: prune P_k, the factor of the next product, at this "
                         "(>= --prune) while X keeps each term's entries down to --prune: "
                         "less work for about the same error (default: --prune)")
     p.add_argument("--tol", type=number(0), default=None,
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
-    p.add_argument("--method", choices=tuple(METHODS), default="power",
-                   help="; ".join(f"{m.name}: {m.help}" for m in METHODS.values()))
+    p.add_argument("--method", choices=tuple(METHODS), default=None,
+                   help="; ".join(f"{m.name}: {m.help}" for m in METHODS.values())
+                   + " (default power; with --target-error, fixes the method instead of "
+                     "choosing it)")
+    p.add_argument("--target-error", type=number(0, 1, lo_open=True, hi_open=True),
+                   default=None, metavar="E",
+                   help="choose the method, prune and number of terms that bring the "
+                        "relative error of compensated probe images below E (e.g. "
+                        "0.0039 = 1/255 for an 8-bit display) at the least cost, and "
+                        "stop there; exit 1 when it stops short (best effort). Refuses "
+                        "--terms, --tol, --prune-feed and --force")
     p.add_argument("--first-bounce", default="diag", metavar="diag|identity|FILE.npy",
                    help="F: diag(T) (default), identity (the naive choice), or a .npy vector "
                         "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii)")
@@ -81,17 +93,46 @@ def invert_cmd(args) -> int:
     if args.json and os.path.isdir(args.json):  # refused now, not after the whole run
         raise BigTError("is a folder; the --json report is a file: choose a file name",
                         args.json)
+    if args.target_error is not None:
+        return _invert_to_target(args, fb)
     report = stratified_inverse(
-        args.T, args.output, terms=args.terms, prune=args.prune, tol=args.tol,
+        args.T, args.output, terms=4 if args.terms is None else args.terms,
+        prune=config.DEFAULT_PRUNE if args.prune is None else args.prune, tol=args.tol,
         prune_feed=args.prune_feed,
-        first_bounce=fb, method=args.method, scheduler=args.scheduler,
+        first_bounce=fb, method=args.method or "power", scheduler=args.scheduler,
         memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
         workers=args.workers, overwrite=args.overwrite)
     print(report.table())
     print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
-    if args.json:
+    _write_json(args.json, report.to_dict())
+    return 0
+
+
+def _invert_to_target(args, fb) -> int:
+    """``--target-error``: the choice, why, and the probes' errors per term. Exit 0
+    when the target is met, 1 after a best-effort stop (the store keeps the last
+    term)."""
+    from ..algorithms.target import invert_to_target
+    from ..errors import BigTError
+
+    for given, name in ((args.terms, "--terms"), (args.tol, "--tol"),
+                        (args.prune_feed, "--prune-feed"), (args.force or None, "--force")):
+        if given is not None:
+            raise BigTError(f"{name} cannot be combined with --target-error, which chooses "
+                            "the number of terms and stops on the measured error itself")
+    report = invert_to_target(
+        args.T, args.output, args.target_error, method=args.method, prune=args.prune,
+        first_bounce=fb, memory_limit=args.memory_limit, scheduler=args.scheduler,
+        workers=args.workers, progress=not args.no_progress, overwrite=args.overwrite)
+    print(report.summary())
+    print(f"-> {args.output}")
+    _write_json(args.json, report.to_dict())
+    return 0 if report.met else 1
+
+
+def _write_json(path, data: dict) -> None:
+    if path:
         from ..atomic import atomic_output
 
-        with atomic_output(args.json, "the JSON report") as tmp:
-            tmp.write_text(json.dumps(report.to_dict(), indent=1, default=str))
-    return 0
+        with atomic_output(path, "the JSON report") as tmp:
+            tmp.write_text(json.dumps(data, indent=1, default=str))

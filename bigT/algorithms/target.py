@@ -1,0 +1,480 @@
+"""The stratified inverse chosen from a target error of the compensated image.
+
+``invert_to_target(T, out, target)`` runs :func:`~bigT.algorithms.stratified_inverse`
+term by term (each call resumes the store at the next term) and chooses the method,
+the prune threshold and the number of terms that bring the compensation error of a
+few probe images below ``target``, at the least cost it can predict. It is a layer
+over the engine: the engine's store, record and report are those of a fixed-setting
+run with the chosen values.
+
+What is measured
+----------------
+The compensated error of a desired image d is e(d) = ||T clip(X d) - d|| / ||d||. The
+inverse controls the unclipped part, ||(I - T X) d|| / ||d||: clipping depends on the
+scene's gamut (a dark wall cannot show 0.8 whatever X is), and the unclipped error is
+scale-free, so it equals the clipped error of d scaled down until X d fits the
+projector's [0, 1] (when X d >= 0). The decisions use the unclipped error; the report
+also gives the clipped error of each probe scaled so (``clipped_errors``).
+
+Probes (:func:`probe_images`): a constant image, a smooth gradient and low-pass
+filtered noise, all in [0.2, 0.8], zero on pixels the inverse leaves out. Each term
+costs two streamed products for all probes together: Y = X D, then T [Y, clip(s Y)].
+
+Decomposing the error
+---------------------
+Without pruning, I - T T_k^-1 = M^(k+1) (M = I - T F^-1), so the truncation part of
+the error of T_k^-1 on the probes, ||M^(k+1) d|| / ||d||, is computed before any term
+by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper than a
+sparse product): it gives the number of terms the series needs
+(:func:`truncation_curve`). After each term the measured residual r_k = (I - T X_k) d
+minus M^(k+1) d is exactly what pruning added (stratified.py's docstring: M P_n
+- sum_k D_k for the power form), so a prune too large for the target is seen from the
+first terms (term 1 costs no product) and the run restarts with a smaller one instead
+of running into the floor.
+
+Rules (constants below, measured by ``benchmarks/bench_target.py``)
+-------------------------------------------------------------------
+* stop at the first term whose worst probe's unclipped error is <= SAFETY * target.
+  The probes are dominated by the slowest mode of M and agree within a few per cent;
+  the 20 % margin covers a fresh image (tests/algorithms/test_target_error.py checks
+  random low-pass images against the exact inverse).
+* prune: the largest decade <= target / PRUNE_RATIO. Restart with a smaller decade
+  (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
+  part exceeds PRUNE_SHARE * SAFETY * target, or the series is exhausted or stalls
+  above the target; at most MAX_RESTARTS restarts.
+* terms: at most the truncation curve's count + EXTRA_TERMS (a pruned series may need
+  one or two more), and at most MAX_TERMS; past it the run stops best-effort
+  (``met`` False, the store holds the last term).
+* method (unless given): "newton-schulz" when its products (two per step, 2^j - 1
+  terms after j steps) are at most NS_PRODUCT_SHARE of the power form's (n - 1 for n
+  terms, the first one free), else "power". Measured on the 48x64 Cornell box at
+  rho = 0.89, prune 1e-5: term 31 after 51 s by Newton-Schulz, 146 s by the power
+  form. Horner is never chosen: it was slower than power at every scene and target
+  of the sweep and no more accurate at the same prune on these scenes (its floor at
+  prune 1e-5 on the rho = 0.52 Cornell box was 2.3e-3 against power's 1.6e-3), since
+  every product multiplies by the whole S.
+* a target below TARGET_FLOOR_EPS machine epsilons of T's dtype is refused: the
+  rounding of T X d in that precision alone is of that order.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..errors import BigTError
+from .first_bounce import resolve_first_bounce
+
+#: Stop when the worst probe's error is below SAFETY * target.
+SAFETY = 0.8
+#: The first prune tried: the largest decade <= target / PRUNE_RATIO.
+PRUNE_RATIO = 250.0
+#: The pruning part must exceed the truncation part this many times to be a floor.
+FLOOR_DOMINANCE = 2.0
+#: The pruning part may take this share of the (safe) target before a restart.
+PRUNE_SHARE = 0.5
+#: Terms allowed beyond the unpruned series' count.
+EXTRA_TERMS = 3
+MAX_TERMS = 200
+MAX_RESTARTS = 3
+TARGET_FLOOR_EPS = 64
+#: Newton-Schulz is chosen when its products are at most this share of power's.
+NS_PRODUCT_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class TermErrors:
+    """The probes' errors after one term.
+
+    Attributes
+    ----------
+    term : int
+    seconds : float, wall time of the run up to and including this term and its check
+    errors : tuple of float, unclipped ||(I - T X) d|| / ||d|| per probe
+    truncation : float, worst probe's ||M^(term+1) d|| / ||d|| (the unpruned series)
+    pruning : float, worst probe's ||(I - T X) d - M^(term+1) d|| / ||d||
+    clipped_errors : tuple of float, ||T clip(s X d) - s d|| / ||s d|| per probe, with s
+        the scale that brings max(X d) to 1 (1 when it is already below)
+    """
+
+    term: int
+    seconds: float
+    errors: tuple[float, ...]
+    truncation: float
+    pruning: float
+    clipped_errors: tuple[float, ...]
+
+    @property
+    def worst(self) -> float:
+        return max(self.errors)
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One run at a fixed (method, prune): its terms' errors and why it ended."""
+
+    method: str
+    prune: float
+    terms: tuple[TermErrors, ...]
+    ended: str
+
+
+@dataclass(frozen=True)
+class TargetReport:
+    """What :func:`invert_to_target` chose and measured.
+
+    Attributes
+    ----------
+    target : float, the relative error asked for
+    met : bool, the worst probe's unclipped error <= target at the held term
+    method, prune, terms : the setting the store holds (as a fixed run would)
+    why : str, one sentence: why this setting
+    error : float, the worst probe's unclipped error at the held term
+    clipped_error : float, the worst probe's clipped error at the held term
+    probes : tuple of str, the probe images' names
+    predicted_terms : int, terms the unpruned series needs (truncation curve)
+    spectral_radius : float or None, the engine's estimate of rho(M)
+    seconds : float, the whole run
+    restarts : tuple of str, one line per restart
+    attempts : tuple of Attempt, every (method, prune) tried, the last one held
+    inverse : dict, the engine's last :class:`InverseReport` as a dict
+    """
+
+    target: float
+    met: bool
+    method: str
+    prune: float
+    terms: int
+    why: str
+    error: float
+    clipped_error: float
+    probes: tuple[str, ...]
+    predicted_terms: int
+    spectral_radius: float | None
+    seconds: float
+    restarts: tuple[str, ...] = ()
+    attempts: tuple[Attempt, ...] = ()
+    inverse: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> str:
+        """A readable account: the choice, why, the per-term errors, the restarts."""
+        head = f"{'term':>4} {'time s':>8} {'worst err':>10} {'truncation':>10} {'pruning':>10}"
+        lines = [f"target error {self.target:.3g}: "
+                 + ("met" if self.met else "NOT met (best effort)")
+                 + f", worst probe {self.error:.3e} (clipped into the projector's range "
+                 f"{self.clipped_error:.3e}) on {len(self.probes)} probes "
+                 f"({', '.join(self.probes)})",
+                 f"chosen: {self.method}, prune {self.prune:g}, {self.terms} terms, "
+                 f"{self.seconds:.1f} s",
+                 f"why: {self.why}"]
+        for line in self.restarts:
+            lines.append(f"restart: {line}")
+        lines += [head, "-" * len(head)]
+        for t in self.attempts[-1].terms if self.attempts else ():
+            lines.append(f"{t.term:>4} {t.seconds:>8.2f} {t.worst:>10.3e} "
+                         f"{t.truncation:>10.3e} {t.pruning:>10.3e}")
+        return "\n".join(lines)
+
+
+# --- probes ------------------------------------------------------------------------
+
+PROBE_NAMES = ("constant", "gradient", "low-pass noise")
+
+
+def probe_images(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
+    """The probe images, shape (3, H, W), float64 in [0.2, 0.8]: a constant 0.5, a
+    diagonal gradient, and Gaussian-filtered noise (sigma ~ 1/16 of the smaller side,
+    a natural-looking image's spectrum), stretched to [0.2, 0.8]."""
+    from scipy.ndimage import gaussian_filter
+
+    H, W = shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    ramp = (yy / max(H - 1, 1) + xx / max(W - 1, 1)) / 2
+    noise = gaussian_filter(np.random.default_rng(seed).standard_normal((H, W)),
+                            max(1.0, min(H, W) / 16), mode="wrap")
+    span = np.ptp(noise)
+    noise = (noise - noise.min()) / span if span > 0 else np.full((H, W), 0.5)
+    return np.stack([np.full((H, W), 0.5), 0.2 + 0.6 * ramp, 0.2 + 0.6 * noise])
+
+
+def probe_vectors(T, active: np.ndarray, seed: int = 0) -> np.ndarray:
+    """The probes in T's pixel order, shape (n, 3), zero on pixels left out (no inverse
+    can light them, so they would only add a constant to every error)."""
+    from ..compensation.core import pixel_order_of, to_vectors
+
+    n = T.shape[0]
+    order = pixel_order_of(T, getattr(getattr(T, "pixel_order", None), "image_shape", (n, 1)))
+    D = to_vectors(probe_images(order.image_shape, seed), order, np.float64)
+    return np.asarray(D, dtype=np.float64) * active[:, None]
+
+
+# --- streamed products -----------------------------------------------------------------
+
+class _Products:
+    """Streamed products with T and X, sharing one thread runner and T's tile cache
+    (the truncation curve passes over T once per term)."""
+
+    def __init__(self, T, fb, workers: int):
+        from ..schedule.runner import ThreadRunner
+
+        self.T, self.fb = T, fb
+        self.runner = ThreadRunner(max(1, int(workers)))
+
+    def times(self, A, V: np.ndarray, cache: bool = False) -> np.ndarray:
+        from .. import config
+        from ..compensation import stream_matmul
+
+        budget = config.COMPENSATE_CACHE_BYTES if cache else 0
+        return np.asarray(stream_matmul(A, V, runner=self.runner, cache_bytes=budget),
+                          dtype=np.float64)
+
+    def M(self, V: np.ndarray) -> np.ndarray:
+        """M V = V - T F^-1 V on the kept pixels, shape (n, k)."""
+        return (V - self.times(self.T, self.fb.finv[:, None] * V, cache=True)) \
+            * self.fb.active[:, None]
+
+    def close(self) -> None:
+        from ..compensation._stream import forget_tiles
+
+        forget_tiles(self.runner, self.T)
+
+
+def _rel(R: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Column-wise ||R|| / ||D||, shape (k,)."""
+    return np.linalg.norm(R, axis=0) / np.maximum(np.linalg.norm(D, axis=0), 1e-300)
+
+
+def truncation_curve(products: _Products, D: np.ndarray, goal: float,
+                     max_terms: int) -> list[np.ndarray]:
+    """M^(k+1) D for k = 0, 1, ... until its worst relative column is <= ``goal``,
+    stalls (rho >= 1, or float rounding) or ``max_terms`` is reached.
+
+    Returns
+    -------
+    list of ndarray, each (n, k): element k is M^(k+1) D.
+    """
+    powers = [products.M(D)]
+    while len(powers) <= max_terms and _rel(powers[-1], D).max() > goal:
+        nxt = products.M(powers[-1])
+        if _rel(nxt, D).max() >= _rel(powers[-1], D).max():
+            powers.append(nxt)  # stalled: the engine's divergence check decides
+            break
+        powers.append(nxt)
+    return powers
+
+
+def _power(products: _Products, powers: list[np.ndarray], k: int) -> np.ndarray:
+    """M^(k+1) D, extending ``powers`` (M^(j+1) D for j < len) where the curve stopped
+    short (Newton-Schulz holds 2^j - 1 terms, past the count asked)."""
+    while len(powers) <= k:
+        powers.append(products.M(powers[-1]))
+    return powers[k]
+
+
+def measure_term(products: _Products, X, D: np.ndarray, truncation: np.ndarray,
+                 term: int, seconds: float) -> TermErrors:
+    """The probes' errors of the inverse ``X`` (held term ``term``); ``truncation`` is
+    M^(term+1) D, shape (n, k)."""
+    Y = products.times(X, D)
+    scale = 1.0 / np.maximum(Y.max(axis=0), 1.0)  # X d brought into [.., 1]
+    TY = products.times(products.T, np.hstack([Y, np.clip(Y * scale, 0.0, 1.0)]))
+    k = D.shape[1]
+    R = (D - TY[:, :k]) * products.fb.active[:, None]
+    clipped = _rel((D * scale - TY[:, k:]) * products.fb.active[:, None], D * scale)
+    return TermErrors(term=term, seconds=seconds, errors=tuple(map(float, _rel(R, D))),
+                      truncation=float(_rel(truncation, D).max()),
+                      pruning=float(_rel(R - truncation, D).max()),
+                      clipped_errors=tuple(map(float, clipped)))
+
+
+# --- the choice ------------------------------------------------------------------------
+
+def first_prune(target: float) -> float:
+    """The largest decade <= target / PRUNE_RATIO."""
+    return 10.0 ** math.floor(math.log10(target / PRUNE_RATIO) + 1e-9)
+
+
+def floored(m: TermErrors, target: float) -> bool:
+    """The pruning part will keep the error above the target: it exceeds its share of
+    the safe target and dominates the truncation part. (Early on the pruning part also
+    holds earlier terms' pruning carried by M, which decays like the truncation part
+    and overstates the floor; once it dominates, it is mostly the floor.)"""
+    return (m.pruning > PRUNE_SHARE * SAFETY * target
+            and m.pruning > FLOOR_DOMINANCE * m.truncation)
+
+
+def choose_method(terms: int) -> tuple[str, str]:
+    """(method, why) for a series that needs ``terms`` terms (module docstring)."""
+    steps = math.ceil(math.log2(terms + 1))
+    if 2 * steps <= NS_PRODUCT_SHARE * max(terms - 1, 0):
+        return "newton-schulz", (f"newton-schulz ({2 * steps} products for {2 ** steps - 1} "
+                                 f"terms against power's {terms - 1})")
+    return "power", (f"power ({max(terms - 1, 0)} products; newton-schulz would take "
+                     f"{2 * steps})")
+
+
+def smaller_prune(prune: float, pruning: float, target: float) -> float:
+    """A decade small enough that the pruning part (measured ``pruning`` at ``prune``,
+    roughly proportional to it) takes PRUNE_SHARE / 2 of the safe target; at least
+    one decade smaller."""
+    want = PRUNE_SHARE * SAFETY * target / 2
+    decades = max(1, math.ceil(math.log10(max(pruning, want) / want)))
+    return float(f"{prune / 10.0 ** decades:.0e}")  # 1e-06, not 1.0000000000000002e-06
+
+
+def check_target(target: float, dtype) -> None:
+    """Refuse a target outside (0, 1) or below what T's precision can show."""
+    if not (isinstance(target, (int, float)) and 0 < target < 1):
+        raise BigTError(f"target error must be a number in (0, 1), got {target!r}")
+    floor = TARGET_FLOOR_EPS * float(np.finfo(np.result_type(dtype, np.float32)).eps)
+    if target < floor:
+        raise BigTError(f"target error {target:g} is below what T's {np.dtype(dtype).name} "
+                        f"can show ({TARGET_FLOOR_EPS} machine epsilons = {floor:.1e}): "
+                        "ask for a larger one or store T as float64")
+
+
+@dataclass(frozen=True)
+class _Setting:
+    """The engine's arguments shared by every call of a run."""
+
+    first_bounce: object
+    memory_limit: object
+    scheduler: object
+    workers: int
+    progress: bool
+    seed: int
+
+
+def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
+                 t0, overwrite):
+    """Terms of one (method, prune) until the target, a floor or the cap.
+
+    Returns
+    -------
+    (Attempt, InverseReport, reason to restart or None)
+    """
+    from .stratified import stratified_inverse
+
+    measured, report, term = [], None, 0
+    while True:
+        report = stratified_inverse(
+            T, out, terms=term, prune=prune, method=method, first_bounce=ctx.first_bounce,
+            memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
+            progress=ctx.progress, seed=ctx.seed, overwrite=overwrite and term == 0)
+        held = report.terms
+        if held < term or "exhausted" in report.stopped:
+            held = min(held, term)
+        from ..storage import open as open_store
+
+        m = measure_term(products, open_store(out), D, _power(products, powers, held), held,
+                         time.perf_counter() - t0)
+        measured.append(m)
+        done = m.worst <= SAFETY * target
+        if done:
+            return Attempt(method, prune, tuple(measured), "target reached"), report, None
+        if floored(m, target):
+            return (Attempt(method, prune, tuple(measured), "pruning floor"), report,
+                    f"at term {held} the pruning part {m.pruning:.2e} exceeds "
+                    f"{PRUNE_SHARE:g} of the safe target {SAFETY * target:.2e} and "
+                    f"{FLOOR_DOMINANCE:g}x the truncation part {m.truncation:.2e}")
+        if "exhausted" in report.stopped:
+            return (Attempt(method, prune, tuple(measured), report.stopped), report,
+                    f"{report.stopped} with error {m.worst:.2e} above the target")
+        if held >= cap:
+            return (Attempt(method, prune, tuple(measured), f"term cap {cap}"), report, None)
+        term = held + 1
+
+
+def invert_to_target(T, out, target: float, *, method: str | None = None,
+                     prune: float | None = None, max_terms: int | None = None,
+                     first_bounce="diag", memory_limit=None, scheduler=None, workers=2,
+                     progress=False, overwrite=False, seed=0) -> TargetReport:
+    """The stratified inverse whose compensated images reach ``target`` at the least
+    cost found (module docstring).
+
+    Parameters
+    ----------
+    T : BlockCSR or path, shape (n, n)
+    out : str or PathLike, the inverse store (as :func:`stratified_inverse`'s)
+    target : float in (0, 1)
+        Relative error ||T X d - d|| / ||d|| of the compensated probe images, e.g.
+        1/255 for an 8-bit display.
+    method : str, optional
+        Fix the method instead of choosing it.
+    prune : float, optional
+        The first prune tried (default: the largest decade <= target / 100); smaller
+        ones follow when it floors above the target.
+    max_terms : int, optional
+        Cap on the terms (default: the unpruned series' count + 3, at most 200).
+    first_bounce, memory_limit, scheduler, workers, progress, seed
+        Passed to :func:`stratified_inverse`.
+    overwrite : bool
+        Start anew in ``out`` whatever it holds (restarts always do).
+
+    Returns
+    -------
+    TargetReport
+
+    Raises
+    ------
+    BigTError
+        A target outside (0, 1) or below T's precision; and whatever
+        :func:`stratified_inverse` raises (a diverging series, a bad store).
+    """
+    from ..compensation._stream import as_store
+
+    t0 = time.perf_counter()
+    T = as_store(T, "T")
+    check_target(target, T.dtype)
+    fb = resolve_first_bounce(T, first_bounce)
+    ctx = _Setting(first_bounce, memory_limit, scheduler, workers, progress, seed)
+    products = _Products(T, fb, workers)
+    try:
+        D = probe_vectors(T, fb.active, seed)
+        limit = MAX_TERMS if max_terms is None else int(max_terms)
+        powers = truncation_curve(products, D, SAFETY * target * (1 - PRUNE_SHARE), limit)
+        predicted = len(powers) - 1
+        cap = min(limit, predicted + EXTRA_TERMS) if max_terms is None else limit
+        if method is None:
+            method, method_why = choose_method(predicted)
+        else:
+            method_why = f"{method} (given)"
+        p = first_prune(target) if prune is None else float(prune)
+        attempts, restarts = [], []
+        while True:
+            attempt, report, reason = _run_attempt(
+                T, out, method, p, cap, target, ctx, products, D, powers, t0,
+                overwrite or bool(attempts))
+            attempts.append(attempt)
+            if reason is None or len(restarts) >= MAX_RESTARTS:
+                break
+            nxt = smaller_prune(p, attempt.terms[-1].pruning, target)
+            restarts.append(f"prune {p:g} ({reason}): restarted with prune {nxt:g}")
+            p = nxt
+    finally:
+        products.close()
+    return _report(target, attempts, tuple(restarts), report, predicted,
+                   time.perf_counter() - t0, method_why)
+
+
+def _report(target, attempts, restarts, report, predicted, seconds, method_why):
+    last = attempts[-1].terms[-1]
+    met = last.worst <= target
+    why = (f"the unpruned series needs {predicted} terms to bring the probes' truncation "
+           f"error below {SAFETY * (1 - PRUNE_SHARE):g} of the target "
+           f"(spectral radius {report.spectral_radius:.3g}); prune {attempts[-1].prune:g} "
+           f"kept the pruning part at {last.pruning:.2e}; {method_why}; "
+           f"stopped: {attempts[-1].ended}")
+    return TargetReport(
+        target=float(target), met=met, method=attempts[-1].method,
+        prune=attempts[-1].prune, terms=last.term, why=why, error=last.worst,
+        clipped_error=max(last.clipped_errors), probes=PROBE_NAMES,
+        predicted_terms=predicted, spectral_radius=report.spectral_radius,
+        seconds=seconds, restarts=restarts, attempts=tuple(attempts),
+        inverse=report.to_dict())
