@@ -160,3 +160,14 @@ ACQUIRE_FLOOR_SIGMAS = 3.0
 #: Memory for the entries of T gathered at once (a pass over the captures fills the
 #: tile rows that fit; more passes when they do not).
 ACQUIRE_MEMORY_BYTES = 1 << 30
+
+# --- real-time compensation (bigT.compensation.resident, bigT.compensation.realtime) ---
+#: Share of the available memory (MemAvailable) that X may take when compensation
+#: holds it in memory; beyond it X is streamed tile row by tile row (``--memory-limit``
+#: overrides the budget).
+COMPENSATE_RESIDENT_FRACTION = 0.5
+#: The budget where the available memory cannot be read.
+COMPENSATE_RESIDENT_FALLBACK_BYTES = 1 << 30
+#: Batches decoded ahead of the one being compensated, and written behind it, by the
+#: reader and writer threads of a frame stream.
+COMPENSATE_QUEUE_DEPTH = 2

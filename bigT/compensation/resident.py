@@ -1,0 +1,352 @@
+"""X held in memory for real-time compensation: one pass over RAM per batch of frames.
+
+Streaming X from disk costs a read and a decode of every tile per batch; a projector
+showing 30-60 frames per second needs a frame in ~16 ms, far less than that. When X's
+arrays fit a memory budget they are loaded once into one CSR-like layout and every
+frame (or batch of frames) is one pass over it. That pass is bound by memory bandwidth:
+each entry is read once per batch, so the bytes per entry set the frame rate.
+
+Layout (:class:`ResidentMatrix`): the columns are cut into panels of 65536, so a column
+index inside its panel fits 16 bits (``uint16``); within each row the entries are
+sorted by column, so one panel's entries are contiguous, and ``row_ptr[i, p]`` is where
+row i's entries of panel p start. The values are
+
+* ``float32`` (6 bytes per entry with the 16-bit indices, against 8 for float32 values
+  with int32 indices), the same numbers as the store: the products agree with the
+  streamed path to float32 rounding; or
+* ``float16`` (4 bytes per entry): IEEE binary16 of ``x / s_i * 2**15``, with ``s_i``
+  the smallest power of two >= the row's largest magnitude, so every row uses
+  binary16's normal range (relative rounding <= 2**-11) down to ``2**-29 * s_i``
+  whatever its magnitude (binary16 alone overflows at 65504 and loses relative
+  precision below 6e-5); each entry is off by at most ``2**-11 |x| + 2**-40 s_i``.
+  The kernels decode a value by a table of the 65536 binary16 values (numba has no
+  float16 arithmetic) and multiply the row's sum by ``s_i * 2**-15`` once.
+
+The products run on ``nogil`` numba kernels over row ranges of equal entries on a
+thread pool (as :mod:`bigT.kernels` does, so ``cache=True`` works and no numba
+threading layer is involved); matrices with little work use scipy and compile nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import config
+from ..errors import BigTError, MemoryLimitError, ShapeMismatchError
+
+#: Columns per panel: an index inside a panel fits uint16.
+PANEL_BITS = 16
+PRECISIONS = ("float32", "float16")
+#: float16 encoding: a row's values are scaled into [-2**15, 2**15] (see the docstring).
+_F16_SHIFT = 2.0 ** 15
+
+
+@dataclass(frozen=True, eq=False)  # identity: arrays do not compare
+class ResidentMatrix:
+    """A sparse matrix held in memory in the panel layout of the module docstring.
+
+    Attributes
+    ----------
+    shape : (n_rows, n_cols)
+    row_ptr : ndarray, shape (n_rows, n_panels + 1), int32 or int64
+        Row i's entries of panel p are ``row_ptr[i, p]:row_ptr[i, p + 1]``.
+    indices : ndarray, shape (nnz,), uint16; column - 65536 * panel.
+    values : ndarray, shape (nnz,); float32, or uint16 (binary16 bits) for float16.
+    row_scale : ndarray, shape (n_rows,), float32 or None
+        What each row's sum is multiplied by (float16 only).
+    precision : {"float32", "float16"}
+    pixel_order : PixelOrder or None, the store's.
+    path : str, the store it was loaded from.
+    """
+
+    shape: tuple
+    row_ptr: np.ndarray
+    indices: np.ndarray
+    values: np.ndarray
+    row_scale: np.ndarray | None
+    precision: str
+    pixel_order: object
+    path: str
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indices.size)
+
+    @property
+    def n_panels(self) -> int:
+        return self.row_ptr.shape[1] - 1
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held, which are also the bytes read by one product (one pass)."""
+        scale = 0 if self.row_scale is None else self.row_scale.nbytes
+        return self.row_ptr.nbytes + self.indices.nbytes + self.values.nbytes + scale
+
+    @property
+    def dtype(self) -> np.dtype:
+        """Dtype of the products (float32)."""
+        return np.dtype(np.float32)
+
+    def to_scipy(self) -> sp.csr_array:
+        """The decoded matrix as a float32 csr_array (reference and small products)."""
+        return _scipy_of(self)
+
+    def matmul(self, V: np.ndarray, out: np.ndarray | None = None,
+               n_threads: int | None = None) -> np.ndarray:
+        """X @ V.
+
+        Parameters
+        ----------
+        V : ndarray, shape (n_cols,) or (n_cols, K); converted to C-contiguous float32.
+        out : ndarray, shape (n_rows, K), float32, C-contiguous, optional
+        n_threads : int, optional (default: one per core)
+
+        Returns
+        -------
+        ndarray, shape (n_rows,) or (n_rows, K), float32
+        """
+        return _matmul(self, V, out, n_threads)
+
+    def __matmul__(self, V):
+        return self.matmul(V)
+
+
+# --- building -----------------------------------------------------------------------
+
+def resident_bytes_needed(X, precision: str = "float32") -> int:
+    """Bytes a :class:`ResidentMatrix` of the store ``X`` will hold (without loading)."""
+    _check_precision(precision)
+    n_rows, n_cols = X.shape
+    panels = max(1, -(-n_cols >> PANEL_BITS) if n_cols else 1)
+    ptr_item = 4 if X.nnz < 2**31 else 8
+    per_entry = 2 + (4 if precision == "float32" else 2)
+    scale = 4 * n_rows if precision == "float16" else 0
+    return X.nnz * per_entry + n_rows * (panels + 1) * ptr_item + scale
+
+
+def load_bytes_needed(X, precision: str = "float32") -> int:
+    """Peak bytes while loading: the result plus the largest decoded tile row (its
+    scipy CSR with int32/64 indices, twice over while it is split into panels)."""
+    widest = 0
+    for i in range(X.grid[0]):
+        lo, hi = X.tile_indptr[i], X.tile_indptr[i + 1]
+        widest = max(widest, int(X.tile_nnz[lo:hi].sum()))
+    per_entry = np.dtype(X.dtype).itemsize + 8
+    return resident_bytes_needed(X, precision) + 2 * widest * per_entry
+
+
+def available_memory() -> int | None:
+    """MemAvailable of /proc/meminfo in bytes (None where it cannot be read)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def default_memory_limit() -> int:
+    """The default budget of a resident X: ``config.COMPENSATE_RESIDENT_FRACTION`` of
+    the available memory (``config.COMPENSATE_RESIDENT_FALLBACK_BYTES`` where unknown)."""
+    avail = available_memory()
+    if avail is None:
+        return config.COMPENSATE_RESIDENT_FALLBACK_BYTES
+    return int(avail * config.COMPENSATE_RESIDENT_FRACTION)
+
+
+def _check_precision(precision: str) -> None:
+    if precision not in PRECISIONS:
+        raise BigTError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+
+
+def load_resident(X, precision: str = "float32", *, memory_limit: int | None = None
+                  ) -> ResidentMatrix:
+    """Read every tile row of the store ``X`` once into a :class:`ResidentMatrix`.
+
+    Parameters
+    ----------
+    X : BlockCSR, shape (n_rows, n_cols)
+    precision : {"float32", "float16"}
+    memory_limit : int, optional
+        Refuse (MemoryLimitError) when loading would need more bytes
+        (:func:`load_bytes_needed`); default :func:`default_memory_limit`.
+    """
+    _check_precision(precision)
+    limit = default_memory_limit() if memory_limit is None else int(memory_limit)
+    need = load_bytes_needed(X, precision)
+    if need > limit:
+        raise MemoryLimitError(f"holding X in memory needs {need / 2**20:.0f} MiB, over the "
+                               f"limit of {limit / 2**20:.0f} MiB", getattr(X, "path", None))
+    n_rows, n_cols = X.shape
+    panels = max(1, -(-n_cols >> PANEL_BITS))
+    ptr_dtype = np.int32 if X.nnz < 2**31 else np.int64
+    row_ptr = np.empty((n_rows, panels + 1), ptr_dtype)
+    indices = np.empty(X.nnz, np.uint16)
+    values = np.empty(X.nnz, np.float32 if precision == "float32" else np.uint16)
+    row_scale = np.empty(n_rows, np.float32) if precision == "float16" else None
+    fill = 0
+    for i in range(X.grid[0]):
+        r0, _ = X.tile_row_range(i)
+        rows = X.get_tile_row(i)
+        if precision == "float16":
+            rows, row_scale[r0:r0 + rows.shape[0]] = _encode_f16(rows)
+        k = rows.nnz
+        indices[fill:fill + k] = rows.indices & ((1 << PANEL_BITS) - 1)
+        values[fill:fill + k] = rows.data
+        row_ptr[r0:r0 + rows.shape[0]] = fill + _panel_pointers(rows, panels)
+        fill += k
+    return ResidentMatrix((n_rows, n_cols), row_ptr, indices, values, row_scale,
+                          precision, getattr(X, "pixel_order", None),
+                          str(getattr(X, "path", "")))
+
+
+def _panel_pointers(rows: sp.csr_array, panels: int) -> np.ndarray:
+    """(m, panels + 1) offsets into ``rows``' entries: where each row's panel p starts
+    (columns are sorted within rows, so a panel's entries are contiguous)."""
+    m = rows.shape[0]
+    row_of = np.repeat(np.arange(m, dtype=np.int64), np.diff(rows.indptr))
+    key = row_of * panels + (rows.indices.astype(np.int64) >> PANEL_BITS)
+    counts = np.bincount(key, minlength=m * panels).reshape(m, panels)
+    ptr = np.zeros((m, panels + 1), np.int64)
+    np.cumsum(counts, axis=1, out=ptr[:, 1:])
+    ptr += np.asarray(rows.indptr[:-1], np.int64)[:, None]
+    return ptr
+
+
+def _encode_f16(rows: sp.csr_array):
+    """float32 rows -> (rows with binary16 bits as data, (m,) float32 row scales).
+
+    Scale s_i = 2**ceil(log2 max|row i|); stored: binary16 of x / s_i * 2**15, in
+    [-2**15, 2**15]; the decoded sum is multiplied by s_i * 2**-15 (powers of two: no
+    rounding but binary16's)."""
+    m = rows.shape[0]
+    data = np.asarray(rows.data, np.float64)
+    top = np.zeros(m)
+    nz = np.diff(rows.indptr) > 0
+    if rows.nnz:
+        top[nz] = np.maximum.reduceat(np.abs(data), rows.indptr[:-1][nz])
+    scale = np.exp2(np.ceil(np.log2(np.where(top > 0, top, 1.0))))
+    scaled = data / np.repeat(scale, np.diff(rows.indptr)) * _F16_SHIFT
+    bits = scaled.astype(np.float16).view(np.uint16)
+    out = sp.csr_array((bits, rows.indices, rows.indptr), shape=rows.shape)
+    return out, (scale / _F16_SHIFT).astype(np.float32)
+
+
+#: float32 value of each binary16 bit pattern: the kernels' decoding table.
+F16_TABLE = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.float16).astype(
+    np.float32)
+
+
+def decode_values(R: ResidentMatrix) -> np.ndarray:
+    """(nnz,) float32 values as the kernels see them (before the row scale)."""
+    if R.precision == "float32":
+        return R.values
+    return F16_TABLE[R.values]
+
+
+def _scipy_of(R: ResidentMatrix) -> sp.csr_array:
+    n_rows, n_cols = R.shape
+    panel_of = np.zeros(R.nnz, np.int64)
+    for p in range(1, R.n_panels):
+        starts = np.asarray(R.row_ptr[:, p], np.int64)
+        ends = np.asarray(R.row_ptr[:, p + 1], np.int64)
+        lens = ends - starts
+        if lens.sum():
+            idx = np.repeat(starts - np.cumsum(np.r_[0, lens[:-1]]), lens) + np.arange(lens.sum())
+            panel_of[idx] = p
+    cols = (panel_of << PANEL_BITS) + R.indices
+    data = decode_values(R)
+    indptr = np.r_[np.asarray(R.row_ptr[:, 0], np.int64), np.int64(R.nnz)] if n_rows else \
+        np.zeros(1, np.int64)
+    if R.row_scale is not None:
+        data = data * np.repeat(R.row_scale, np.diff(indptr))
+    out = sp.csr_array((data.astype(np.float32), cols, indptr), shape=(n_rows, n_cols))
+    out.has_sorted_indices = True
+    return out
+
+
+# --- products -------------------------------------------------------------------------
+
+#: The scipy twin of a small matrix, made once per matrix.
+_SMALL: "weakref.WeakKeyDictionary[ResidentMatrix, sp.csr_array]" = weakref.WeakKeyDictionary()
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _threads(n_threads):
+    return max(1, int(n_threads or config.KERNEL_THREADS or os.cpu_count() or 1))
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers < n:  # noqa: SLF001 - grow, never shrink
+            _POOL = ThreadPoolExecutor(n, thread_name_prefix="bigT-resident")
+        return _POOL
+
+
+def _ranges(R: ResidentMatrix, parts: int) -> list[tuple[int, int]]:
+    """Row ranges of about equal entries (the work of a pass)."""
+    n = R.shape[0]
+    if parts <= 1 or n < 2 * parts:
+        return [(0, n)]
+    starts = np.asarray(R.row_ptr[:, 0], np.int64)
+    cuts = np.searchsorted(starts, np.linspace(0, R.nnz, parts + 1)[1:-1])
+    bounds = np.unique(np.r_[0, cuts, n])
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _matmul(R: ResidentMatrix, V, out, n_threads):
+    n_rows, n_cols = R.shape
+    V = np.asarray(V)
+    vector = V.ndim == 1
+    if V.ndim not in (1, 2) or V.shape[0] != n_cols:
+        raise ShapeMismatchError(f"cannot multiply a {n_rows}x{n_cols} matrix by an array of "
+                                 f"shape {V.shape}")
+    V2 = np.ascontiguousarray(V.reshape(n_cols, -1), dtype=np.float32)
+    K = V2.shape[1]
+    if out is None:
+        out = np.empty((n_rows, K), np.float32)
+    elif out.shape != (n_rows, K) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ShapeMismatchError(f"out must be a C-contiguous float32 array of shape "
+                                 f"{(n_rows, K)}, got {out.dtype} {out.shape}")
+    if R.nnz * K <= config.KERNEL_NUMPY_MAX_WORK:
+        out[...] = _small_csr(R) @ V2  # no kernel compiled for a small product
+    else:
+        _run_kernel(R, V2, out, _threads(n_threads))
+    return out[:, 0] if vector else out
+
+
+def _small_csr(R):
+    if R not in _SMALL:
+        _SMALL[R] = _scipy_of(R)
+    return _SMALL[R]
+
+
+def _run_kernel(R, V, out, threads):
+    from ._resident_kernels import kernel_for
+
+    kernel = kernel_for(R.precision, V.shape[1] == 1)
+    empty = np.ones(0, np.float32)
+    scale = empty if R.row_scale is None else R.row_scale
+    lut = F16_TABLE if R.precision == "float16" else empty
+    args = (R.row_ptr, R.indices, R.values, lut, scale, V, out)
+    ranges = _ranges(R, threads * config.KERNEL_CHUNKS_PER_THREAD if threads > 1 else 1)
+    if len(ranges) == 1:
+        kernel(*args, 0, R.shape[0])
+        return
+    futures = [_pool(threads).submit(kernel, *args, a, b) for a, b in ranges]
+    for f in futures:
+        f.result()
