@@ -1,0 +1,171 @@
+"""``bigT invert --target-error`` against a sweep of fixed settings (issue #15, item 4).
+
+For each scene (spectral radius about 0.2, 0.5 and 0.9) and target E, runs
+:func:`bigT.algorithms.target.invert_to_target` and a sweep of fixed settings (method x
+prune in decades around the one it starts from), each fixed run term by term on the
+same probe images: its time to reach E is the engine's time up to the first term whose
+worst probe error is <= E (the measurements are not counted: a fixed run would not
+make them). A fixed run stops once it is slower than the best fixed time known for
+every target it has not met, or than 3x the target run's time. Prints a markdown
+table (scene, rho, E, chosen setting, time, best fixed setting and its time, ratio,
+error reached). Timings are reported, never asserted: the machine is shared, so the
+target run and the sweep of one scene are interleaved and the load average printed.
+
+    python benchmarks/bench_target.py            # 48x64 (quick) and 96x128
+    python benchmarks/bench_target.py --quick    # 48x64 only
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+import bigT
+from bigT.algorithms import stratified_inverse
+from bigT.algorithms.first_bounce import resolve_first_bounce
+from bigT.algorithms.target import (
+    _power,
+    _Products,
+    first_prune,
+    invert_to_target,
+    measure_term,
+    probe_vectors,
+)
+
+#: (name, albedo) per size giving rho(M) ~ 0.2, 0.5, 0.9 (measured with bigT scene)
+SCENES = {
+    (48, 64): [("corner", 0.5), ("cornell", 0.6), ("cornell", 0.81)],
+    (96, 128): [("corner", 0.5), ("cornell", 0.7), ("cornell", 0.99)],
+}
+METHODS = ("power", "horner", "newton-schulz")
+MAX_FIXED_TERMS = 127
+
+
+@dataclass(frozen=True)
+class Fixed:
+    """A fixed setting's time to each target (None: not reached)."""
+
+    method: str
+    prune: float
+    reached: dict  # target -> (terms, seconds, worst error)
+
+
+def sweep_one(T, out, method, prune, targets, budget, products, D, powers) -> Fixed:
+    """Run (method, prune) term by term; the engine time to the first term meeting each
+    target. ``budget(target)`` is the time past which this setting cannot matter."""
+    reached, engine, term = {}, 0.0, 0
+    while term <= MAX_FIXED_TERMS:
+        r = stratified_inverse(T, out, terms=term, prune=prune, method=method,
+                               progress=False, overwrite=term == 0)
+        engine += r.seconds
+        m = measure_term(products, bigT.open(out), D, _power(products, powers, r.terms),
+                         r.terms, engine)
+        for E in targets:
+            if E not in reached and m.worst <= E:
+                reached[E] = (r.terms, engine, m.worst)
+        unmet = [E for E in targets if E not in reached]
+        if not unmet or r.terms < term or "exhausted" in r.stopped:
+            break
+        if all(engine > budget(E) for E in unmet):
+            break
+        term = r.terms + 1
+    return Fixed(method, prune, reached)
+
+
+def bench_scene(name, albedo, size, targets, root: Path) -> list[dict]:
+    path = root / f"{name}{albedo}_{size[0]}x{size[1]}.zarr"
+    scene = bigT.scenes.make(name, size=size, path=path, albedo=albedo, preview=False,
+                             overwrite=True)
+    T = scene.T
+    fb = resolve_first_bounce(T, "diag")
+    products = _Products(T, fb, 2)
+    D = probe_vectors(T, fb.active)
+    powers = [products.M(D)]
+    chosen, best = {}, {}
+    try:
+        for E in targets:  # interleaved: the target run, then the sweep's settings
+            t0 = time.perf_counter()
+            rep = invert_to_target(T, root / "Xt.zarr", E, overwrite=True)
+            chosen[E] = (rep, time.perf_counter() - t0)
+        p0 = min(first_prune(E) for E in targets)
+        prunes = sorted({p0 * 100, p0 * 10, p0, p0 / 10}, reverse=True)
+        for method in METHODS:
+            for prune in prunes:
+                def budget(E):
+                    known = best.get(E, (None, np.inf))[1]
+                    return min(known, 3 * chosen[E][1])
+                fx = sweep_one(T, root / "Xf.zarr", method, float(f"{prune:.0e}"), targets,
+                               budget, products, D, powers)
+                for E, (k, secs, err) in fx.reached.items():
+                    if secs < best.get(E, (None, np.inf))[1]:
+                        best[E] = ((method, fx.prune, k), secs, err)
+                print(f"  swept {name} {method} prune {fx.prune:g}: "
+                      + ", ".join(f"E={E:.3g}: {v[0]} terms {v[1]:.1f} s"
+                                  for E, v in sorted(fx.reached.items())), flush=True)
+    finally:
+        products.close()
+    rows = []
+    for E in targets:
+        rep, secs = chosen[E]
+        (bm, bp, bk), bsecs, _ = best.get(E, ((None, None, None), np.inf, None))
+        rows.append(dict(scene=f"{name} {size[0]}x{size[1]} albedo {albedo}",
+                         rho=rep.spectral_radius, E=E,
+                         chosen=f"{rep.method}, prune {rep.prune:g}, {rep.terms} terms"
+                                + (f" ({len(rep.restarts)} restart)" if rep.restarts else ""),
+                         time=secs, best=(f"{bm}, prune {bp:g}, {bk} terms" if bm else
+                                          "none within 3x"), best_time=bsecs,
+                         error=rep.error, met=rep.met, load=os.getloadavg()[0]))
+    return rows
+
+
+def table(rows) -> str:
+    lines = ["| scene | rho | E | chosen setting | time s | best fixed setting | its time s "
+             "| ratio | error reached | load |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ratio = r["time"] / r["best_time"] if np.isfinite(r["best_time"]) else float("nan")
+        lines.append(f"| {r['scene']} | {r['rho']:.2f} | {r['E']:.3g} | {r['chosen']} | "
+                     f"{r['time']:.1f} | {r['best']} | {r['best_time']:.1f} | {ratio:.2f} | "
+                     f"{r['error']:.2e}{'' if r['met'] else ' (not met)'} | {r['load']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="48x64 only")
+    ap.add_argument("--targets", default="0.00392,0.001",
+                    help="comma-separated targets (default 1/255 and 1e-3)")
+    ap.add_argument("--rho", default=None, help="only these of 0.2,0.5,0.9 (comma-separated)")
+    ap.add_argument("--out", default=None, help="also write the table to this file")
+    args = ap.parse_args(argv)
+    targets = [float(t) for t in args.targets.split(",")]
+    sizes = [(48, 64)] if args.quick else [(48, 64), (96, 128)]
+    pick = None if args.rho is None else {("0.2", "0.5", "0.9").index(r)
+                                          for r in args.rho.split(",")}
+    rows = []
+    root = Path(tempfile.mkdtemp(prefix="bench-target-"))
+    try:
+        for size in sizes:
+            for i, (name, albedo) in enumerate(SCENES[size]):
+                if pick is not None and i not in pick:
+                    continue
+                print(f"{name} {size} albedo {albedo}, load {os.getloadavg()}", flush=True)
+                rows += bench_scene(name, albedo, size, targets, root)
+                print(table(rows), flush=True)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    text = table(rows)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
