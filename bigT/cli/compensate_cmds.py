@@ -1,8 +1,10 @@
 """``bigT compensate``, ``bigT relight`` and ``bigT bounces``.
 
 Images go in and come out in the same form: one file -> one file, a folder of frames ->
-a folder with the same names. Folders are read, processed and written one batch of
-frames at a time, so neither the frames nor the matrices need to fit in memory.
+a folder with the same names (or a video file), a video -> a video. Folders and videos
+are read, processed and written one batch of frames at a time, so the frames never
+need to fit in memory; X is held in memory when it fits ``--memory-limit`` and streamed
+from disk tile row by tile row otherwise (:mod:`bigT.compensation.realtime`).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import numpy as np
 
 from .. import config
 from ..errors import ImageError
-from ._argtypes import clip_range, integer, scheduler_address
+from ._argtypes import clip_range, integer, memory_size, number, scheduler_address
 
 #: Largest K of ``bigT bounces``. Each bounce costs one streamed pass over X, one
 #: (H, W) float64 image held in memory and one file; the remainder T l - sum b_k holds
@@ -31,9 +33,12 @@ def register(sub) -> None:
         "tile row at a time against batches of frames; or the same polynomial applied "
         "matrix-free with T (--path matrix-free / auto).")
     p.add_argument("X", help="inverse store (X.zarr); '-' for none (matrix-free path only)")
-    p.add_argument("desired", help="desired camera image (png/tif/npy) or a folder of frames")
+    p.add_argument("desired", help="desired camera image (png/tif/npy), a folder of frames, "
+                   "or a video (mp4/mov/m4v/mkv/avi, read frame by frame)")
     p.add_argument("-o", "--output", required=True,
-                   help="projector input: an image file (or a folder for a folder input)")
+                   help="projector input: an image file, a folder (for a folder input) or a "
+                   "video file (for a video or a folder input; .mkv/.avi: FFV1, .mp4/.mov: "
+                   "H.264, both lossless)")
     p.add_argument("--simulate", metavar="T.zarr",
                    help="also compute and write what the camera sees (T l_in), with error, "
                    "fluctuation, a side-by-side PNG and a scan-line plot")
@@ -58,6 +63,24 @@ def register(sub) -> None:
                    metavar="ADDRESS|local:N",
                    help="run the passes on a dask cluster: a scheduler address, or local:N "
                    "for N worker processes started for this command (default: local threads)")
+    p.add_argument("--memory-limit", dest="memory_limit", type=memory_size, default=None,
+                   metavar="SIZE", help="hold X in memory when it needs at most SIZE (e.g. "
+                   "2GiB; default "
+                   f"{100 * config.COMPENSATE_RESIDENT_FRACTION:.0f}%% of the available memory), "
+                   "else "
+                   "stream it from disk tile row by tile row")
+    p.add_argument("--stream", action="store_true",
+                   help="stream X from disk tile row by tile row even when it fits in memory")
+    p.add_argument("--precision", choices=("float32", "float16"), default="float32",
+                   help="values of X held in memory: float32 (6 bytes per entry with 16-bit "
+                   "column indices) or float16 (4 bytes: less memory traffic, relative error "
+                   "<= 2^-11 per entry); default float32")
+    p.add_argument("--serial", action="store_true",
+                   help="read, compensate and write one batch at a time (no reader and "
+                   "writer threads beside the products)")
+    p.add_argument("--fps", type=number(0, lo_open=True), default=None,
+                   help="frames per second of a video written from a folder of frames "
+                   "(default 30; a video input keeps its own)")
     p.add_argument("--no-progress", dest="progress", action="store_false",
                    help="no progress bars")
     p.set_defaults(func=run_compensate)
@@ -125,6 +148,7 @@ def run_compensate(args) -> int:
     from ..compensation.core import (CompensationReport, choose_path, compensate_frames,
                                      fluctuation, pixel_order_of, relative_error, scan_line,
                                      to_frames, to_vectors)
+    from ..compensation.video import is_video_file
     from ..images import ImageSink, ImageSource
 
     clip = args.clip
@@ -139,6 +163,11 @@ def run_compensate(args) -> int:
             raise ImageError(f"{name} maps images of shape {_image_shape(other)} but the "
                              f"compensation store maps {shape}", other.path)
 
+    if args.simulate is None:
+        return _run_stream(args, X, Tm, choice, shape)
+    if is_video_file(args.desired):
+        raise ImageError("--simulate takes an image or a folder of frames, not a video",
+                         args.desired)
     source = ImageSource(args.desired, shape)
     out_path = Path(args.output)
     sink = ImageSink(out_path, source, bits=args.bits)
@@ -237,6 +266,137 @@ def run_compensate(args) -> int:
                           target=const)
         print(f"  figures -> {pic}, {plot}")
     return 0
+
+
+def _run_stream(args, X, Tm, choice, shape) -> int:
+    """compensate without --simulate: frames streamed through
+    :func:`bigT.compensation.realtime.run_stream`, X in memory when it fits."""
+    import sys
+
+    from ..compensation._stream import cache_budget, scheduler_runner
+    from ..compensation.realtime import Compensator, image_batches, run_stream, video_batches
+    from ..compensation.video import VideoSource, is_video_file
+    from ..images import ImageSource
+    from ..progress import progress_bar
+
+    video_in = is_video_file(args.desired)
+    source = VideoSource(args.desired, shape) if video_in else ImageSource(args.desired, shape)
+    if not video_in and source.is_folder:
+        check_frame_shapes(source.files, shape)  # a bad frame is found before writing any
+    out_path = Path(args.output)
+    video_out = video_in or (source.is_folder and is_video_file(out_path))
+    frames_total = len(source) or None
+    print(f"bigT compensate: {frames_total or 'the'} frame(s) from {args.desired}"
+          + (f", image {shape[0]}x{shape[1]}" if shape else "")
+          + (f", video {source.info.codec} {source.info.pix_fmt} at {source.info.fps:g} "
+             "frames/s" if video_in else ""))
+    for st, name in ((X, "X"), (Tm if choice.path == "matrix-free" else None, "T")):
+        if st is not None:
+            print("  " + _describe(st, name))
+    print(f"  path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
+                                      else "") + f" -- {choice.reason}")
+    output = _Output(args, source, out_path, video_in, video_out)  # checked before X is read
+    cache_bytes = cache_budget(None if args.cache_mb is None else args.cache_mb << 20)
+    with scheduler_runner(args.scheduler) as runner:
+        if runner is not None:
+            print(f"  running on {runner.describe()}")
+        comp = Compensator(X, Tm, choice, args.clip, memory_limit=args.memory_limit,
+                           precision=args.precision,
+                           resident=not args.stream and args.scheduler is None,
+                           cache_bytes=cache_bytes, runner=runner)
+        if not args.quiet:
+            per_pass = min(args.batch, frames_total or args.batch)
+            print(f"bigT compensate: {comp.residency.describe(per_pass)}", file=sys.stderr)
+        batches = (video_batches(source, args.batch) if video_in
+                   else image_batches(source, args.batch))
+        with progress_bar(progress=args.progress, total=frames_total, desc="compensate",
+                          unit="frame", leave=True) as bar, \
+                output as write:
+            stream = run_stream(batches, comp, write, batch=args.batch,
+                                overlap=not args.serial, on_batch=bar.update)
+    report = comp.report
+    print(f"  {stream.frames} frame(s) in {stream.compute_seconds:.2f} s of products "
+          f"({stream.frames / max(stream.compute_seconds, 1e-9):.1f} frames/s, batch "
+          f"{args.batch}); {stream.seconds:.2f} s in all")
+    print("  " + stream.summary(comp.residency))
+    if args.clip is not None:
+        clip = args.clip
+        print(f"  clipped projector pixels: {100 * report.clipped_fraction:.2f} % "
+              f"(below {clip[0]}: {100 * report.clipped_low / max(report.pixels, 1):.2f} %, "
+              f"above {clip[1]}: {100 * report.clipped_high / max(report.pixels, 1):.2f} %)")
+    print(f"  wrote projector input -> {out_path if video_out else _sink_path(out_path, source)}")
+    return 0
+
+
+def _sink_path(out_path: Path, source) -> Path:
+    if not source.is_folder and out_path.is_dir():
+        return out_path / source.path.name
+    return out_path
+
+
+class _Output:
+    """The writer of ``_run_stream``: ``write(names, frames)`` into a video (whole or
+    nothing) or images (ImageSink). Checked when made (before X is loaded), opened
+    only after every input check passed."""
+
+    def __init__(self, args, source, out_path, video_in, video_out):
+        from ..compensation.video import DEFAULT_FPS, VideoSink
+        from ..images import is_image_file
+
+        self.args, self.source, self.out_path = args, source, out_path
+        self._video = None
+        if video_out:
+            fps = source.info.fps if video_in else (args.fps or DEFAULT_FPS)
+            bits = args.bits or (source.info.bits if video_in else 8)
+            shape = source.info.shape if video_in else _frame_shape(source)
+            self._video = VideoSink(out_path, shape, fps, bits)
+        elif source.is_folder:
+            if out_path.exists() and not out_path.is_dir():
+                raise ImageError("the input is a folder, so the output must be a folder (or "
+                                 "a video) too", out_path)
+        elif not out_path.is_dir() and not is_image_file(out_path):
+            raise ImageError(f"unknown output format {out_path.suffix!r} (an image: .png, "
+                             ".tif, .tiff, .npy)", out_path)
+
+    def __enter__(self):
+        from ..images import ImageSink
+
+        if self._video is not None:
+            video = self._video.__enter__()
+            return lambda names, frames: video.write(frames)
+        return ImageSink(self.out_path, self.source, bits=self.args.bits).write
+
+    def __exit__(self, *exc):
+        if self._video is not None:
+            return self._video.__exit__(*exc)
+        return False
+
+
+def _frame_shape(source):
+    """(H, W) of a folder's frames: the store's, else the first frame's."""
+    from ..images import read_image
+
+    return source.shape or read_image(source.files[0]).shape
+
+
+def check_frame_shapes(files, shape) -> None:
+    """Every frame of a folder has the transport's (H, W): read from the headers, so a
+    folder with one bad frame is refused before anything is written."""
+    if shape is None:
+        return
+    import imageio.v3 as iio
+
+    from ..images import read_image
+
+    for f in files:
+        try:
+            found = (np.load(f, mmap_mode="r", allow_pickle=False).shape
+                     if f.suffix.lower() == ".npy" else iio.improps(f).shape)
+        except Exception:  # unreadable: read_image says why, naming the file
+            found = None
+        if (found is None or len(found) not in (2, 3) or tuple(found[:2]) != tuple(shape)
+                or found[2:] not in ((), (1,))):
+            read_image(f, shape)  # raises the one-line ImageError naming the file
 
 
 # --- relight ----------------------------------------------------------------------------

@@ -1,0 +1,301 @@
+"""Video files in and out of compensation, streamed frame by frame through ffmpeg.
+
+Reading and writing go through ``imageio-ffmpeg`` (imageio's ffmpeg plugin, which
+ships its own ffmpeg binary): one ffmpeg process decodes the input into raw grayscale
+frames on a pipe (``imageio_ffmpeg.read_frames``), another encodes the projector
+frames from a pipe; neither the video nor its frames are ever all in memory.
+
+Grayscale, as for images (:mod:`bigT.images`): a frame is read as its luma (ffmpeg's
+``gray``, or ``gray16le`` for a stream of more than 8 bits), as floats in [0, 1]. A
+video whose first frame has colour (its RGB channels differ by more than
+:data:`COLOUR_TOLERANCE` levels of 255) is refused like a colour image; an RGB stream
+of gray pictures, and the neutral chroma of a YUV stream, are accepted.
+
+Writing (whole or nothing, through :func:`bigT.atomic.atomic_output`) is lossless:
+
+==================  =========================================  ==================
+suffix              codec                                      bit depth
+==================  =========================================  ==================
+``.mkv``, ``.avi``  FFV1, gray / gray16le                      8 or 16
+``.mp4``, ``.mov``  H.264 (libx264) at ``-qp 0``, full range   8
+==================  =========================================  ==================
+
+so a projector frame comes back exactly as it was quantised to 8 (or 16) bits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from ..atomic import atomic_output
+from ..errors import ImageError, OutputError
+
+#: File name suffixes read and written as video (lower case).
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".mkv", ".avi")
+#: Suffixes written with FFV1 (8 or 16 bits); the others with lossless H.264 (8 bits).
+FFV1_SUFFIXES = (".mkv", ".avi")
+#: Largest channel difference (levels of 255) of a frame still read as gray: the
+#: rounding of a YUV stream's neutral chroma back to RGB.
+COLOUR_TOLERANCE = 3
+#: Frames per second of a video written from a source that has none.
+DEFAULT_FPS = 30.0
+
+
+def is_video_file(path: str | os.PathLike) -> bool:
+    """True when ``path`` has one of :data:`VIDEO_SUFFIXES`."""
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What ffmpeg says of a video's first stream.
+
+    Attributes
+    ----------
+    shape : (H, W)
+    fps : float
+    frames : int or None, an estimate (duration x fps) where the container has one.
+    pix_fmt : str, the stream's pixel format ("yuv420p", "gray"...).
+    bits : int, 8 or 16: how the frames are read (and written back by default).
+    codec : str
+    """
+
+    shape: tuple
+    fps: float
+    frames: int | None
+    pix_fmt: str
+    bits: int
+    codec: str
+
+
+def _reason(exc: BaseException, path) -> str:
+    """ffmpeg's complaint in one line, without the command line imageio-ffmpeg adds."""
+    text = " ".join(str(exc).split())
+    text = text.replace(os.fspath(path), Path(path).name)
+    text = re.sub(r"FFMPEG COMMAND:.*?FFMPEG STDERR OUTPUT:", "", text).strip()
+    return (text or type(exc).__name__)[:200]
+
+
+def _deep(pix_fmt: str) -> bool:
+    """A stream of more than 8 bits per sample (read as 16-bit gray)."""
+    return bool(re.search(r"(16|12|10|14|9)(le|be)\b|p(16|12|10|14|9)|48|64", pix_fmt))
+
+
+def probe_video(path: str | os.PathLike) -> VideoInfo:
+    """Open ``path`` with ffmpeg and return its :class:`VideoInfo` (no frame decoded
+    but the first, for the colour check).
+
+    Raises
+    ------
+    ImageError
+        Missing, unreadable, no video stream, or colour.
+    """
+    import imageio_ffmpeg
+
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError("no such file" if not path.exists() else "is not a file", path)
+    gen = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24", bits_per_pixel=24,
+                                     output_params=["-frames:v", "1"])
+    try:
+        meta = next(gen)
+        first = next(gen, None)
+    except Exception as exc:  # imageio-ffmpeg raises IOError/RuntimeError on bad files
+        raise ImageError(f"cannot read the video ({_reason(exc, path)})", path) from None
+    finally:
+        gen.close()
+    W, H = (int(s) for s in meta.get("source_size") or meta["size"])
+    if first is None:
+        raise ImageError("the video has no frames", path)
+    rgb = np.frombuffer(first, np.uint8).reshape(H, W, 3).astype(np.int16)
+    spread = int(max(np.abs(rgb[..., 0] - rgb[..., 1]).max(),
+                     np.abs(rgb[..., 1] - rgb[..., 2]).max()))
+    if spread > COLOUR_TOLERANCE:
+        raise ImageError(f"colour video (channels of the first frame differ by up to {spread} "
+                         "levels); bigT's transport is grayscale: convert it to gray first",
+                         path)
+    pix_fmt = str(meta.get("pix_fmt", "")).split("(")[0].strip()
+    fps = float(meta.get("fps") or DEFAULT_FPS)
+    duration = float(meta.get("duration") or 0.0)
+    frames = int(round(duration * fps)) if duration > 0 else None
+    return VideoInfo((H, W), fps, frames, pix_fmt, 16 if _deep(pix_fmt) else 8,
+                     str(meta.get("codec", "")).strip(", "))
+
+
+class VideoSource:
+    """The frames of a video file, decoded one at a time.
+
+    Parameters
+    ----------
+    path : the video file.
+    shape : (H, W), optional, the size every frame must have (checked on the stream's
+        header, before any frame is read).
+
+    Attributes
+    ----------
+    info : VideoInfo
+    is_folder : False (a source for :class:`bigT.images.ImageSink` rules)
+    """
+
+    is_folder = False
+
+    def __init__(self, path: str | os.PathLike, shape: Sequence[int] | None = None):
+        self.path = Path(path)
+        self.info = probe_video(self.path)
+        if shape is not None and tuple(self.info.shape) != tuple(shape):
+            raise ImageError(f"frames of shape {self.info.shape} do not match the transport's "
+                             f"image shape {tuple(shape)}", self.path)
+
+    def __len__(self) -> int:
+        return self.info.frames or 0
+
+    def frames(self) -> Iterator[np.ndarray]:
+        """Yield each frame, shape (H, W), float32 in [0, 1]."""
+        import imageio_ffmpeg
+
+        H, W = self.info.shape
+        deep = self.info.bits == 16
+        dtype, top = (np.uint16, 65535.0) if deep else (np.uint8, 255.0)
+        gen = imageio_ffmpeg.read_frames(str(self.path), pix_fmt="gray16le" if deep else "gray",
+                                         bits_per_pixel=16 if deep else 8)
+        try:
+            next(gen)  # the metadata, read by probe_video
+            for raw in _checked(gen, self.path):
+                frame = np.frombuffer(raw, dtype).reshape(H, W)
+                yield frame.astype(np.float32) * np.float32(1.0 / top)
+        finally:
+            gen.close()
+
+
+def _checked(gen, path):
+    """The generator's items; its failures as one-line ImageErrors naming ``path``."""
+    while True:
+        try:
+            item = next(gen)
+        except StopIteration:
+            return
+        except Exception as exc:
+            raise ImageError(f"cannot read the video ({_reason(exc, path)})", path) from None
+        yield item
+
+
+class VideoSink:
+    """A video file written frame by frame, in place only once complete.
+
+    Use as a context manager; leaving it by an exception discards everything written.
+    The frames go to imageio-ffmpeg's ffmpeg on a pipe (a process of our own rather
+    than ``imageio_ffmpeg.write_frames``, which does not check ffmpeg's exit status: a
+    file ffmpeg could not finish must not be renamed into place).
+
+    Parameters
+    ----------
+    path : the output video (a suffix of :data:`VIDEO_SUFFIXES`).
+    shape : (H, W)
+    fps : float
+    bits : {8, 16}, 16 only for :data:`FFV1_SUFFIXES`.
+    """
+
+    def __init__(self, path: str | os.PathLike, shape: Sequence[int], fps: float,
+                 bits: int = 8):
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in VIDEO_SUFFIXES:
+            raise ImageError(f"the input is a video, so the output must be one too "
+                             f"({', '.join(VIDEO_SUFFIXES)}), not {suffix or 'no suffix'!r}",
+                             self.path)
+        if self.path.is_dir():
+            raise OutputError("is a folder; the output video is a file: choose a file name",
+                              self.path)
+        if bits not in (8, 16) or (bits == 16 and suffix not in FFV1_SUFFIXES):
+            raise ImageError(f"{bits}-bit video is written as {', '.join(FFV1_SUFFIXES)} "
+                             "(FFV1); .mp4/.mov hold 8 bits", self.path)
+        self.shape = tuple(int(s) for s in shape)
+        self.fps = float(fps)
+        self.bits = int(bits)
+        self.frames_written = 0
+        self._stack: contextlib.ExitStack | None = None
+        self._proc = None
+        self._log = None
+
+    def _command(self, tmp: Path) -> list[str]:
+        import imageio_ffmpeg
+
+        H, W = self.shape
+        fmt = "gray16le" if self.bits == 16 else "gray"
+        if self.path.suffix.lower() in FFV1_SUFFIXES:
+            codec = ["-c:v", "ffv1", "-pix_fmt", fmt]
+        else:  # qp 0: lossless H.264; gray in and out keeps the full range (no 16-235)
+            codec = ["-c:v", "libx264", "-qp", "0", "-preset", "ultrafast", "-pix_fmt", "gray"]
+        return [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "rawvideo",
+                "-pix_fmt", fmt, "-s", f"{W}x{H}", "-r", f"{self.fps:.6g}", "-i", "-", "-an",
+                *codec, str(tmp)]
+
+    def __enter__(self) -> "VideoSink":
+        import subprocess
+        import tempfile
+
+        self._stack = contextlib.ExitStack()
+        try:
+            tmp = self._stack.enter_context(atomic_output(self.path, "the video"))
+            self._log = self._stack.enter_context(tempfile.TemporaryFile())
+            self._proc = subprocess.Popen(self._command(tmp), stdin=subprocess.PIPE,
+                                          stdout=subprocess.DEVNULL, stderr=self._log)
+        except BaseException:
+            self._stack.__exit__(*sys.exc_info())
+            raise
+        return self
+
+    def write(self, frames: np.ndarray) -> None:
+        """Append frames, shape (K, H, W) or (H, W), values in [0, 1] (clipped and
+        rounded to the sink's bit depth)."""
+        frames = np.asarray(frames)
+        top = 65535 if self.bits == 16 else 255
+        dtype = np.uint16 if self.bits == 16 else np.uint8
+        for frame in frames.reshape(-1, *self.shape):
+            pixels = np.rint(np.clip(frame, 0.0, 1.0) * top).astype(dtype)
+            try:
+                self._proc.stdin.write(pixels.tobytes())
+            except OSError:  # ffmpeg is gone (a full disk, say): its words say why
+                self._proc.wait()
+                raise OutputError(f"cannot write the video ({self._ffmpeg_says()}); nothing "
+                                  "was replaced", self.path) from None
+            self.frames_written += 1
+
+    def _ffmpeg_says(self) -> str:
+        self._log.seek(0)
+        text = " ".join(self._log.read().decode("utf-8", "replace").split())
+        return (text or f"ffmpeg exit status {self._proc.returncode}")[-200:]
+
+    def _finish(self, failed: bool) -> None:
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        if failed:
+            proc.kill()
+            proc.wait()
+            return
+        with contextlib.suppress(OSError):
+            proc.stdin.close()
+        self._proc = proc
+        status = proc.wait()
+        if status != 0 or self.frames_written == 0:
+            why = self._ffmpeg_says() if self.frames_written else "no frames"
+            raise OutputError(f"cannot write the video ({why}); nothing was replaced",
+                              self.path)
+        self._proc = None
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        try:
+            self._finish(failed=exc_type is not None)
+        except BaseException:
+            self._stack.__exit__(*sys.exc_info())  # the temporary file goes
+            raise
+        return bool(self._stack.__exit__(exc_type, exc, tb))

@@ -1,0 +1,220 @@
+"""bigT compensate of videos and folders of frames (bigT.compensation.realtime/video):
+X in memory equals X streamed and the dense product; lossless video round trips; bad
+inputs are one line naming the file with nothing written."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bigT.cli import main
+from bigT.compensation.realtime import run_stream
+from bigT.compensation.video import VideoSink, VideoSource
+from bigT.images import read_image, write_image
+
+from comp_helpers import make_store, random_transport
+
+H, W = 12, 16
+K = 7  # frames: batches of 3 leave a short last one
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """X (tile-major, 3 tile rows) of a dense random transport, its row-major dense
+    copy, and K smooth moving frames in [0.15, 0.55]."""
+    d = tmp_path_factory.mktemp("video")
+    _, X, _, _ = random_transport(H, W, seed=5)
+    make_store(X, d / "X.zarr", image_shape=(H, W), tile_size=64, pixel_order="tile-major")
+    t = np.arange(K)[:, None, None]
+    y, x = np.mgrid[0:H, 0:W]
+    frames = 0.35 + 0.2 * np.sin(0.5 * x + 0.3 * y + 0.7 * t)
+    return d, X, frames
+
+
+def _expected(X, frames, clip=True):
+    out = np.einsum("ij,kj->ki", X, frames.reshape(len(frames), -1)).reshape(frames.shape)
+    return np.clip(out, 0, 1) if clip else out
+
+
+def _write_video(path, frames, bits=8):
+    with VideoSink(path, frames.shape[1:], 25, bits) as sink:
+        sink.write(frames)
+    top = 65535 if bits == 16 else 255
+    return np.rint(np.clip(frames, 0, 1) * top) / top  # what the video holds
+
+
+def _read_video(path):
+    return np.stack(list(VideoSource(path).frames())).astype(np.float64)
+
+
+def _run(argv, capsys):
+    rc = main(argv)
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def test_in_memory_equals_streamed_and_dense(scene, tmp_path, capsys):
+    d, X, frames = scene
+    for i, f in enumerate(frames):
+        write_image(tmp_path / "in" / f"f{i}.npy", f)
+    base = ["compensate", str(d / "X.zarr"), str(tmp_path / "in"), "--clip", "none",
+            "--no-progress", "--batch", "3"]
+    rc, out, err = _run(base + ["-o", str(tmp_path / "mem")], capsys)
+    assert rc == 0
+    assert "X held in memory" in err and "bytes) of X read per frame" in err
+    assert "latency per frame mean" in out and "X in memory" in out
+    rc, out, err = _run(base + ["-o", str(tmp_path / "disk"), "--stream"], capsys)
+    assert rc == 0 and "X streamed from disk" in err and "X streamed" in out
+    rc, _, err = _run(base + ["-o", str(tmp_path / "small"), "--memory-limit", "1KiB"], capsys)
+    assert rc == 0 and "over the memory limit of 0 MiB" in err  # streamed: does not fit
+    want = _expected(X, frames, clip=False)
+    for i in range(K):
+        mem = read_image(tmp_path / "mem" / f"f{i}.npy")
+        disk = read_image(tmp_path / "disk" / f"f{i}.npy")
+        np.testing.assert_allclose(mem, disk, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(mem, want[i], rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(read_image(tmp_path / "small" / f"f{i}.npy"), disk)
+
+
+@pytest.mark.parametrize("suffix, bits", [(".mkv", 8), (".mp4", 8), (".avi", 16)])
+def test_video_round_trip_is_lossless(scene, tmp_path, capsys, suffix, bits):
+    """FFV1 and H.264 at qp 0 keep every level: the output is clip(X l) rounded to the
+    video's levels, to half a level (plus float32 rounding)."""
+    d, X, frames = scene
+    held = _write_video(tmp_path / f"in{suffix}", frames, bits)
+    out = tmp_path / f"out{suffix}"
+    rc, text, err = _run(["compensate", str(d / "X.zarr"), str(tmp_path / f"in{suffix}"),
+                          "-o", str(out), "--batch", "3", "--no-progress"], capsys)
+    assert rc == 0, err
+    assert f"{K} frame(s) in" in text and f"wrote projector input -> {out}" in text
+    got = _read_video(out)
+    top = 65535 if bits == 16 else 255
+    assert got.shape == (K, H, W)
+    assert np.abs(got - _expected(X, held)).max() <= 0.5 / top + 1e-5
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no litter
+
+
+def test_serial_batch_one_and_float16_agree(scene, tmp_path, capsys):
+    d, X, frames = scene
+    _write_video(tmp_path / "in.mkv", frames, 16)
+    outs = {}
+    for name, extra in (("overlap", []), ("serial", ["--serial"]),
+                        ("f16", ["--precision", "float16"])):
+        out = tmp_path / f"{name}.mkv"
+        rc, text, _ = _run(["compensate", str(d / "X.zarr"), str(tmp_path / "in.mkv"), "-o",
+                            str(out), "--batch", "1", "--bits", "16", "--no-progress", *extra],
+                           capsys)
+        assert rc == 0
+        assert ("one batch at a time" in text) == (name == "serial")
+        outs[name] = _read_video(out)
+    np.testing.assert_array_equal(outs["overlap"], outs["serial"])
+    # binary16 values: 2^-11 of sum |X_ij| l_j, here < 1.6 levels of 65535
+    bound = 2.0 ** -11 * (np.abs(X) @ np.ones(H * W)).max() + 1.0 / 65535
+    assert np.abs(outs["f16"] - outs["overlap"]).max() <= bound
+
+
+def test_folder_to_video(scene, tmp_path, capsys):
+    d, X, frames = scene
+    for i, f in enumerate(frames):
+        write_image(tmp_path / "in" / f"f{i:02d}.png", f, bits=16)
+    rc, _, err = _run(["compensate", str(d / "X.zarr"), str(tmp_path / "in"), "-o",
+                       str(tmp_path / "out.mkv"), "--bits", "16", "--fps", "50",
+                       "--no-progress"], capsys)
+    assert rc == 0, err
+    assert VideoSource(tmp_path / "out.mkv").info.fps == 50
+    held = np.stack([read_image(tmp_path / "in" / f"f{i:02d}.png") for i in range(K)])
+    got = _read_video(tmp_path / "out.mkv")
+    assert np.abs(got - _expected(X, held)).max() <= 0.5 / 65535 + 1e-5
+
+
+def _refused(argv, capsys, name):
+    rc, _, err = _run(argv, capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert name in lines[0], lines[0]
+    return lines[0]
+
+
+def test_bad_videos_are_one_line_and_write_nothing(scene, tmp_path, capsys):
+    d, X, frames = scene
+    x = str(d / "X.zarr")
+    out = tmp_path / "out.mp4"
+    _write_video(tmp_path / "small.mkv", np.full((3, H - 2, W), 0.5))
+    line = _refused(["compensate", x, str(tmp_path / "small.mkv"), "-o", str(out)], capsys,
+                    "small.mkv")
+    assert "(10, 16) do not match the transport's image shape (12, 16)" in line
+    (tmp_path / "garbage.mp4").write_bytes(b"not a video at all" * 100)
+    line = _refused(["compensate", x, str(tmp_path / "garbage.mp4"), "-o", str(out)], capsys,
+                    "garbage.mp4")
+    assert "cannot read the video" in line
+    _refused(["compensate", x, str(tmp_path / "none.mp4"), "-o", str(out)], capsys, "none.mp4")
+    _write_video(tmp_path / "ok.mkv", frames)
+    line = _refused(["compensate", x, str(tmp_path / "ok.mkv"), "-o", str(tmp_path / "o.png")],
+                    capsys, "o.png")
+    assert "output must be one too" in line
+    _refused(["compensate", x, str(tmp_path / "ok.mkv"), "-o", str(tmp_path / "o.mp4"),
+              "--bits", "16"], capsys, "o.mp4")
+    _refused(["compensate", x, str(tmp_path / "ok.mkv"), "-o", str(out), "--simulate", x],
+             capsys, "ok.mkv")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(("out", "o.", "."))]
+
+
+def test_colour_video_refused(scene, tmp_path, capsys):
+    import imageio_ffmpeg
+
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[..., 0] = 200  # red
+    gen = imageio_ffmpeg.write_frames(str(tmp_path / "red.mkv"), (W, H), codec="ffv1",
+                                      pix_fmt_in="rgb24", pix_fmt_out="bgr0",
+                                      macro_block_size=1, ffmpeg_log_level="error")
+    gen.send(None)
+    gen.send(rgb.tobytes())
+    gen.close()
+    line = _refused(["compensate", str(scene[0] / "X.zarr"), str(tmp_path / "red.mkv"), "-o",
+                     str(tmp_path / "out.mkv")], capsys, "red.mkv")
+    assert "colour video" in line
+    assert not (tmp_path / "out.mkv").exists()
+
+
+def test_folder_with_one_bad_frame_writes_nothing(scene, tmp_path, capsys):
+    d, X, frames = scene
+    for i, f in enumerate(frames):
+        write_image(tmp_path / "in" / f"f{i}.png", f)
+    write_image(tmp_path / "in" / "f9.png", np.zeros((H, W + 1)))  # the last one
+    line = _refused(["compensate", str(d / "X.zarr"), str(tmp_path / "in"), "-o",
+                     str(tmp_path / "out")], capsys, "f9.png")
+    assert "does not match" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_failure_mid_stream_leaves_no_video(tmp_path):
+    """An error after some frames were encoded (here the third batch's) discards the
+    partial video: the destination keeps its old contents, no hidden file is left."""
+    dest = tmp_path / "out.mkv"
+    dest.write_bytes(b"old")
+    batches = ((i, np.full((1, H, W), 0.5, np.float32)) for i in range(5))
+
+    def compute(frames):
+        if compute.calls == 2:
+            raise RuntimeError("boom")
+        compute.calls += 1
+        return frames
+
+    compute.calls = 0
+    with pytest.raises(RuntimeError, match="boom"):
+        with VideoSink(dest, (H, W), 30) as sink:
+            run_stream(batches, compute, lambda names, out: sink.write(out), batch=1)
+    assert dest.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mkv"]
+
+
+@pytest.mark.parametrize("overlap", [True, False])
+def test_stream_report_counts_every_frame(overlap):
+    written = []
+    batches = (([i, i + 1], np.full((2, 2, 2), float(i))) for i in range(0, 6, 2))
+    rep = run_stream(batches, lambda f: f * 2, lambda n, f: written.extend(n), batch=2,
+                     overlap=overlap)
+    assert written == list(range(6)) and rep.frames == 6 and rep.latencies.shape == (6,)
+    lat = rep.latency_ms()
+    assert 0 <= lat["p50"] <= lat["p95"] <= lat["max"] and rep.frames_per_second > 0
+    assert "6 frame(s)" in rep.summary()
