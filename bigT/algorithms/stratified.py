@@ -60,8 +60,9 @@ of the columns of I - T X), which ``tol`` is compared with, and the absolute one
 T (X z) is computed as u - M u with u = F X z, the same T on the kept pixels.
 
 Divergence: before term 0, rho(M) is computed by :func:`bigT.spectral.spectral_radius`
-(Arnoldi, with the Ritz residual as its uncertainty) and the run is refused unless
-rho + uncertainty < 1. As a second line, the residuals are estimated with the same
+(a Collatz-Wielandt bracket where M = -|M|, as for any transport without negative
+entries; else Arnoldi, with the Ritz residual as its uncertainty) and the run is
+refused unless rho + uncertainty < 1. As a second line, the residuals are estimated with the same
 probes at every term, and a term whose residual grew and exceeds the smallest so far
 ``config.RESIDUAL_GROWTH`` (2) times is not published: the run stops with the last good
 term held. (Not any growth: with a non-normal M, rho < 1 <= ||M||, or at the pruning
@@ -504,7 +505,7 @@ class _Engine:
         # reads low on crowded spectra: estimated again
         if rec.spectral_radius is None or rec.spectral_uncertainty is None:
             rho = spectral_radius(self._apply_M, self.T.shape[0], self.fb.active,
-                                  seed=self.opts.seed)
+                                  seed=self.opts.seed, apply_abs=self._apply_abs_M)
             if rho.converged:  # else estimated anew on the next run
                 self._save(rec.replace(spectral_radius=rho.value,
                                        spectral_uncertainty=rho.uncertainty,
@@ -674,11 +675,15 @@ class _Engine:
 
     # --- mat-vecs -------------------------------------------------------------------
 
-    def _apply_M(self, V: np.ndarray) -> np.ndarray:
-        spec = matvec_spec("matvec-M", self.T_path, self.T.shape[0], self.tile_size,
-                           self.T.dtype, memory=self.policy, T=self.T_path,
-                           first_bounce=self.fb.digest, zero_diagonal=self.fb.zero_diagonal)
+    def _apply_M(self, V: np.ndarray, absolute: bool = False) -> np.ndarray:
+        spec = matvec_spec("matvec-absM" if absolute else "matvec-M", self.T_path,
+                           self.T.shape[0], self.tile_size, self.T.dtype, memory=self.policy,
+                           T=self.T_path, first_bounce=self.fb.digest,
+                           zero_diagonal=self.fb.zero_diagonal, absolute=absolute)
         return matvec(self.runner, spec, V, self.shared)
+
+    def _apply_abs_M(self, V: np.ndarray) -> np.ndarray:
+        return self._apply_M(V, absolute=True)
 
     def _apply_X(self, X, V: np.ndarray) -> np.ndarray:
         spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,

@@ -20,6 +20,11 @@ def m_matvec_task(ctx: TaskContext) -> BlockStats:
     return ctx.stats(y=y)
 
 
+def abs_m_matvec_task(ctx: TaskContext) -> BlockStats:
+    """Rows of |M| V (:meth:`~.operators.MOperand.abs_matvec_rows`)."""
+    return ctx.stats(y=ctx.M.abs_matvec_rows(ctx.start, ctx.stop, ctx.shared["V"]))
+
+
 def store_matvec_task(ctx: TaskContext) -> BlockStats:
     """Rows of A V for the pass's input ``A``, tile by tile through the tile cache (no
     tile row is assembled; each product touches only the rows of V under its tile)."""
@@ -43,13 +48,16 @@ def store_matvec_task(ctx: TaskContext) -> BlockStats:
 def matvec_spec(op: str, store_path: str, n: int, block_rows: int, dtype, *,
                 memory: MemoryPolicy | None = None, cache_bytes: int | None = None,
                 T: str | None = None, first_bounce: str = "",
-                zero_diagonal: bool = False, cache_tiles: bool = True) -> PassSpec:
-    """The spec of A V for the store at ``store_path`` (``T`` given: of M V).
-    ``cache_bytes`` 0 caches nothing and leaves the tile cache as it is."""
+                zero_diagonal: bool = False, cache_tiles: bool = True,
+                absolute: bool = False) -> PassSpec:
+    """The spec of A V for the store at ``store_path`` (``T`` given: of M V, or of
+    |M| V when ``absolute``). ``cache_bytes`` 0 caches nothing and leaves the tile
+    cache as it is."""
     if cache_bytes == 0:
         cache_bytes, cache_tiles = None, False
     return PassSpec(
-        op=op, term=0, task=m_matvec_task if T else store_matvec_task,
+        op=op, term=0,
+        task=(abs_m_matvec_task if absolute else m_matvec_task) if T else store_matvec_task,
         T=T or store_path, first_bounce=first_bounce, zero_diagonal=zero_diagonal, n=n,
         block_rows=block_rows, dtype=np.dtype(dtype).name,
         memory=memory or MemoryPolicy(None, 1, n, 0), inputs=(("A", store_path),),

@@ -177,6 +177,14 @@ class MOperand:
                   for i in range(a // ts, -(-b // ts)))
         return stored_bytes(int(nnz), b - a, self.dtype.itemsize)
 
+    def abs_matvec_rows(self, a: int, b: int, V) -> np.ndarray:
+        """Rows ``a:b`` of |M| @ V (the entries' magnitudes), V of shape (n, k)."""
+        M = self.rows(a, b)
+        out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
+        spmm_dense(sp.csr_array((np.abs(M.data), M.indices, M.indptr), shape=M.shape), V,
+                   out=out, n_threads=1)
+        return out
+
     def matvec_rows(self, a: int, b: int, V, minus_finv_v=None) -> np.ndarray:
         """Rows ``a:b`` of M @ V, V of shape (n, k).
 

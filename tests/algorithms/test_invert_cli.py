@@ -29,7 +29,7 @@ def test_invert_table_json_info_and_resume(tmp_path, make_store, capsys):
     assert "held term 2 (power, prune 0, first bounce diag)" in out
     report = json.loads(J.read_text())
     assert report["terms"] == 2 and len(report["history"]) == 3
-    assert [int(r[3]) for r in rows] == [h["nnz_X"] for h in report["history"]]
+    assert [int(r[4]) for r in rows] == [h["nnz_X"] for h in report["history"]]  # after "resid s"
     np.testing.assert_allclose(dense(X), dense_stratified(A, 2), atol=1e-10)
 
     assert main(["info", str(X)]) == 0
