@@ -37,6 +37,21 @@ SPECTRAL_RADIUS_NCV = 20
 SPECTRAL_RADIUS_RTOL = 1e-4
 #: and the operator products after which it gives up (an uncertain estimate).
 SPECTRAL_RADIUS_MAX_PRODUCTS = 600
+#: Where M = -|M| (a transport with no negative entry, F = diag T), the engine first
+#: brackets rho with Collatz-Wielandt bounds (bigT.spectral): at most this many
+#: products, stopping once the bracket's width is this fraction of its top,
+SPECTRAL_RADIUS_CW_MAX_PRODUCTS = 40
+SPECTRAL_RADIUS_CW_RTOL = 0.02
+#: A bracket wider than that is still taken when its top is under this (the series
+#: then at least halves its error per term: a few % on rho change nothing a user
+#: plans); else ARPACK refines it.
+SPECTRAL_RADIUS_CW_ACCEPT = 0.5
+#: the lower bound taken on the pixels whose power-iteration vector is at least this
+#: fraction of its largest entry (measured best on the corner scenes),
+SPECTRAL_RADIUS_CW_SUPPORT = 0.01
+#: and the iteration shifted by this fraction of the upper bound (v <- |M| v + s v keeps
+#: v > 0 and breaks the +-rho oscillation of two walls that only see each other).
+SPECTRAL_RADIUS_CW_SHIFT = 0.1
 #: A term whose residual estimate grew from the previous term's and exceeds the smallest
 #: one so far by this factor stops the run (the series diverges). Not any growth: a
 #: convergent series with a non-normal M (rho < 1 <= ||M||) or at its pruning floor may
