@@ -18,6 +18,7 @@ writing it (queueing included); :class:`StreamReport` keeps them all.
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
@@ -112,6 +113,7 @@ class Compensator:
         self.cache_bytes, self.runner = cache_bytes, runner
         self.report = CompensationReport(choice)
         self.matrix: ResidentMatrix | None = None
+        self.threads = max(1, int(config.KERNEL_THREADS or os.cpu_count() or 1))
         store = X if choice.path == "explicit" else T
         self.order = None
         limit = default_memory_limit() if memory_limit is None else int(memory_limit)
@@ -136,15 +138,20 @@ class Compensator:
                          f"fits the memory limit of {limit / MIB:.0f} MiB")
 
     def __call__(self, frames: np.ndarray) -> np.ndarray:
-        """(K, H, W) desired frames -> (K, H, W) float64 projector frames, clipped."""
+        """(K, H, W) desired frames -> (K, H, W) projector frames, clipped (float32
+        with X in memory, float64 streamed)."""
         if self.matrix is None:
             return compensate_frames(frames, X=self.X, T=self.T, choice=self.choice,
                                      clip=self.clip, report=self.report, progress=False,
                                      cache_bytes=self.cache_bytes, runner=self.runner)
         if self.order is None:
             self.order = pixel_order_of(self.X, frames.shape[1:])
-        B = frames_to_matrix(frames, self.order, np.float32)
-        out, below, above = matrix_to_frames(self.matrix.matmul(B), self.order, self.clip)
+        # float32 frames out: they are quantised to 8/16 bits or written as float32
+        threads = self.threads
+        B = frames_to_matrix(frames, self.order, np.float32, n_threads=threads)
+        out, below, above = matrix_to_frames(self.matrix.matmul(B, n_threads=threads),
+                                             self.order, self.clip, dtype=np.float32,
+                                             n_threads=threads)
         self.report.clipped_low += below
         self.report.clipped_high += above
         self.report.pixels += out.size
@@ -163,8 +170,14 @@ class StreamReport:
     batch : int, frames per batch asked for.
     seconds : float, wall time from the first read to the last write.
     compute_seconds : float, time in the compensator (products and pixel reordering).
-    latencies : ndarray, shape (frames,), seconds from reading each frame's batch to
-        writing it.
+    latencies : ndarray, shape (frames,), seconds from the start of reading each
+        frame's batch to the end of writing it, waits in the queues included (a file
+        is read as fast as the reader can: with ``overlap`` frames wait for the
+        products).
+    service : ndarray, shape (frames,), seconds of reading + compensating + writing
+        each frame's batch, without the waits: the latency of a stream paced slower
+        than the pipeline (a live source). Equal to ``latencies`` without ``overlap``
+        but for the time between the stages.
     overlap : bool, reading and writing ran beside the products.
     """
 
@@ -173,18 +186,19 @@ class StreamReport:
     seconds: float
     compute_seconds: float
     latencies: np.ndarray = field(repr=False)
+    service: np.ndarray = field(repr=False)
     overlap: bool
 
     @property
     def frames_per_second(self) -> float:
         return self.frames / self.seconds if self.seconds > 0 else float("inf")
 
-    def latency_ms(self) -> dict:
-        """{"mean", "p50", "p95", "max"} of the latencies in milliseconds (NaN without
-        frames)."""
+    def latency_ms(self, which: str = "latencies") -> dict:
+        """{"mean", "p50", "p95", "max"} in milliseconds of ``which`` ("latencies" or
+        "service"); NaN without frames."""
         if not self.frames:
             return dict.fromkeys(("mean", "p50", "p95", "max"), float("nan"))
-        ms = 1e3 * self.latencies
+        ms = 1e3 * getattr(self, which)
         return {"mean": float(ms.mean()), "p50": float(np.percentile(ms, 50)),
                 "p95": float(np.percentile(ms, 95)), "max": float(ms.max())}
 
@@ -195,6 +209,10 @@ class StreamReport:
         text = (f"{self.frames} frame(s) in {self.seconds:.2f} s: {self.frames_per_second:.1f} "
                 f"frames/s at batch {self.batch} ({mode}); latency per frame mean "
                 f"{lat['mean']:.1f} ms, p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms")
+        if self.overlap:
+            own = self.latency_ms("service")
+            text += (f" (read + compensate + write without queueing: p50 {own['p50']:.1f} ms, "
+                     f"p95 {own['p95']:.1f} ms)")
         if residency is not None:
             per_frame = residency.bytes_per_pass / max(1, min(self.batch, self.frames or 1))
             where = (f"X in memory ({residency.bytes_per_pass / MIB:.0f} MiB, "
@@ -273,18 +291,23 @@ def run_stream(batches: Iterable[tuple[Sequence, np.ndarray]],
     StreamReport
     """
     latencies: list[float] = []
+    service: list[float] = []
     compute_time = [0.0]
 
-    def timed_compute(frames):
+    def timed_compute(stamp, frames):
         t = time.perf_counter()
         out = compute(frames)
-        compute_time[0] += time.perf_counter() - t
-        return out
+        dt = time.perf_counter() - t
+        compute_time[0] += dt
+        return (*stamp, dt), out
 
-    def finish(t_read, names, out):
+    def finish(stamp, names, out):
+        t = time.perf_counter()
         write(names, out)
         done = time.perf_counter()
+        t_read, read_s, compute_s = stamp
         latencies.extend([done - t_read] * len(out))
+        service.extend([read_s + compute_s + done - t] * len(out))
         if on_batch is not None:
             on_batch(len(out))
 
@@ -300,10 +323,11 @@ def run_stream(batches: Iterable[tuple[Sequence, np.ndarray]],
             if item is _END:
                 break
             names, frames = item
-            finish(t_read, names, timed_compute(frames))
+            stamp, out = timed_compute((t_read, time.perf_counter() - t_read), frames)
+            finish(stamp, names, out)
     seconds = time.perf_counter() - t0
     return StreamReport(len(latencies), int(batch), seconds, compute_time[0],
-                        np.asarray(latencies), overlap)
+                        np.asarray(latencies), np.asarray(service), overlap)
 
 
 def _overlapped(it: Iterator, compute, finish, depth: int) -> None:
@@ -319,7 +343,7 @@ def _overlapped(it: Iterator, compute, finish, depth: int) -> None:
                 item = next(it, _END)
                 if item is _END:
                     break
-                stages.put(inbox, (t_read, item))
+                stages.put(inbox, ((t_read, time.perf_counter() - t_read), item))
             stages.put(inbox, _END)
         except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
             stages.fail(exc)
@@ -344,8 +368,9 @@ def _overlapped(it: Iterator, compute, finish, depth: int) -> None:
             if item is _END:
                 stages.put(outbox, _END)
                 break
-            t_read, (names, frames) = item
-            stages.put(outbox, (t_read, names, compute(frames)))
+            stamp, (names, frames) = item
+            stamp, out = compute(stamp, frames)
+            stages.put(outbox, (stamp, names, out))
     except BaseException as exc:  # noqa: BLE001
         stages.fail(exc)
     finally:

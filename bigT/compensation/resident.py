@@ -289,7 +289,9 @@ def _threads(n_threads):
     return max(1, int(n_threads or config.KERNEL_THREADS or os.cpu_count() or 1))
 
 
-def _pool(n: int) -> ThreadPoolExecutor:
+def thread_pool(n: int) -> ThreadPoolExecutor:
+    """The shared pool of the resident products (and the pixel reordering), with at
+    least ``n`` threads."""
     global _POOL
     with _POOL_LOCK:
         if _POOL is None or _POOL._max_workers < n:  # noqa: SLF001 - grow, never shrink
@@ -347,6 +349,6 @@ def _run_kernel(R, V, out, threads):
     if len(ranges) == 1:
         kernel(*args, 0, R.shape[0])
         return
-    futures = [_pool(threads).submit(kernel, *args, a, b) for a, b in ranges]
+    futures = [thread_pool(threads).submit(kernel, *args, a, b) for a, b in ranges]
     for f in futures:
         f.result()

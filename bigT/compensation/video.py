@@ -256,13 +256,15 @@ class VideoSink:
     def write(self, frames: np.ndarray) -> None:
         """Append frames, shape (K, H, W) or (H, W), values in [0, 1] (clipped and
         rounded to the sink's bit depth)."""
-        frames = np.asarray(frames)
         top = 65535 if self.bits == 16 else 255
         dtype = np.uint16 if self.bits == 16 else np.uint8
-        for frame in frames.reshape(-1, *self.shape):
-            pixels = np.rint(np.clip(frame, 0.0, 1.0) * top).astype(dtype)
+        # one pass of float32 arithmetic over the batch (float32 keeps 65535 levels)
+        scaled = np.clip(np.asarray(frames, np.float32).reshape(-1, *self.shape), 0.0, 1.0)
+        scaled *= np.float32(top)
+        pixels = np.rint(scaled, out=scaled).astype(dtype)
+        for frame in pixels:
             try:
-                self._proc.stdin.write(pixels.tobytes())
+                self._proc.stdin.write(frame.tobytes())
             except OSError:  # ffmpeg is gone (a full disk, say): its words say why
                 self._proc.wait()
                 raise OutputError(f"cannot write the video ({self._ffmpeg_says()}); nothing "

@@ -218,3 +218,21 @@ def test_stream_report_counts_every_frame(overlap):
     lat = rep.latency_ms()
     assert 0 <= lat["p50"] <= lat["p95"] <= lat["max"] and rep.frames_per_second > 0
     assert "6 frame(s)" in rep.summary()
+    assert rep.service.shape == (6,) and np.all(rep.service <= rep.latencies)
+
+
+@pytest.mark.parametrize("clip", [(0, 1), None])
+def test_pixel_reordering_on_threads_matches_one_thread(clip):
+    from bigT.compensation._pixels import frames_to_matrix, matrix_to_frames
+    from bigT.storage.pixel_order import PixelOrder
+
+    order = PixelOrder((96, 128), "tile-major")
+    frames = np.random.default_rng(0).uniform(-0.2, 1.2, (3, 96, 128))
+    one = frames_to_matrix(frames, order, np.float32)
+    two = frames_to_matrix(frames, order, np.float32, n_threads=2)
+    np.testing.assert_array_equal(one, two)
+    np.testing.assert_array_equal(one, order.to_matrix(frames).reshape(order.n, 3).astype(np.float32))
+    back1 = matrix_to_frames(one, order, clip)
+    back2 = matrix_to_frames(one, order, clip, dtype=np.float32, n_threads=2)
+    np.testing.assert_array_equal(back1[0].astype(np.float32), back2[0])
+    assert back1[1:] == back2[1:] and (clip is None) == (back1[1] + back1[2] == 0)

@@ -1,0 +1,247 @@
+"""Real-time compensation of a video (issue #15 item 3), reported, never asserted.
+
+A synthetic video (moving pattern, 8-bit lossless H.264 ``.mp4``) of the scene's size
+is compensated through the code path of ``bigT compensate X.zarr in.mp4 -o out.mp4``
+(:class:`bigT.compensation.realtime.Compensator`, :func:`run_stream`, the video source
+and sink: frames decoded and encoded by ffmpeg, images in and out included) at batch 1
+and batch 64, with X held in memory in float32 and float16 and streamed from disk (and
+once with FFV1 ``.mkv`` in and out, a slower codec).
+
+For each run: frames/s, latency per frame (read start -> written, queueing included;
+mean, p50, p95; and read + compensate + write without the queues, the latency of a
+live source paced slower than the pipeline), the
+MB of X read per frame (the arrays one pass reads, divided by the batch), the effective
+bandwidth (MB per frame x frames/s), the error of the projector frames against the
+float32 in-memory run (before 8-bit quantisation), and the load average (the machine
+is shared: numbers under load are marked). Kernel-only rows time the products alone,
+and a memory copy gives the machine's bandwidth for reference.
+
+Run:  .venv/bin/python benchmarks/bench_video.py --T /tmp/bench/dense384.zarr \\
+          --X /tmp/bench/X384.zarr            # the dense 384x512 corner's 4-term X
+      .venv/bin/python benchmarks/bench_video.py --quick   # builds a 96x128 corner
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import bigT  # noqa: E402
+from bigT.compensation._stream import cache_budget  # noqa: E402
+from bigT.compensation.core import choose_path  # noqa: E402
+from bigT.compensation.realtime import Compensator, run_stream, video_batches  # noqa: E402
+from bigT.compensation.video import VideoSink, VideoSource  # noqa: E402
+
+
+def _size(text):
+    h, w = text.lower().split("x")
+    return int(h), int(w)
+
+
+def build_small(out: Path, size, terms=4, prune=1e-5):
+    """A dense corner of ``size`` and its ``terms``-term inverse under ``out``."""
+    import bigT.scenes as scenes
+
+    T_path, X_path = out / f"corner_{size[0]}x{size[1]}.zarr", out / f"X_{size[0]}x{size[1]}.zarr"
+    if not X_path.exists():
+        scenes.corner(size=size, path=str(T_path), density="dense", overwrite=True,
+                      preview=False, progress=False)
+        bigT.stratified_inverse(str(T_path), str(X_path), terms=terms, prune=prune,
+                                progress=False, overwrite=True)
+    return T_path, X_path
+
+
+def make_video(path: Path, shape, frames: int, fps: float = 60.0) -> None:
+    """A moving pattern (a drifting sinusoid and a travelling bright bar) in [0.15, 0.6],
+    8-bit, streamed to ffmpeg frame by frame (the codec follows the suffix)."""
+    H, W = shape
+    y, x = np.mgrid[0:H, 0:W].astype(np.float32)
+    with VideoSink(path, shape, fps, 8) as sink:
+        for t in range(frames):
+            wave = 0.3 + 0.15 * np.sin(2 * np.pi * (x / 64 + y / 96 - t / 60))
+            bar = 0.15 * (np.abs(((x - 4 * t) % W) - W / 2) < W / 16)
+            sink.write((wave + bar)[None])
+
+
+@dataclass(frozen=True)
+class Row:
+    mode: str
+    precision: str
+    batch: int
+    frames: int
+    fps: float
+    mean: float
+    p50: float
+    p95: float
+    own50: float
+    own95: float
+    mb_per_frame: float
+    gbps: float
+    err: str
+    load: str
+
+
+def _load() -> str:
+    return "/".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+def run_video(X, video: Path, out: Path, *, batch: int, precision: str, stream: bool,
+              max_frames: int | None, ref: list | None, keep: list | None, serial=False):
+    # the output's suffix is the input's: the codec (and its cost) follows it
+    """One compensation of ``video`` through the CLI's pipeline; returns a Row."""
+    load0 = _load()
+    choice = choose_path(X, None, None, "explicit")
+    comp = Compensator(X, None, choice, (0, 1), precision=precision, resident=not stream,
+                       cache_bytes=cache_budget(None))  # the CLI's tile cache when streamed
+    source = VideoSource(video, X.pixel_order.image_shape)
+    errs = []
+
+    def batches():
+        n = 0
+        for names, frames in video_batches(source, batch):
+            if max_frames is not None and n >= max_frames:
+                return
+            n += len(frames)
+            yield names, frames
+
+    with VideoSink(out, source.info.shape, source.info.fps, 8) as sink:
+        def write(names, frames):
+            sink.write(frames)
+            for i, f in zip(names, frames):
+                if keep is not None:
+                    keep.append(f.astype(np.float32))
+                elif ref is not None and i < len(ref):
+                    errs.append(float(np.abs(f - ref[i]).max()))
+
+        rep = run_stream(batches(), comp, write, batch=batch, overlap=not serial)
+    lat, own = rep.latency_ms(), rep.latency_ms("service")
+    per = comp.residency.bytes_per_pass / min(batch, rep.frames)
+    mode = (("in memory" if comp.residency.resident else "streamed")
+            + (", serial" if serial else "") + f", {video.suffix[1:]}")
+    err = "reference" if keep is not None else (
+        f"{max(errs):.2e} ({max(errs) * 255:.2f}/255)" if errs else "n/a")
+    return Row(mode, comp.residency.precision, batch, rep.frames, rep.frames_per_second,
+               lat["mean"], lat["p50"], lat["p95"], own["p50"], own["p95"], per / 1e6,
+               per * rep.frames_per_second / 1e9, err, f"{load0} -> {_load()}")
+
+
+def kernel_rows(X, precisions, repeats=20):
+    """Products alone (no I/O, no pixel reordering): ms per frame at batch 1 and 64."""
+    from bigT.compensation.resident import load_resident
+
+    rows = []
+    n = X.shape[1]
+    rng = np.random.default_rng(0)
+    for prec in precisions:
+        R = load_resident(X, prec)
+        for k in (1, 64):
+            V = rng.uniform(0, 1, (n, k)).astype(np.float32)
+            R.matmul(V)  # compiled / warm
+            ts = []
+            for _ in range(repeats if k == 1 else max(3, repeats // 5)):
+                t = time.perf_counter()
+                R.matmul(V)
+                ts.append(time.perf_counter() - t)
+            med = float(np.median(ts))
+            rows.append((prec, k, 1e3 * med / k, k / med, R.nbytes / k / 1e6,
+                         R.nbytes / med / 1e9, _load()))
+    return rows
+
+
+def copy_bandwidth(mb=512, repeats=5) -> float:
+    """GB/s of a large numpy copy (read + write counted): the machine's memory speed."""
+    a = np.ones(mb * (1 << 20) // 8)
+    b = np.empty_like(a)
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        np.copyto(b, a)
+        ts.append(time.perf_counter() - t)
+    return 2 * a.nbytes / min(ts) / 1e9
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--T", help="transport store (only for its size; default: build one)")
+    ap.add_argument("--X", help="inverse store (default: build a 4-term one)")
+    ap.add_argument("--quick", action="store_true", help="96x128 scene, 120 frames")
+    ap.add_argument("--size", default="384x512", help="scene built when no --X (HxW)")
+    ap.add_argument("--frames", type=int, default=None, help="frames of the video (240)")
+    ap.add_argument("--streamed-frames", type=int, default=64,
+                    help="frames compensated with X streamed (it is slow)")
+    ap.add_argument("--out", default="bench-out/video", help="where built stores go")
+    args = ap.parse_args()
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.X is None:
+        size = (96, 128) if args.quick else _size(args.size)
+        _, x_path = build_small(out, size)
+    else:
+        x_path = Path(args.X)
+    X = bigT.open(x_path)
+    shape = X.pixel_order.image_shape
+    frames = args.frames or (120 if args.quick else 240)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_video_"))
+    try:
+        t = time.perf_counter()
+        make_video(tmp / "in.mp4", shape, frames)
+        make_video(tmp / "in.mkv", shape, frames)
+        print(f"# video: {frames} frames {shape[0]}x{shape[1]}, 8-bit, .mp4 (H.264 qp 0) and "
+              f".mkv (FFV1), written in "
+              f"{time.perf_counter() - t:.1f} s; X {x_path}: nnz {X.nnz:,} "
+              f"({X.nnz / X.shape[0]:.0f}/row); {os.cpu_count()} cores; memory copy "
+              f"{copy_bandwidth():.1f} GB/s", flush=True)
+        # warm-up: compile (or load) the kernels and fill the page cache
+        run_video(X, tmp / "in.mp4", tmp / "w.mp4", batch=1, precision="float32",
+                  stream=False, max_frames=4, ref=None, keep=None)
+        run_video(X, tmp / "in.mp4", tmp / "w.mp4", batch=4, precision="float16",
+                  stream=False, max_frames=8, ref=None, keep=None)
+        ref: list = []
+        rows = [run_video(X, tmp / "in.mp4", tmp / "o.mp4", batch=1, precision="float32",
+                          stream=False, max_frames=None, ref=None, keep=ref)]
+        plan = [(1, "float32", False, None, True, "mp4"), (1, "float16", False, None, False, "mp4"),
+                (64, "float32", False, None, False, "mp4"),
+                (64, "float16", False, None, False, "mp4"),
+                (1, "float32", False, None, False, "mkv"),
+                (64, "float32", False, None, False, "mkv"),
+                (1, "float32", True, args.streamed_frames, False, "mp4"),
+                (64, "float32", True, max(args.streamed_frames, 64), False, "mp4")]
+        for batch, prec, stream, limit, serial, ext in plan:
+            rows.append(run_video(X, tmp / f"in.{ext}", tmp / f"o.{ext}", batch=batch,
+                                  precision=prec, stream=stream, max_frames=limit, ref=ref,
+                                  keep=None, serial=serial))
+            print(f"  done: {rows[-1]}", file=sys.stderr, flush=True)
+        print()
+        print("| mode | precision | batch | frames | frames/s | latency mean / p50 / p95 ms "
+              "| without queueing p50 / p95 ms | MB of X per frame | effective GB/s "
+              "| max error vs float32 | load 1/5/15 min |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r.mode} | {r.precision} | {r.batch} | {r.frames} | {r.fps:.1f} | "
+                  f"{r.mean:.1f} / {r.p50:.1f} / {r.p95:.1f} | {r.own50:.1f} / {r.own95:.1f} | "
+                  f"{r.mb_per_frame:.1f} | "
+                  f"{r.gbps:.2f} | {r.err} | {r.load} |")
+        print()
+        print("Products alone (X in memory, no I/O):")
+        print()
+        print("| precision | batch | ms per frame | frames/s | MB of X per frame | GB/s | load |")
+        print("|---|---|---|---|---|---|---|")
+        for prec, k, ms, fps, mb, gbps, load in kernel_rows(X, ("float32", "float16")):
+            print(f"| {prec} | {k} | {ms:.2f} | {fps:.0f} | {mb:.1f} | {gbps:.2f} | {load} |")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
