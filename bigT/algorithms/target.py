@@ -361,12 +361,14 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     """
     from .stratified import stratified_inverse
 
-    measured, report, term = [], None, 0
+    # term 0 (F^-1, nothing pruned) has the error ||M d|| / ||d|| already known, so the
+    # first call goes to term 1: one call and one measurement fewer
+    measured, report, term = [], None, min(1, cap)
     while True:
         report = stratified_inverse(
             T, out, terms=term, prune=prune, method=method, first_bounce=ctx.first_bounce,
             memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
-            progress=ctx.progress, seed=ctx.seed, overwrite=overwrite and term == 0)
+            progress=ctx.progress, seed=ctx.seed, overwrite=overwrite and not measured)
         held = report.terms
         if held < term or "exhausted" in report.stopped:
             held = min(held, term)
