@@ -184,5 +184,6 @@ COMPENSATE_RESIDENT_FRACTION = 0.5
 #: The budget where the available memory cannot be read.
 COMPENSATE_RESIDENT_FALLBACK_BYTES = 1 << 30
 #: Batches decoded ahead of the one being compensated, and written behind it, by the
-#: reader and writer threads of a frame stream.
-COMPENSATE_QUEUE_DEPTH = 2
+#: reader and writer threads of a frame stream. One keeps the reader busy while the
+#: products run; more only makes frames of a file wait longer (latency), not faster.
+COMPENSATE_QUEUE_DEPTH = 1

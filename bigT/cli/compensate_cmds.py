@@ -29,9 +29,11 @@ MAX_BOUNCES = 64
 def register(sub) -> None:
     p = sub.add_parser(
         "compensate", help="projector inputs that make the camera see the desired images",
-        description="l_in = clip(X l_desired) (paper eqs. 44-45), X streamed from disk one "
-        "tile row at a time against batches of frames; or the same polynomial applied "
-        "matrix-free with T (--path matrix-free / auto).")
+        description="l_in = clip(X l_desired) (paper eqs. 44-45) for an image, a folder of "
+        "frames or a video, batch by batch: X held in memory when it fits --memory-limit, "
+        "else streamed from disk one tile row at a time against each batch; or the same "
+        "polynomial applied matrix-free with T (--path matrix-free / auto). Reports "
+        "frames/s and the latency per frame.")
     p.add_argument("X", help="inverse store (X.zarr); '-' for none (matrix-free path only)")
     p.add_argument("desired", help="desired camera image (png/tif/npy), a folder of frames, "
                    "or a video (mp4/mov/m4v/mkv/avi, read frame by frame)")
@@ -286,7 +288,8 @@ def _run_stream(args, X, Tm, choice, shape) -> int:
     out_path = Path(args.output)
     video_out = video_in or (source.is_folder and is_video_file(out_path))
     frames_total = len(source) or None
-    print(f"bigT compensate: {frames_total or 'the'} frame(s) from {args.desired}"
+    count = (f"~{frames_total}" if video_in else frames_total) if frames_total else "the"
+    print(f"bigT compensate: {count} frame(s) from {args.desired}"
           + (f", image {shape[0]}x{shape[1]}" if shape else "")
           + (f", video {source.info.codec} {source.info.pix_fmt} at {source.info.fps:g} "
              "frames/s" if video_in else ""))
