@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..schedule import blocks
-from ..schedule._backend import prune, scale_rows
+from ..schedule._backend import prune, scale_rows, spmm_dense
 from ..schedule.worker import TaskContext
 
 
@@ -91,7 +91,21 @@ def power_task(ctx: TaskContext):
     ctx.write("X", X)
     carried = "P" in dict(ctx.spec.inputs) and computed == 0
     return ctx.stats(nnz_P=P.nnz, nnz_X=X.nnz, computed=computed, skipped=skipped,
-                     row_skipped=carried)
+                     row_skipped=carried, y=_probed(ctx, Q))
+
+
+def _probed(ctx: TaskContext, Q: sp.csr_array):
+    """The block's rows of (X_k - X_{k-1}) Z = F^-1 Q_k Z for the engine's residual
+    probes Z (shared as ``"Z"``): with them the engine updates X Z without reading X
+    back. None when the pass shares no probes."""
+    Z = ctx.shared.get("Z")
+    if Z is None:
+        return None
+    out = np.zeros((ctx.stop - ctx.start, Z.shape[1]), np.float64)
+    if Q.nnz:
+        spmm_dense(Q, Z, out=out, n_threads=1)
+        out *= ctx.finv[ctx.start:ctx.stop, None]
+    return out
 
 
 def horner_task(ctx: TaskContext):

@@ -267,17 +267,25 @@ def choose_tile_size(n: int, tile_size: int, threads: int) -> int:
 
 # --- the estimates -----------------------------------------------------------------------
 
+def residual_probes(fb: FirstBounce, probes=None, seed=0) -> np.ndarray:
+    """The Rademacher probes Z of :func:`estimate_residual`, shape (n, p): +-1 on the
+    kept pixels, 0 elsewhere; the same for the same ``seed``."""
+    p = probes or config.RESIDUAL_PROBES
+    rng = np.random.default_rng(seed + 7919)
+    return rng.choice(np.array([-1.0, 1.0]), size=(len(fb.active), p)) * fb.active[:, None]
+
+
 def estimate_residual(apply_M, apply_X, fb: FirstBounce, probes=None,
                       seed=0) -> tuple[float, float]:
     """(relative, absolute) estimate of ||I - T X||_F from Rademacher probes (module
-    docstring); ``apply_M``/``apply_X`` multiply (n, p) blocks. Relative is absolute /
-    sqrt(number of kept pixels)."""
-    p = probes or config.RESIDUAL_PROBES
+    docstring); ``apply_M``/``apply_X`` multiply (n, p) blocks (``apply_X`` is called
+    once, with :func:`residual_probes` of the same ``probes`` and ``seed``). Relative
+    is absolute / sqrt(number of kept pixels)."""
     n_act = int(fb.active.sum())
     if n_act == 0:
         return 0.0, 0.0
-    rng = np.random.default_rng(seed + 7919)
-    Z = rng.choice(np.array([-1.0, 1.0]), size=(len(fb.active), p)) * fb.active[:, None]
+    Z = residual_probes(fb, probes, seed)
+    p = Z.shape[1]
     U = apply_X(Z) * fb.f[:, None]
     R = Z - (U - apply_M(U))  # T (X z) = u - M u with u = F X z, on the kept pixels
     abs_ = math.sqrt(float(np.sum(R * R)) / p)
@@ -471,6 +479,9 @@ class _Engine:
         self.shared = {"finv": self.fb.finv, "f": self.fb.f, "active": self.fb.active}
         self.products = 0
         self.timing = _PassTiming()
+        # the residual probes and X Z for the term held (None: unknown, X is read)
+        self.probes = residual_probes(self.fb, seed=opts.seed)
+        self.XZ: np.ndarray | None = None
 
     def _save(self, record) -> None:
         self.store.save(record)
@@ -552,7 +563,7 @@ class _Engine:
         self.store.clean(keep={0})
         t0 = time.perf_counter()
         stats = self._run_pass(TERM_ZERO, 0)
-        self._finish_term(0, stats, t0)
+        self._finish_term(0, stats, t0, XZ=self.fb.finv[:, None] * self.probes)
 
     def _next_term(self) -> str | None:
         """Compute the term after the one held and publish it; a reason when the series
@@ -569,11 +580,23 @@ class _Engine:
                 self._save(self.record.replace(term=self.opts.terms, exhausted_at=held))
                 return reason
             stats += self._run_pass(p, k)
-        self._finish_term(k, stats, t0)
+        self._finish_term(k, stats, t0, XZ=self._updated_XZ(stats))
         # the caches let go of the held term first: their open stores hold its lease
         self.runner.end_pass(None, forget=(str(self.store.path / term_dir(held)),))
         self.store.drop_term(held)
         return None
+
+    def _updated_XZ(self, stats: list[BlockStats]) -> np.ndarray | None:
+        """X_k Z from X_{k-1} Z and every row block's (X_k - X_{k-1}) Z, when the
+        term's tasks all reported theirs (the power form's do); else None."""
+        n_blocks = -(-self.T.shape[0] // self.tile_size)
+        if self.XZ is None or len(stats) != n_blocks or any(s.y is None for s in stats):
+            return None
+        XZ = self.XZ.copy()
+        for s in stats:
+            start = s.index * self.tile_size
+            XZ[start:start + s.y.shape[0]] += s.y
+        return XZ
 
     def _exhausted(self, p: Pass, held: int) -> str | None:
         for _alias, name, term in p.inputs:
@@ -598,8 +621,8 @@ class _Engine:
             spec = self._spec(p, k, paths)
             try:
                 stats = self.runner.map(spec, row_blocks(self.T.shape[0], self.tile_size, todo),
-                                        self.shared, progress=self.opts.progress,
-                                        desc=f"term {k} {p.op}")
+                                        {**self.shared, "Z": self.probes},
+                                        progress=self.opts.progress, desc=f"term {k} {p.op}")
             finally:
                 self.runner.end_pass(spec.pass_id)
             self.timing.add(time.perf_counter() - t0, stats, self.runner.threads)
@@ -631,13 +654,22 @@ class _Engine:
                 "first_bounce": self.fb.kind, "spectral_radius": self.record.spectral_radius,
                 "excluded_pixels": self.fb.excluded}
 
-    def _finish_term(self, k: int, stats: list[BlockStats], t0: float) -> None:
-        """Estimate term k's residual, then publish it (redirect and record)."""
+    def _finish_term(self, k: int, stats: list[BlockStats], t0: float,
+                     XZ: np.ndarray | None = None) -> None:
+        """Estimate term k's residual, then publish it (redirect and record). ``XZ``
+        is X_k Z for the probes when known; else X_k is read to compute it."""
         X = open_store(self.store.term_path(k, "X"))
         t_res = time.perf_counter()
+
+        def apply_X(Z: np.ndarray) -> np.ndarray:
+            nonlocal XZ
+            if XZ is None:
+                XZ = self._apply_X(X, Z)
+            return XZ
+
         # the same probes at every term, so that two terms' residuals compare exactly
-        res_rel, res_abs = estimate_residual(self._apply_M, lambda V: self._apply_X(X, V),
-                                             self.fb, seed=self.opts.seed)
+        res_rel, res_abs = estimate_residual(self._apply_M, apply_X, self.fb,
+                                             seed=self.opts.seed)
         self._check_residual_falls(k, res_rel)
         now = time.perf_counter()
         rec = TermRecord(
@@ -656,6 +688,7 @@ class _Engine:
                 "residual_abs": res_abs, "record": rec.to_dict()}
         self.store.publish(record, X, meta)
         self.record = record
+        self.XZ = XZ
 
     def _check_residual_falls(self, k: int, residual: float) -> None:
         """Refuse term k (unless forced) when its residual grew from the held term's and

@@ -107,3 +107,27 @@ def test_a_record_from_before_the_counts_reads_zero():
     assert TermRecord.from_dict(rec.to_dict()) == rec
     with pytest.raises(TypeError):
         TermRecord.from_dict({**old, "multiply_adds": 1.5})
+
+
+def test_residual_from_the_probes_carried_term_to_term_equals_reading_x(
+        tmp_path, make_store, monkeypatch):
+    """The power form's tasks report (X_k - X_{k-1}) Z, so the engine estimates the
+    residual without reading X back: the same estimate as from X read (to float32
+    rounding of the stored X)."""
+    from bigT.algorithms import stratified
+
+    A = random_dominant(96, seed=9, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=32, dtype="float32")
+    carried = bigT.stratified_inverse(T, tmp_path / "a.zarr", terms=4, prune=1e-6,
+                                      prune_feed=1e-4, progress=False)
+    read = []
+    monkeypatch.setattr(stratified._Engine, "_updated_XZ", lambda self, stats: None)
+    monkeypatch.setattr(stratified._Engine, "_apply_X",
+                        lambda self, X, V: read.append(X.path) or X.to_scipy() @ V)
+    reread = bigT.stratified_inverse(T, tmp_path / "b.zarr", terms=4, prune=1e-6,
+                                     prune_feed=1e-4, progress=False)
+    assert len(read) == 4  # terms 1-4 read X; term 0's X Z = F^-1 Z is known
+    got = [h.residual for h in carried.history]
+    want = [h.residual for h in reread.history]
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert got[-1] < got[0]
