@@ -40,7 +40,7 @@ SPECTRAL_RADIUS_MAX_PRODUCTS = 600
 #: Where M = -|M| (a transport with no negative entry, F = diag T), the engine first
 #: brackets rho with Collatz-Wielandt bounds (bigT.spectral): at most this many
 #: products, stopping once the bracket's width is this fraction of its top,
-SPECTRAL_RADIUS_CW_MAX_PRODUCTS = 40
+SPECTRAL_RADIUS_CW_MAX_PRODUCTS = 24
 SPECTRAL_RADIUS_CW_RTOL = 0.02
 #: A bracket wider than that is still taken when its top is under this (the series
 #: then at least halves its error per term: a few % on rho change nothing a user
