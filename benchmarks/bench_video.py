@@ -172,7 +172,8 @@ def copy_bandwidth(mb=512, repeats=5) -> float:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--T", help="transport store (only for its size; default: build one)")
+    ap.add_argument("--T", help="X's transport store (named in the header, its shape checked; "
+                    "default: the one built with X)")
     ap.add_argument("--X", help="inverse store (default: build a 4-term one)")
     ap.add_argument("--quick", action="store_true", help="96x128 scene, 120 frames")
     ap.add_argument("--size", default="384x512", help="scene built when no --X (HxW)")
@@ -186,11 +187,17 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     if args.X is None:
         size = (96, 128) if args.quick else _size(args.size)
-        _, x_path = build_small(out, size)
+        t_path, x_path = build_small(out, size)
+        args.T = args.T or str(t_path)
     else:
         x_path = Path(args.X)
     X = bigT.open(x_path)
     shape = X.pixel_order.image_shape
+    if args.T is not None:
+        T = bigT.open(args.T)
+        if tuple(T.shape) != tuple(X.shape):
+            sys.exit(f"bench_video: T {args.T} is {T.shape} but X {x_path} is {X.shape}")
+        print(f"# T {args.T}: nnz {T.nnz:,} ({T.nnz / T.shape[0]:.0f}/row)")
     frames = args.frames or (120 if args.quick else 240)
     tmp = Path(tempfile.mkdtemp(prefix="bench_video_"))
     try:
