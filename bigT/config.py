@@ -46,6 +46,8 @@ SPECTRAL_RADIUS_CW_RTOL = 0.02
 #: then at least halves its error per term: a few % on rho change nothing a user
 #: plans); else ARPACK refines it.
 SPECTRAL_RADIUS_CW_ACCEPT = 0.5
+#: ...when it is at most this fraction of its top wide (the lower bound still lags).
+SPECTRAL_RADIUS_CW_WIDE = 0.1
 #: the lower bound taken on the pixels whose power-iteration vector is at least this
 #: fraction of its largest entry (measured best on the corner scenes),
 SPECTRAL_RADIUS_CW_SUPPORT = 0.01

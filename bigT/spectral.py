@@ -18,25 +18,29 @@ The uncertainty reported is the residual ||M x - lambda x|| / ||x|| of the Ritz 
 largest modulus, checked with one more block product: lambda is an exact eigenvalue of a
 matrix within that distance of M (for a normal M, an eigenvalue of M lies within it).
 
-A cheaper, rigorous bracket where the caller can also multiply by |M| (the engine): a
-physical transport has no negative entry, so with F = diag T, M = -|M|, and then
-rho(M) = rho(|M|), a nonnegative matrix's Perron root. Two products with the vector of
-ones tell whether M = -|M| (|M| 1 = -M 1 exactly when no entry of M is positive).
-Then for any v > 0 (Collatz-Wielandt), rho <= max_i (|M| v)_i / v_i, and for any
-x >= 0, x != 0, |M| x >= lambda x implies rho >= lambda (subinvariance). Shifted
-power steps v <- |M| v + s v make v the Perron vector; the upper bound falls to rho in
-a few steps (16 products: 0.26567 for the dense 384x512 corner's 0.26538, where
-ARPACK took 132), the lower bound is taken on x = v restricted to the pixels where v is
-not negligible (the others would hold it at 0). The result is reported as the
-bracket's middle +- its half-width, so ``upper`` is the rigorous upper bound. It is
-taken when it is narrow (``config.SPECTRAL_RADIUS_CW_RTOL``) or its top is low
-(``config.SPECTRAL_RADIUS_CW_ACCEPT``); near 1, where the error's rate 1 - rho needs
-rho's digits, or beyond, or where M has a positive entry, ARPACK decides, as above.
+A cheaper, rigorous bracket where the caller knows that M has no positive entry
+(``nonpositive``; the engine checks M's rows): a physical transport has no negative
+entry, so with F = diag T, M = -|M|, and rho(M) is the Perron root of the nonnegative
+A = -M. For any v > 0 (Collatz-Wielandt), rho <= max_i (A v)_i / v_i, and for any
+x >= 0, x != 0, A x >= lambda x implies rho >= lambda (subinvariance). Shifted power
+steps v <- A v + s v make v the Perron vector; the upper bound falls to rho in a few
+steps (16 products: 0.26567 for the dense 384x512 corner's 0.26538, where ARPACK took
+132), the lower bound is taken on x = v restricted to the pixels where v is not
+negligible (the others would hold it at 0). The result is reported as the bracket's
+middle +- its half-width, so ``upper`` is the rigorous upper bound (widened by the
+rounding of float32 entries: the products of M may come from its stored rows or from
+T's rows times F^-1, which agree to that). It is taken when it is narrow
+(``config.SPECTRAL_RADIUS_CW_RTOL``), or its top is low
+(``config.SPECTRAL_RADIUS_CW_ACCEPT``) and its width at most
+``config.SPECTRAL_RADIUS_CW_WIDE``, and does not hold 1; near 1, where the error's rate 1 - rho needs rho's
+digits, or beyond, ARPACK decides, as above (its products counted with the
+bracket's).
 """
 
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -89,7 +93,7 @@ class SpectralRadius:
 
 def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = None,
                     rtol: float | None = None, max_products: int | None = None,
-                    seed: int = 0, apply_abs: BlockProduct | None = None) -> SpectralRadius:
+                    seed: int = 0, nonpositive: bool = False) -> SpectralRadius:
     """rho of the operator ``apply`` restricted to the unknowns ``active``.
 
     Parameters
@@ -108,9 +112,9 @@ def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = Non
         (``config.SPECTRAL_RADIUS_MAX_PRODUCTS``).
     seed : int
         Seed of ARPACK's starting vector.
-    apply_abs : callable, optional
-        ``apply_abs(V)`` multiplies |M| (the entries' magnitudes) by V: allows the
-        Collatz-Wielandt bracket (module docstring) before ARPACK is tried.
+    nonpositive : bool
+        The caller knows that no entry of the operator is positive: the
+        Collatz-Wielandt bracket (module docstring) is tried before ARPACK.
 
     Returns
     -------
@@ -128,21 +132,27 @@ def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = Non
 
     if m <= max(config.SPECTRAL_RADIUS_DENSE_MAX, 3):  # ARPACK needs k < m - 1
         return _dense(apply_active, m)
-    if apply_abs is not None:
-        def abs_active(V_active: np.ndarray) -> np.ndarray:
-            V = np.zeros((n, V_active.shape[1]))
-            V[idx] = V_active
-            return np.asarray(apply_abs(V), dtype=np.float64)[idx]
-
-        bracket = _collatz_wielandt(apply_active, abs_active, m)
-        if bracket is not None and (
-                bracket.upper <= config.SPECTRAL_RADIUS_CW_ACCEPT
-                or bracket.uncertainty <= config.SPECTRAL_RADIUS_CW_RTOL * bracket.upper / 2):
+    spent = 0
+    if nonpositive:
+        bracket = _collatz_wielandt(lambda V: -apply_active(V), m)
+        if _narrow_enough(bracket.upper, bracket.upper - 2 * bracket.uncertainty):
             return bracket
-    return _arnoldi(apply_active, m,
-                    config.SPECTRAL_RADIUS_RTOL if rtol is None else rtol,
-                    config.SPECTRAL_RADIUS_MAX_PRODUCTS if max_products is None
-                    else max_products, seed)
+        spent = bracket.products
+    rho = _arnoldi(apply_active, m,
+                   config.SPECTRAL_RADIUS_RTOL if rtol is None else rtol,
+                   config.SPECTRAL_RADIUS_MAX_PRODUCTS if max_products is None
+                   else max_products, seed)
+    return dataclasses.replace(rho, products=rho.products + spent)
+
+
+def _narrow_enough(hi: float, lo: float) -> bool:
+    """Whether the bracket [lo, hi] is narrow, or low and not too wide (module
+    docstring), and on one side of 1 (which decides whether the series converges)."""
+    if lo < 1 <= hi:
+        return False
+    return (hi - lo <= config.SPECTRAL_RADIUS_CW_RTOL * hi
+            or (hi <= config.SPECTRAL_RADIUS_CW_ACCEPT
+                and hi - lo <= config.SPECTRAL_RADIUS_CW_WIDE * hi))
 
 
 def _dense(apply_active: BlockProduct, m: int) -> SpectralRadius:
@@ -154,50 +164,44 @@ def _dense(apply_active: BlockProduct, m: int) -> SpectralRadius:
     return SpectralRadius(value, rounding, m, "dense")
 
 
-#: Positive entries of M summing to less than this fraction of |M|'s largest row sum
-#: are taken for rounding by the sign test of :func:`_collatz_wielandt`.
-_SIGN_RTOL = 1e-9
+#: Relative rounding of an operator's entries stored in float32 (two of its units):
+#: the bracket is widened by it.
+_ENTRY_ROUNDING = 2 * float(np.finfo(np.float32).eps)
 
 
-def _collatz_wielandt(apply_active: BlockProduct, abs_active: BlockProduct,
-                      m: int) -> SpectralRadius | None:
-    """rho(M) bracketed by Collatz-Wielandt bounds when M = -|M| (module docstring);
-    None when M has a positive entry."""
-    ones = np.ones((m, 1))
-    minus_mv = -apply_active(ones)[:, 0]
-    w = abs_active(ones)[:, 0]  # |M| v for v = 1
-    scale = float(w.max(initial=0.0))
-    # |M| 1 + M 1 = 2 (sum of M's positive entries per row): zero (to rounding) exactly
-    # when M = -|M|. The upper bound holds whatever the signs (rho(M) <= rho(|M|)); the
-    # lower one needs M = -|M|, to within entries that move rho by less than this.
-    if np.abs(w - minus_mv).max(initial=0.0) > _SIGN_RTOL * scale:
-        return None
-    if scale == 0.0:
-        return SpectralRadius(0.0, 0.0, 2, "collatz-wielandt")
-    v, products = ones[:, 0], 2
-    hi, lo = float((w / v).max()), 0.0
+def _collatz_wielandt(apply_nonneg: BlockProduct, m: int) -> SpectralRadius:
+    """rho of a nonnegative operator A (``apply_nonneg`` multiplies it by (m, k)
+    blocks) bracketed by Collatz-Wielandt bounds (module docstring): value +-
+    uncertainty is the bracket."""
+    v = np.ones(m)
+    w = apply_nonneg(v[:, None])[:, 0]  # A v, shape (m,)
+    if not w.any():
+        return SpectralRadius(0.0, 0.0, 1, "collatz-wielandt")
+    products, hi, lo = 1, float((w / v).max()), 0.0
     while products < config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS:
         v = w + config.SPECTRAL_RADIUS_CW_SHIFT * hi * v
         v /= v.max()
-        w = -apply_active(v[:, None])[:, 0]
+        w = apply_nonneg(v[:, None])[:, 0]
         products += 1
         hi = min(hi, float((w / v).max()))
         if products >= 8 and products % 4 == 0:
-            lo = max(lo, _subinvariant_bound(apply_active, v))
+            lo = max(lo, _subinvariant_bound(apply_nonneg, v))
             products += 1
-            if hi - lo <= config.SPECTRAL_RADIUS_CW_RTOL * hi:
+            if _narrow_enough(hi, lo):
                 break
-    hi *= 1 + m * np.finfo(np.float64).eps  # the sums' rounding (as in _dense)
+    # the sums' rounding (as in _dense) and float32 entries' (module docstring)
+    hi *= 1 + m * np.finfo(np.float64).eps + _ENTRY_ROUNDING
+    lo *= 1 - _ENTRY_ROUNDING
     return SpectralRadius((hi + lo) / 2, (hi - lo) / 2, products, "collatz-wielandt")
 
 
-def _subinvariant_bound(apply_active: BlockProduct, v: np.ndarray) -> float:
-    """lambda with |M| x >= lambda x for x = v on the pixels where v is at least
-    ``config.SPECTRAL_RADIUS_CW_SUPPORT`` of its largest entry (0 elsewhere): a lower
-    bound on rho(|M|) (one product)."""
+def _subinvariant_bound(apply_nonneg: BlockProduct, v: np.ndarray) -> float:
+    """lambda with A x >= lambda x for x = v (shape (m,), > 0) on the pixels where v is
+    at least ``config.SPECTRAL_RADIUS_CW_SUPPORT`` of its largest entry (0
+    elsewhere): a lower bound on rho(A) (one product)."""
     on = v >= config.SPECTRAL_RADIUS_CW_SUPPORT * v.max()
     x = np.where(on, v, 0.0)
-    y = -apply_active(x[:, None])[:, 0]
+    y = apply_nonneg(x[:, None])[:, 0]
     return max(0.0, float((y[on] / x[on]).min()))
 
 

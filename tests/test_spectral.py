@@ -67,14 +67,13 @@ def _exact(M, active=None):
 
 
 def _radius(M, active=None):
-    """spectral_radius of M, given |M| too."""
-    return spectral_radius(lambda V: M @ V, M.shape[0], active,
-                           apply_abs=lambda V: np.abs(M) @ V)
+    """spectral_radius of a nonpositive M, told so."""
+    return spectral_radius(lambda V: M @ V, M.shape[0], active, nonpositive=True)
 
 
-def _bracket(M):
-    """The bracket alone, whatever spectral_radius would take."""
-    return _collatz_wielandt(lambda V: M @ V, lambda V: np.abs(M) @ V, M.shape[0])
+def _bracket(A):
+    """The bracket of a nonnegative A alone, whatever spectral_radius would take."""
+    return _collatz_wielandt(lambda V: A @ V, A.shape[0])
 
 
 def _perron(n, rho, seed, density=0.05):
@@ -84,48 +83,46 @@ def _perron(n, rho, seed, density=0.05):
     return N * (rho / max(abs(np.linalg.eigvals(N))))
 
 
+def _holds(rho, exact):
+    return rho.value - rho.uncertainty <= exact <= rho.upper
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("rho_true", [0.3, 0.6, 0.9])
-def test_bracket_holds_the_perron_root_of_a_nonpositive_m(seed, rho_true):
-    M = -_perron(400, rho_true, seed)
-    rho = _bracket(M)
-    assert rho.value - rho.uncertainty <= _exact(M) <= rho.upper
+def test_bracket_holds_the_perron_root(seed, rho_true):
+    N = _perron(400, rho_true, seed)
+    rho = _bracket(N)
+    assert _holds(rho, _exact(N))
     assert rho.products <= config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS + 1
 
 
-def test_a_low_or_narrow_bracket_is_taken_else_arnoldi_refines():
+def test_a_low_narrow_bracket_is_taken_else_arnoldi_refines():
     low = _radius(-_perron(400, 0.3, 0))
     assert low.method == "collatz-wielandt" and low.upper <= config.SPECTRAL_RADIUS_CW_ACCEPT
+    assert 2 * low.uncertainty <= config.SPECTRAL_RADIUS_CW_WIDE * low.upper
     N, exact = clustered_spectrum(0, 0.99)  # a crowded top near 1: the bracket stays wide
-    near = spectral_radius(lambda V: -(N @ V), N.shape[0], apply_abs=lambda V: abs(N) @ V)
+    near = spectral_radius(lambda V: -(N @ V), N.shape[0], nonpositive=True)
     assert near.method == "arnoldi" and abs(near.value - exact) <= max(near.uncertainty, 1e-9)
     assert near.uncertainty < config.SPECTRAL_RADIUS_RTOL
+    # the bracket's products are counted with ARPACK's
+    alone = spectral_radius(lambda V: -(N @ V), N.shape[0])
+    assert near.products > alone.products
 
 
 def test_bracket_of_two_walls_that_only_see_each_other():
     rng = np.random.default_rng(5)
     B, C = rng.uniform(0, 0.02, (300, 300)), rng.uniform(0, 0.02, (300, 300))
     N = np.block([[np.zeros((300, 300)), B], [C, np.zeros((300, 300))]]) / 4  # rho 0.75
-    rho = _bracket(-N)
-    assert rho.value - rho.uncertainty <= _exact(-N) <= rho.upper < 1
+    rho = _bracket(N)
+    assert _holds(rho, _exact(N)) and rho.upper < 1
 
 
 def test_a_crowded_top_is_bracketed():
     """The spectrum that fools power iteration's estimate from below: the bracket's
     upper bound comes from above, so it still holds the radius."""
     N, exact = clustered_spectrum(0, 0.95)
-    rho = _bracket(-N.toarray())
-    assert rho.value - rho.uncertainty <= exact <= rho.upper < 1
-
-
-def test_a_positive_entry_sends_the_estimate_to_arnoldi():
-    rng = np.random.default_rng(4)
-    N = rng.uniform(0, 0.001, (400, 400))
-    N[7, 11] = -0.01  # one positive entry of M = -N
-    assert _bracket(-N) is None
-    rho = _radius(-N)
-    assert rho.method == "arnoldi"
-    assert abs(rho.value - _exact(-N)) <= max(rho.uncertainty, 1e-9)
+    rho = _bracket(N)
+    assert _holds(rho, exact) and rho.upper < 1
 
 
 def test_a_radius_above_one_is_held_above_one():
@@ -133,7 +130,7 @@ def test_a_radius_above_one_is_held_above_one():
     M = -_perron(300, 1.02, 3, density=1.0)
     rho = _radius(M)
     assert rho.method == "collatz-wielandt"
-    assert 1 < rho.value - rho.uncertainty <= _exact(M) <= rho.upper
+    assert 1 < rho.value - rho.uncertainty and _holds(rho, _exact(M))
 
 
 def test_bracket_counts_only_active_unknowns_and_a_zero_m():
@@ -143,7 +140,14 @@ def test_bracket_counts_only_active_unknowns_and_a_zero_m():
     active = np.ones(500, bool)
     active[::3] = False
     rho = _radius(-N, active)
-    assert rho.method == "collatz-wielandt"
-    assert rho.value - rho.uncertainty <= _exact(-N, active) <= rho.upper
-    zero = spectral_radius(lambda V: 0 * V, 500, apply_abs=lambda V: 0 * V)
+    assert rho.method == "collatz-wielandt" and _holds(rho, _exact(-N, active))
+    zero = spectral_radius(lambda V: 0 * V, 500, nonpositive=True)
     assert (zero.value, zero.upper, zero.method) == (0.0, 0.0, "collatz-wielandt")
+
+
+def test_a_bracket_holding_one_goes_to_arnoldi():
+    """A narrow bracket around 1 decides nothing: ARPACK's digits do."""
+    M = -_perron(400, 1 - 1e-9, 2, density=0.02)
+    assert _bracket(-M).value - _bracket(-M).uncertainty < 1 <= _bracket(-M).upper
+    rho = _radius(M)
+    assert rho.method == "arnoldi" and abs(rho.value - _exact(M)) <= rho.uncertainty + 1e-12

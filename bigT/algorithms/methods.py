@@ -35,6 +35,9 @@ class Pass:
     outputs : tuple of str, the stores of the new term it writes
     right : str or None, the alias multiplied from the right
     scaled : tuple of str, aliases read as F B (S = F X)
+    probed : bool, the task reports (X_k - X_{k-1}) Z for the engine's residual probes
+        Z (shared as ``"Z"``, shape (n, p); only to such passes: on a cluster every
+        shared array is sent to every worker)
     """
 
     op: str
@@ -43,6 +46,7 @@ class Pass:
     outputs: tuple[str, ...] = ("X",)
     right: str | None = None
     scaled: tuple[str, ...] = ()
+    probed: bool = False
 
 
 # --- block tasks ---------------------------------------------------------------------
@@ -95,9 +99,9 @@ def power_task(ctx: TaskContext):
 
 
 def _probed(ctx: TaskContext, Q: sp.csr_array):
-    """The block's rows of (X_k - X_{k-1}) Z = F^-1 Q_k Z for the engine's residual
-    probes Z (shared as ``"Z"``): with them the engine updates X Z without reading X
-    back. None when the pass shares no probes."""
+    """The block's rows of (X_k - X_{k-1}) Z = F^-1 Q_k Z, shape (rows, p), for the
+    engine's residual probes Z (shared as ``"Z"``, shape (n, p)): with them the engine
+    updates X Z without reading X back. None when the pass shares no probes."""
     Z = ctx.shared.get("Z")
     if Z is None:
         return None
@@ -172,7 +176,8 @@ class Power(SeriesMethod):
 
     def passes(self, held, k):
         inputs = (("X", "X", held),) if held == 0 else (("P", "P", held), ("X", "X", held))
-        return [Pass("power", power_task, inputs, ("P", "X"), right="P" if held else None)]
+        return [Pass("power", power_task, inputs, ("P", "X"), right="P" if held else None,
+                     probed=True)]
 
     def exhausted(self, held, name, store):
         if name == "P" and store.nnz == 0:

@@ -45,10 +45,12 @@ equal error (README, "Measured").
 Carrying (``prune_feed``): the power form may prune P_k, the factor of the next
 product, at a higher threshold than the term Q_k = M P_{k-1} it adds to X. With
 D_k = Q_k - P_k the entries carried in X but not fed on, X_n = F^-1 (I + sum_k Q_k)
-and the residual is M P_n - sum_k D'_k + M sum_k D_k, where D'_k are the entries below
-``prune`` (dropped from both): the fed-on pruning reaches the residual multiplied by
-M (one more bounce, a factor ~rho(M)), not as itself, so P_k can be pruned harder,
-and the next product costs less, for the same error. The multiply-adds and the
+and the residual is M P_n - sum_k D'_k + M sum_k D_k, where D'_k = Q_k - M P_{k-1}
+(minus the entries below ``prune``, dropped from both): the fed-on pruning reaches the
+residual multiplied by M (one more bounce, a factor ~rho(M)), not as itself, so P_k
+can be pruned harder, and the next product costs less, for the same error. (The
+infinity-norm bound above counts ``prune`` only; with a feed threshold, r_l prune
+becomes r_l prune_feed in the terms after l.) The multiply-adds and the
 error it buys are measured by ``benchmarks/bench_inverse.py --settings``.
 
 Residual: after every term, ||I - T X||_F is estimated from p = config.RESIDUAL_PROBES
@@ -397,6 +399,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     t_start = time.perf_counter()
     prune_feed = None if prune_feed is None else float(prune_feed)
     series = _check_arguments(method, terms, prune, tol, prune_feed)
+    if prune_feed == prune:  # the plain power form, and resumes its stores
+        prune_feed = None
     scheduler = client if scheduler is None else scheduler
     if isinstance(T, (str, os.PathLike)):
         T = open_store(local_path(T, "transport T"))
@@ -516,7 +520,7 @@ class _Engine:
         # reads low on crowded spectra: estimated again
         if rec.spectral_radius is None or rec.spectral_uncertainty is None:
             rho = spectral_radius(self._apply_M, self.T.shape[0], self.fb.active,
-                                  seed=self.opts.seed, apply_abs=self._apply_abs_M)
+                                  seed=self.opts.seed, nonpositive=self._m_nonpositive())
             if rho.converged:  # else estimated anew on the next run
                 self._save(rec.replace(spectral_radius=rho.value,
                                        spectral_uncertainty=rho.uncertainty,
@@ -587,8 +591,9 @@ class _Engine:
         return None
 
     def _updated_XZ(self, stats: list[BlockStats]) -> np.ndarray | None:
-        """X_k Z from X_{k-1} Z and every row block's (X_k - X_{k-1}) Z, when the
-        term's tasks all reported theirs (the power form's do); else None."""
+        """X_k Z, shape (n, p), from X_{k-1} Z and every row block's
+        (X_k - X_{k-1}) Z, when the term's tasks all reported theirs (the power form's
+        do); else None."""
         n_blocks = -(-self.T.shape[0] // self.tile_size)
         if self.XZ is None or len(stats) != n_blocks or any(s.y is None for s in stats):
             return None
@@ -620,9 +625,10 @@ class _Engine:
             t0 = time.perf_counter()
             spec = self._spec(p, k, paths)
             try:
+                shared = {**self.shared, "Z": self.probes} if p.probed else self.shared
                 stats = self.runner.map(spec, row_blocks(self.T.shape[0], self.tile_size, todo),
-                                        {**self.shared, "Z": self.probes},
-                                        progress=self.opts.progress, desc=f"term {k} {p.op}")
+                                        shared, progress=self.opts.progress,
+                                        desc=f"term {k} {p.op}")
             finally:
                 self.runner.end_pass(spec.pass_id)
             self.timing.add(time.perf_counter() - t0, stats, self.runner.threads)
@@ -708,15 +714,19 @@ class _Engine:
 
     # --- mat-vecs -------------------------------------------------------------------
 
-    def _apply_M(self, V: np.ndarray, absolute: bool = False) -> np.ndarray:
-        spec = matvec_spec("matvec-absM" if absolute else "matvec-M", self.T_path,
+    def _apply_M(self, V: np.ndarray, largest: bool = False) -> np.ndarray:
+        spec = matvec_spec("largest-M" if largest else "matvec-M", self.T_path,
                            self.T.shape[0], self.tile_size, self.T.dtype, memory=self.policy,
                            T=self.T_path, first_bounce=self.fb.digest,
-                           zero_diagonal=self.fb.zero_diagonal, absolute=absolute)
+                           zero_diagonal=self.fb.zero_diagonal, largest=largest)
         return matvec(self.runner, spec, V, self.shared)
 
-    def _apply_abs_M(self, V: np.ndarray) -> np.ndarray:
-        return self._apply_M(V, absolute=True)
+    def _m_nonpositive(self) -> bool:
+        """Whether M = I - T F^-1 has no positive entry (a transport with no negative
+        entry and F = diag T): one pass over M's rows, which the spectral radius's
+        products then find in the tile cache."""
+        largest = self._apply_M(np.zeros((self.T.shape[0], 1)), largest=True)
+        return bool(largest.max(initial=0.0) <= 0.0)
 
     def _apply_X(self, X, V: np.ndarray) -> np.ndarray:
         spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,

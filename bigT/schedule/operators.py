@@ -177,12 +177,15 @@ class MOperand:
                   for i in range(a // ts, -(-b // ts)))
         return stored_bytes(int(nnz), b - a, self.dtype.itemsize)
 
-    def abs_matvec_rows(self, a: int, b: int, V) -> np.ndarray:
-        """Rows ``a:b`` of |M| @ V (the entries' magnitudes), V of shape (n, k)."""
+    def largest_entries(self, a: int, b: int) -> np.ndarray:
+        """The largest entry of each of M's rows ``a:b`` (0 for a row without a positive
+        one), shape (b - a, 1): from M's rows as the products use them, exactly."""
         M = self.rows(a, b)
-        out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        spmm_dense(sp.csr_array((np.abs(M.data), M.indices, M.indptr), shape=M.shape), V,
-                   out=out, n_threads=1)
+        out = np.zeros((b - a, 1), dtype=np.float64)
+        filled = np.flatnonzero(np.diff(M.indptr))
+        if len(filled):
+            top = np.maximum.reduceat(M.data[:M.indptr[-1]], M.indptr[filled])
+            out[filled, 0] = np.maximum(top, 0.0)
         return out
 
     def matvec_rows(self, a: int, b: int, V, minus_finv_v=None) -> np.ndarray:

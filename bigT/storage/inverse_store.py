@@ -103,7 +103,7 @@ class TermRecord:
             v = d.get(f.name, None if f.default is dataclasses.MISSING else f.default)
             if f.name in ("residual", "residual_abs"):
                 values[f.name] = None if v is None else float(v)
-            elif f.type == "float":
+            elif f.type in ("float", float):  # a string under future annotations
                 values[f.name] = float(v or 0.0)
             else:
                 values[f.name] = _count(v, f.name)
@@ -275,7 +275,10 @@ class InverseStore:
             self.save(record)
             return record
         if record.params != params:
-            diff = [k for k in params if record.params.get(k) != params[k]]
+            # over both key sets: a parameter recorded only when set (prune_feed) may be
+            # the one missing from either side
+            keys = list(params) + [k for k in record.params if k not in params]
+            diff = [k for k in keys if record.params.get(k) != params.get(k)]
             held = ", ".join(f"{k}={record.params.get(k)}" for k in diff)
             raise StoreError("holds an inverse with different " + ", ".join(diff) + " than "
                              f"asked (it holds {held}); rerun with the same parameters to "

@@ -53,7 +53,7 @@ def test_carried_power_matches_dense_recurrence(tmp_path, make_store, prune, fee
     held = len(rep.history)
     assert [h.multiply_adds for h in rep.history] == madds[:held]
     assert not any(madds[held:])
-    assert rep.prune_feed == feed
+    assert rep.prune_feed == (None if feed == prune else feed)
 
 
 def test_feeding_on_less_does_less_work_for_the_same_x_threshold(tmp_path, make_store):
@@ -79,10 +79,18 @@ def test_feed_threshold_checked(tmp_path, make_store):
 
 def test_another_feed_threshold_is_not_resumed(tmp_path, make_store):
     T = make_store(random_dominant(32, seed=2), tile_size=16)
-    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=1, prune=1e-5, progress=False)
-    with pytest.raises(StoreError):
-        bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=1e-5,
-                                prune_feed=1e-3, progress=False)
+    plain, fed = tmp_path / "plain.zarr", tmp_path / "fed.zarr"
+    bigT.stratified_inverse(T, plain, terms=1, prune=1e-5, progress=False)
+    with pytest.raises(StoreError, match="different prune_feed"):
+        bigT.stratified_inverse(T, plain, terms=2, prune=1e-5, prune_feed=1e-3,
+                                progress=False)
+    # a feed equal to prune is the plain power form: it resumes the plain store
+    rep = bigT.stratified_inverse(T, plain, terms=2, prune=1e-5, prune_feed=1e-5,
+                                  progress=False)
+    assert rep.terms == 2 and rep.prune_feed is None
+    bigT.stratified_inverse(T, fed, terms=1, prune=1e-5, prune_feed=1e-3, progress=False)
+    with pytest.raises(StoreError, match="different prune_feed .*prune_feed=0.001"):
+        bigT.stratified_inverse(T, fed, terms=2, prune=1e-5, progress=False)
 
 
 def test_counts_of_each_term_and_the_table(tmp_path, make_store):
@@ -118,12 +126,13 @@ def test_residual_from_the_probes_carried_term_to_term_equals_reading_x(
 
     A = random_dominant(96, seed=9, density=0.3, margin=0.8)
     T = make_store(A, tile_size=32, dtype="float32")
-    carried = bigT.stratified_inverse(T, tmp_path / "a.zarr", terms=4, prune=1e-6,
-                                      prune_feed=1e-4, progress=False)
     read = []
-    monkeypatch.setattr(stratified._Engine, "_updated_XZ", lambda self, stats: None)
     monkeypatch.setattr(stratified._Engine, "_apply_X",
                         lambda self, X, V: read.append(X.path) or X.to_scipy() @ V)
+    carried = bigT.stratified_inverse(T, tmp_path / "a.zarr", terms=4, prune=1e-6,
+                                      prune_feed=1e-4, progress=False)
+    assert read == []  # no term read X back
+    monkeypatch.setattr(stratified._Engine, "_updated_XZ", lambda self, stats: None)
     reread = bigT.stratified_inverse(T, tmp_path / "b.zarr", terms=4, prune=1e-6,
                                      prune_feed=1e-4, progress=False)
     assert len(read) == 4  # terms 1-4 read X; term 0's X Z = F^-1 Z is known
@@ -131,3 +140,32 @@ def test_residual_from_the_probes_carried_term_to_term_equals_reading_x(
     want = [h.residual for h in reread.history]
     np.testing.assert_allclose(got, want, rtol=1e-5)
     assert got[-1] < got[0]
+
+
+@pytest.mark.parametrize("negative", [False, True])
+def test_the_bracket_is_asked_for_only_when_m_has_no_positive_entry(
+        tmp_path, make_store, monkeypatch, negative):
+    """The engine tells the spectral radius M = -|M| only after reading every row of M
+    (MOperand.largest_entries, exact whether M's rows are cached or not:
+    tests/schedule/test_operators.py); a T with one negative entry (noise) goes to
+    ARPACK."""
+    from bigT.algorithms import stratified
+    from bigT.spectral import spectral_radius
+
+    A = random_dominant(300, seed=4, density=0.05)
+    if negative:
+        A[10, 200] = -1e-4
+    T = make_store(A, tile_size=64, dtype="float32")
+    told = []
+
+    def spy(*args, **kw):
+        told.append(kw["nonpositive"])
+        return spectral_radius(*args, **kw)
+
+    monkeypatch.setattr(stratified, "spectral_radius", spy)
+    monkeypatch.setattr(stratified.config, "SPECTRAL_RADIUS_DENSE_MAX", 16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=1, progress=False)
+    assert told == [not negative]
+    d = np.diag(A)
+    exact = max(abs(np.linalg.eigvals(np.eye(300) - A / d[None, :])))
+    assert abs(rep.spectral_radius - exact) <= rep.spectral_uncertainty + 1e-6

@@ -70,3 +70,24 @@ def test_m_row_size_estimate_is_what_is_cached(tmp_path):
         for a, b in ranges:
             M.matvec_rows(a, b, V)
     assert M.cache.misses == misses  # built once, then hits
+
+
+@pytest.mark.parametrize("cache_bytes", [1 << 30, 0])
+def test_largest_entries_of_m_rows_against_dense(tmp_path, cache_bytes):
+    """Each row's largest entry of M (0 when none is positive), with M's rows cached or
+    built for the call: the engine's test of M = -|M| before the bracket."""
+    n = 40
+    A = _T(n, 6)
+    A[7, 12] = -1e-3  # a negative entry of T: a positive one of M
+    T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype="float32")
+    A = T.to_scipy().toarray().astype(np.float64)
+    active = np.ones(n, bool)
+    active[5] = False
+    finv = np.where(active, 1 / np.where(np.diag(A) == 0, 1, np.diag(A)), 0.0)
+    M_dense = np.diag(active.astype(float)) - A * finv[None, :]
+    np.fill_diagonal(M_dense, 0.0)
+    M = MOperand(T, finv.astype(np.float32), active, True, TileCache(cache_bytes))
+    got = np.concatenate([M.largest_entries(*T.tile_row_range(i)) for i in range(T.grid[0])])
+    want = np.maximum(M_dense.max(axis=1), 0.0)[:, None]
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert got[7, 0] > 0 and np.count_nonzero(got) == 1
