@@ -11,6 +11,7 @@ diagonal 0/1 mask of active pixels, M = D - T F^-1.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -44,7 +45,8 @@ class KernelTally:
         t0 = time.perf_counter()
         out = spgemm(left, right, threshold=threshold, n_threads=n_threads,
                      checked=not _trusted(right))
-        self.seconds += (time.perf_counter() - t0) * max(1, int(n_threads))
+        # None: the kernel's default, one thread per core
+        self.seconds += (time.perf_counter() - t0) * (n_threads or os.cpu_count() or 1)
         # sum over left's entries (i, k) of len(right row k): a gather and a sum (the
         # kernel's own per-row count, row_work, also takes a cumsum: 8 % of a task)
         row_len = np.diff(right.indptr)

@@ -403,7 +403,7 @@ class BlockCSRWriter:
     overwrite : bool
         Replace an existing bigT store at ``path`` (never anything else).
     zstd_level : int, optional
-        Default ``config.ZSTD_LEVEL``.
+        Default ``config.ZSTD_LEVEL`` (``config.ZSTD_LEVEL_VALUES`` for the tiles' values).
 
     Notes
     -----
@@ -527,7 +527,9 @@ def _write_tile(tdir: Path, indptr, indices, data, level) -> None:
         json.dump(group_json({}), f, indent=2)
     fmt.write_array_files(tdir, "indptr", indptr, fmt.FILL_INT, level)
     fmt.write_array_files(tdir, "indices", indices, fmt.FILL_INT, level)
-    fmt.write_array_files(tdir, "data", data, fmt.FILL_FLOAT, level)
+    # the values at their own level unless the caller chose one for every array
+    fmt.write_array_files(tdir, "data", data, fmt.FILL_FLOAT,
+                          config.ZSTD_LEVEL_VALUES if level is None else level)
 
 
 def _stored_dtype(dtype) -> str:
