@@ -32,15 +32,15 @@ rounding of float32 entries: the products of M may come from its stored rows or 
 T's rows times F^-1, which agree to that). It is taken when it is narrow
 (``config.SPECTRAL_RADIUS_CW_RTOL``), or its top is low
 (``config.SPECTRAL_RADIUS_CW_ACCEPT``) and its width at most
-``config.SPECTRAL_RADIUS_CW_WIDE``, and does not hold 1; near 1, where the error's rate 1 - rho needs rho's
-digits, or beyond, ARPACK decides, as above (its products counted with the
-bracket's).
+``config.SPECTRAL_RADIUS_CW_WIDE``, and does not hold 1; near 1, where the error's
+rate 1 - rho needs rho's digits, or beyond, ARPACK decides, as above (its products
+counted with the bracket's).
 """
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Callable
 
