@@ -10,7 +10,6 @@ from .csr import (
     diagonal,
     prune,
     release_workspaces,
-    row_work,
     scale_cols,
     scale_rows,
     spgemm,
@@ -31,5 +30,4 @@ __all__ = [
     "SPGEMM_GROUP",
     "release_workspaces",
     "workspace_bytes",
-    "row_work",
 ]
