@@ -1,5 +1,7 @@
 # The two commands of the README. Each creates .venv when it is missing and installs
-# bigT into it (editable), so they work on a machine that has only python3 and git.
+# bigT into it (editable), so they work on a machine that has only python3 and git;
+# then bigT.warm compiles the numba kernels into their cache once (~20 s), so the first
+# run does not wait for the compiler.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -11,6 +13,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -m bigT.warm
 	touch $(STAMP)
 
 demo: $(STAMP)
