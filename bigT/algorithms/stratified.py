@@ -64,10 +64,10 @@ T (X z) is computed as u - M u with u = F X z, the same T on the kept pixels.
 Divergence: before term 0, rho(M) is computed by :func:`bigT.spectral.spectral_radius`
 (a Collatz-Wielandt bracket where M = -|M|, as for any transport without negative
 entries; else Arnoldi, with the Ritz residual as its uncertainty) and the run is
-refused unless rho + uncertainty < 1. As a second line, the residuals are estimated with the same
-probes at every term, and a term whose residual grew and exceeds the smallest so far
-``config.RESIDUAL_GROWTH`` (2) times is not published: the run stops with the last good
-term held. (Not any growth: with a non-normal M, rho < 1 <= ||M||, or at the pruning
+refused unless rho + uncertainty < 1. As a second line, the residuals are estimated
+with the same probes at every term, and a term whose residual grew and exceeds the
+smallest so far ``config.RESIDUAL_GROWTH`` (2) times is not published: the run stops
+with the last good term held. (Not any growth: with a non-normal M, rho < 1 <= ||M||, or at the pruning
 floor, a convergent series may grow for a term.)
 ``force`` skips both checks.
 
