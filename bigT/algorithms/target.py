@@ -209,9 +209,9 @@ def probe_vectors(T, active: np.ndarray, seed: int = 0) -> np.ndarray:
     from ..compensation.core import pixel_order_of, to_vectors
 
     n = T.shape[0]
-    order = pixel_order_of(T, getattr(getattr(T, "pixel_order", None), "image_shape", (n, 1)))
+    order = pixel_order_of(T, (n, 1))  # the store's own order when it records one
     D = to_vectors(probe_images(order.image_shape, seed), order, np.float64)
-    return np.asarray(D, dtype=np.float64) * active[:, None]
+    return D * active[:, None]
 
 
 # --- streamed products -----------------------------------------------------------------
@@ -260,12 +260,13 @@ def truncation_curve(products: _Products, D: np.ndarray, goal: float,
     list of ndarray, each (n, k): element k is M^(k+1) D.
     """
     powers = [products.M(D)]
-    while len(powers) <= max_terms and _rel(powers[-1], D).max() > goal:
-        nxt = products.M(powers[-1])
-        if _rel(nxt, D).max() >= _rel(powers[-1], D).max():
-            powers.append(nxt)  # stalled: the engine's divergence check decides
-            break
-        powers.append(nxt)
+    last = _rel(powers[-1], D).max()
+    while len(powers) <= max_terms and last > goal:
+        powers.append(products.M(powers[-1]))
+        now = _rel(powers[-1], D).max()
+        if now >= last:
+            break  # stalled: the engine's divergence check decides
+        last = now
     return powers
 
 
@@ -370,7 +371,7 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
             memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
             progress=ctx.progress, seed=ctx.seed, overwrite=overwrite and not measured)
         held = report.terms
-        if held < term or "exhausted" in report.stopped:
+        if "exhausted" in report.stopped:
             held = min(held, term)
         from ..storage import open as open_store
 

@@ -232,9 +232,7 @@ def run_compensate(args) -> int:
     print(f"  {report.frames} frame(s) in {t_comp:.2f} s of products "
           f"({report.frames_per_second:.1f} frames/s, batch {args.batch}); {elapsed:.2f} s in all")
     if clip is not None:
-        print(f"  clipped projector pixels: {100 * report.clipped_fraction:.2f} % "
-              f"(below {clip[0]}: {100 * report.clipped_low / max(report.pixels, 1):.2f} %, "
-              f"above {clip[1]}: {100 * report.clipped_high / max(report.pixels, 1):.2f} %)")
+        _print_clipped(report, clip)
     print(f"  wrote projector input -> {sink.path}")
     if S is not None:
         ref = np.sqrt(sums["ref"])
@@ -323,10 +321,7 @@ def _run_stream(args, X, Tm, choice, shape) -> int:
           f"{args.batch}); {stream.seconds:.2f} s in all")
     print("  " + stream.summary(comp.residency))
     if args.clip is not None:
-        clip = args.clip
-        print(f"  clipped projector pixels: {100 * report.clipped_fraction:.2f} % "
-              f"(below {clip[0]}: {100 * report.clipped_low / max(report.pixels, 1):.2f} %, "
-              f"above {clip[1]}: {100 * report.clipped_high / max(report.pixels, 1):.2f} %)")
+        _print_clipped(report, args.clip)
     print(f"  wrote projector input -> {out_path if video_out else _sink_path(out_path, source)}")
     return 0
 
@@ -472,3 +467,10 @@ def run_bounces(args) -> int:
         print("  note: PNG clips to [0, 1] (a negative remainder is lost); use tif/npy for exact parts")
     print(f"  wrote {len(names) + 1} images and {strip.name} -> {out}")
     return 0
+
+
+def _print_clipped(report, clip) -> None:
+    """The share of projector pixels clipped, below and above (both paths' summary)."""
+    print(f"  clipped projector pixels: {100 * report.clipped_fraction:.2f} % "
+          f"(below {clip[0]}: {100 * report.clipped_low / max(report.pixels, 1):.2f} %, "
+          f"above {clip[1]}: {100 * report.clipped_high / max(report.pixels, 1):.2f} %)")

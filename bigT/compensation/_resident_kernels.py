@@ -84,7 +84,7 @@ def spmm(row_ptr, indices, values, lut, row_scale, V, Y, r0, r1):
             Y[i, c] = acc[c] * s
 
 
-def kernel_for(precision: str, vector: bool):
+def kernel_for(vector: bool):
     """The kernel for a single column (``vector``) or a batch (any precision: numba
     specialises on the values' dtype)."""
     return spmv if vector else spmm

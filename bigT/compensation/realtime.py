@@ -82,11 +82,11 @@ def _streamed_bytes(store) -> int:
     return int(store.nnz * (itemsize + 4) + store.n_tiles_stored * (store.tile_size + 1) * 4)
 
 
-def _disk_bytes(store) -> int | None:
-    try:
-        return sum(p.stat().st_size for p in store.path.rglob("*") if p.is_file())
-    except OSError:
-        return None
+def _disk_bytes(store) -> int:
+    """X's files on disk (:func:`bigT.storage._format.disk_bytes`)."""
+    from ..storage._format import disk_bytes
+
+    return disk_bytes(store.path)
 
 
 class Compensator:
