@@ -852,3 +852,69 @@ def spgemm_grouped_internal(
                         pos += 1
                 row_nnz[g0 - r0 + r] = pos - start
     return row_nnz, out_j, out_v
+
+
+@njit(nogil=True, cache=True)
+def _tile_run_end(indices, p, end, lo, hi):
+    """The end of the run of entries from ``p`` whose columns are in ``[lo, hi)``."""
+    while p < end and lo <= indices[p] < hi:
+        p += 1
+    return p
+
+
+@njit(nogil=True, cache=True)
+def split_column_tiles_internal(indptr, indices, data, tile_size):
+    """Cut rows into their non-empty column tiles in one counting pass and one
+    scatter, no sort: rows are scattered in order, so every tile keeps its entries
+    row-major and in the input's column order. Each row is walked as runs of entries
+    in one tile (one run per tile when its columns are sorted), so the division by
+    ``tile_size`` is paid per run, not per entry.
+
+    Returns (tile_cols (k,) int64 ascending, tile_indptr (k, n_rows + 1) int64,
+    local (nnz,) int32 columns within the tile, values (nnz,) permuted,
+    bounds (k + 1,) int64: tile t's entries are ``local/values[bounds[t]:bounds[t+1]]``).
+    """
+    n_rows = indptr.size - 1
+    top = 0
+    for p in range(indices.size):
+        top = max(top, indices[p])
+    counts = np.zeros(top // tile_size + 1, np.int64)
+    for r in range(n_rows):
+        p, end = indptr[r], indptr[r + 1]
+        while p < end:
+            j = indices[p] // tile_size
+            q = _tile_run_end(indices, p, end, j * tile_size, (j + 1) * tile_size)
+            counts[j] += q - p
+            p = q
+    slot = np.full(counts.size, -1, np.int64)
+    k = 0
+    for j in range(counts.size):
+        if counts[j] > 0:
+            slot[j] = k
+            k += 1
+    tile_cols = np.empty(k, np.int64)
+    bounds = np.zeros(k + 1, np.int64)
+    for j in range(counts.size):
+        if slot[j] >= 0:
+            tile_cols[slot[j]] = j
+            bounds[slot[j] + 1] = bounds[slot[j]] + counts[j]
+    tile_indptr = np.zeros((k, n_rows + 1), np.int64)
+    fill = bounds[:k].copy()
+    local = np.empty(indices.size, np.int32)
+    values = np.empty(indices.size, data.dtype)
+    for r in range(n_rows):
+        p, end = indptr[r], indptr[r + 1]
+        while p < end:
+            j = indices[p] // tile_size
+            q = _tile_run_end(indices, p, end, j * tile_size, (j + 1) * tile_size)
+            t, at, base = slot[j], fill[slot[j]], j * tile_size
+            for e in range(q - p):
+                local[at + e] = indices[p + e] - base
+                values[at + e] = data[p + e]
+            fill[t] = at + q - p
+            tile_indptr[t, r + 1] += q - p
+            p = q
+    for t in range(k):
+        for r in range(n_rows):
+            tile_indptr[t, r + 1] += tile_indptr[t, r]
+    return tile_cols, tile_indptr, local, values, bounds

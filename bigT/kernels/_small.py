@@ -136,3 +136,21 @@ def spmm_dense(indptr, indices, data, X, out):
     stop = int(bad[0]) if len(bad) else len(Y)
     out[:stop] += Y[:stop]
     return (CSR_NOT_FINITE, stop) if len(bad) else (CSR_OK, 0)
+
+
+def split_column_tiles(indptr, indices, data, tile_size: int):
+    """``split_column_tiles_internal``: a stable sort by tile column (small-integer
+    keys, so numpy's radix sort, O(nnz)) keeps each tile row-major and column-sorted."""
+    n_rows = len(indptr) - 1
+    tcol = indices // tile_size
+    key = tcol.astype(np.uint16) if indices.size and tcol.max() < 2**16 else tcol
+    order = np.argsort(key, kind="stable")
+    tile_cols, starts = np.unique(tcol[order], return_index=True)
+    bounds = np.append(starts, indices.size).astype(np.int64)
+    rows = row_ids(indptr)[order]
+    tile_indptr = np.zeros((tile_cols.size, n_rows + 1), np.int64)
+    for t in range(tile_cols.size):
+        counts = np.bincount(rows[bounds[t]:bounds[t + 1]], minlength=n_rows)
+        np.cumsum(counts, out=tile_indptr[t, 1:])
+    local = (indices[order] - tcol[order] * tile_size).astype(np.int32)
+    return tile_cols.astype(np.int64), tile_indptr, local, data[order], bounds

@@ -34,6 +34,7 @@ import contextlib
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -670,3 +671,39 @@ def prune(A, threshold=0.0, top_k=None):
         if top_k >= 0:
             indptr, indices, data = K.top_k_internal(indptr, indices, data, top_k)
     return _csr_result(a.shape, indptr, indices, data)
+
+
+class ColumnTiles(NamedTuple):
+    """Rows cut into their non-empty column tiles (:func:`split_column_tiles`).
+
+    Attributes
+    ----------
+    cols : (k,) int64, the tile columns, ascending
+    indptr : (k, n_rows + 1) int64, each tile's row pointer
+    indices : (nnz,) int32, columns local to the tile, tile after tile
+    data : (nnz,), the values in the same order
+    bounds : (k + 1,) int64, tile t holds entries ``bounds[t]:bounds[t + 1]``
+    """
+
+    cols: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+    bounds: np.ndarray
+
+
+def split_column_tiles(indptr, indices, data, tile_size: int) -> ColumnTiles:
+    """Cut CSR rows into their non-empty tiles of ``tile_size`` columns, each tile's
+    entries in row-major, column-sorted order (the store's layout).
+
+    Trusts its input (the storage writer has validated it): ``indptr`` (n_rows + 1,),
+    ``indices`` (nnz,) global columns sorted within each row, ``data`` (nnz,). One
+    counting pass and one scatter in numba; numpy's stable radix sort below
+    ``config.KERNEL_NUMPY_MAX_WORK`` entries.
+    """
+    indptr, indices = np.asarray(indptr), np.asarray(indices)
+    if _small_enough(indices.size):
+        return ColumnTiles(*_small.split_column_tiles(indptr, indices, np.asarray(data),
+                                                      int(tile_size)))
+    return ColumnTiles(*_numba().split_column_tiles_internal(
+        indptr.astype(np.int64, copy=False), indices, np.asarray(data), np.int64(tile_size)))
