@@ -24,7 +24,7 @@ import scipy.sparse as sp
 
 from ..errors import BigTError, DiskFullError, TaskError
 from . import blocks
-from ._backend import (open_store, read_store_attrs, release_workspaces, row_marker,
+from ._backend import (KeptTiles, open_store, read_store_attrs, release_workspaces, row_marker,
                        write_tile_row)
 from .cache import TileCache
 from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
@@ -250,11 +250,18 @@ class TaskContext:
         return blocks.identity_rows(self.start, self.stop, self.spec.n,
                                     self.shared["active"], self.dtype)
 
-    def write(self, name: str, rows: sp.csr_array) -> bool:
+    def write(self, name: str, rows: sp.csr_array, keep_from: str | None = None,
+              kept_columns=()) -> bool:
         """Write this block's rows of output ``name`` (idempotent: a row already
-        complete, e.g. by a task run twice, is left alone)."""
+        complete, e.g. by a task run twice, is left alone); the tiles of input
+        ``keep_from`` in ``kept_columns`` are carried over unchanged (hard-linked),
+        ``rows`` holding nothing in those tile columns."""
         path = self.spec.output_path(name)
-        return write_tile_row(path, STATE.store_attrs(path), self.block.index, rows)
+        keep = None
+        if keep_from is not None and len(kept_columns):
+            keep = KeptTiles(Path(self.spec.input_path(keep_from)),
+                             tuple(int(j) for j in kept_columns))
+        return write_tile_row(path, STATE.store_attrs(path), self.block.index, rows, keep=keep)
 
     def product(self, left: sp.csr_array, right_name: str, threshold: float):
         """(left @ right pruned, tile products done, pairs skipped): see

@@ -13,6 +13,7 @@ from .inverse_store import InverseRecord, InverseStore, TermRecord
 from .pixel_order import PixelOrder
 from .writer import (
     BlockCSRWriter,
+    KeptTiles,
     clean_partial_rows,
     create_store,
     finalize_store,
@@ -22,7 +23,7 @@ from .writer import (
 )
 
 __all__ = [
-    "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "PixelOrder",
+    "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "PixelOrder",
     "StoreAttrs", "TermRecord", "clean_partial_rows", "create_store", "finalize_store",
     "from_scipy", "open", "read_store_attrs", "row_marker", "set_redirect", "write_tile_row",
 ]

@@ -367,18 +367,22 @@ class BlockCSR:
             return sp.csr_array(self.tile_shape(i, j), dtype=self.dtype)
         return self._read_tile(int(i), int(j), k)
 
-    def iter_tiles(self, i: int):
-        """Yield ``(j, tile)`` for the stored tiles of tile row ``i``."""
+    def iter_tiles(self, i: int, columns=None):
+        """Yield ``(j, tile)`` for the stored tiles of tile row ``i`` (only those in
+        ``columns``, a collection of tile columns, when given)."""
         i = self._check_tile_row(i)
+        wanted = None if columns is None else {int(j) for j in columns}
         for k in range(self.tile_indptr[i], self.tile_indptr[i + 1]):
             j = int(self.tile_indices[k])
-            yield j, self._read_tile(i, j, int(k))
+            if wanted is None or j in wanted:
+                yield j, self._read_tile(i, j, int(k))
 
-    def get_tile_row(self, i: int) -> sp.csr_array:
-        """Tile row ``i`` as a csr_array of shape (rows_i, n_cols), global columns."""
+    def get_tile_row(self, i: int, columns=None) -> sp.csr_array:
+        """Tile row ``i`` as a csr_array of shape (rows_i, n_cols), global columns;
+        only the tiles in ``columns`` (tile columns) when given, the others empty."""
         r0, r1 = self.tile_row_range(i)
         rows = r1 - r0
-        tiles = list(self.iter_tiles(i))
+        tiles = list(self.iter_tiles(i, columns))
         if not tiles:
             return sp.csr_array((rows, self.shape[1]), dtype=self.dtype)
         counts = np.zeros(rows, dtype=np.int64)

@@ -9,6 +9,7 @@ import os
 import shutil
 import uuid
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -155,33 +156,19 @@ def _split_tiles(indptr, indices, data, n_rows: int, ts: int):
     """Cut one tile row (CSR with sorted global columns) into its non-empty tiles.
 
     Yields ``(j, indptr_j, indices_j, data_j)`` in ascending tile column ``j`` with local
-    column indices; a stable sort by tile column keeps each tile's entries in
-    row-major, column-sorted order.
+    column indices, each tile row-major and column-sorted
+    (:func:`bigT.kernels.csr.split_column_tiles`).
     """
-    nnz = indices.size
-    if nnz == 0:
+    if indices.size == 0:
         return
-    tcol = indices // ts
-    row_of = np.repeat(np.arange(n_rows, dtype=np.int64), np.diff(indptr))
-    if tcol[0] == tcol[-1] and np.all(tcol == tcol[0]):
-        order = None
-        js, bounds = tcol[:1], np.array([0, nnz])
-    else:
-        # Small-integer keys let numpy's stable sort use radix sort, O(nnz).
-        top = int(tcol.max())
-        key = tcol.astype(np.uint8 if top < 2**8 else np.uint16 if top < 2**16 else np.int64)
-        order = np.argsort(key, kind="stable")
-        tcol_sorted = tcol[order]
-        js, starts = np.unique(tcol_sorted, return_index=True)
-        bounds = np.append(starts, nnz)
-    for k, j in enumerate(js):
-        sl = slice(bounds[k], bounds[k + 1])
-        sel = sl if order is None else order[sl]
-        counts = np.bincount(row_of[sel], minlength=n_rows)
-        ptr = np.zeros(n_rows + 1, dtype=fmt.INDPTR_DTYPE)
-        np.cumsum(counts, out=ptr[1:])
-        local = (indices[sel] - int(j) * ts).astype(fmt.INDICES_DTYPE)
-        yield int(j), ptr, local, np.ascontiguousarray(data[sel])
+    from ..kernels.csr import split_column_tiles  # numba loads on the first big write
+
+    tiles = split_column_tiles(indptr, indices, data, ts)
+    for t, j in enumerate(tiles.cols):
+        part = slice(tiles.bounds[t], tiles.bounds[t + 1])
+        yield (int(j), tiles.indptr[t].astype(fmt.INDPTR_DTYPE, copy=False),
+               tiles.indices[part].astype(fmt.INDICES_DTYPE, copy=False),
+               tiles.data[part])
 
 
 def _validate_block(path: Path, attrs: StoreAttrs, i: int, block) -> sp.csr_array:
@@ -266,7 +253,22 @@ def read_store_attrs(path) -> StoreAttrs:
     return StoreAttrs.from_dict(raw, path)
 
 
-def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> bool:
+@dataclass(frozen=True)
+class KeptTiles:
+    """Tiles of tile row ``i`` of the finished store ``store`` (same shape, tile size
+    and dtype) to carry into a new store's row unchanged: hard-linked, neither read
+    nor rewritten. Store files are written once and never modified in place, so a
+    link is as good as a copy, and deleting the old store leaves the new one whole.
+
+    ``columns`` : tile columns, each stored in the old row.
+    """
+
+    store: Path
+    columns: tuple[int, ...]
+
+
+def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
+                   keep: KeptTiles | None = None) -> bool:
     """Write tile row ``i`` of the store at ``path`` whole, idempotently.
 
     The row is built in a hidden sibling directory (``rows/.{i}.<hex>.partial``), its
@@ -281,6 +283,9 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> b
     attrs : StoreAttrs, the store's (shape, tile size, dtype)
     i : int, ``0 <= i < attrs.grid[0]``
     block : sparse matrix/array or ndarray, shape (rows_i, n_cols), global columns
+    keep : KeptTiles, optional
+        Tiles carried from the same row of an older store; ``block`` holds no entry
+        in their tile columns.
 
     Returns
     -------
@@ -296,15 +301,59 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None) -> b
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
     with _deleted_on_failure(tmp, path, f"tile row {i}"):
         tmp.mkdir()
-        cols, counts = [], []
+        tiles = {}
         for j, ptr, ind, dat in _split_tiles(block.indptr, block.indices, block.data,
                                              block.shape[0], attrs.tile_size):
             _write_tile(tmp / str(j), ptr, ind, dat, zstd_level)
-            cols.append(j)
-            counts.append(int(ind.size))
-        atomic_write_json(tmp / "zarr.json", group_json(
-            {fmt.ROW_ATTRS_KEY: {"complete": True, "tile_columns": cols, "tile_nnz": counts}}))
+            tiles[j] = int(ind.size)
+        if keep is not None:
+            tiles.update(_link_kept_tiles(keep, attrs, i, tmp, path, set(tiles)))
+        cols = sorted(tiles)
+        atomic_write_json(tmp / "zarr.json", group_json({fmt.ROW_ATTRS_KEY: {
+            "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}))
         return _move_row_into_place(tmp, path, i)
+
+
+def _link_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, tmp: Path, path: Path,
+                     written: set[int]) -> dict[int, int]:
+    """Hard-link ``keep``'s tiles into the row being built in ``tmp``; returns
+    ``{tile column: nnz}`` of the linked tiles, read from the old row's marker."""
+    source = Path(keep.store)
+    def layout(a: StoreAttrs):
+        return a.shape, a.tile_size, a.dtype, a.inner_format
+
+    if layout(read_store_attrs(source)) != layout(attrs):
+        raise StoreError(f"tile row {i}: kept tiles come from a store of another "
+                         f"shape, tile size or dtype ({source})", path)
+    marker = row_marker(source, i)
+    old = {} if marker is None else dict(zip(marker["tile_columns"], marker["tile_nnz"]))
+    out = {}
+    for j in keep.columns:
+        j = int(j)
+        if j not in old or j in written:
+            raise StoreError(f"tile row {i}: tile column {j} is "
+                             + ("also written" if j in written else f"not stored in {source}"),
+                             path)
+        _link_tree(source / fmt.row_path(i) / str(j), tmp / str(j))
+        out[j] = int(old[j])
+    return out
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """Recreate directory ``src`` at ``dst`` with every file hard-linked (copied where
+    the file system cannot link)."""
+    dst.mkdir()
+    for entry in os.scandir(src):
+        target = dst / entry.name
+        if entry.is_dir(follow_symlinks=False):
+            _link_tree(Path(entry.path), target)
+            continue
+        try:
+            os.link(entry.path, target)
+        except OSError as exc:
+            if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP):
+                raise
+            shutil.copy2(entry.path, target)
 
 
 def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:

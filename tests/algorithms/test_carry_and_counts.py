@@ -2,6 +2,8 @@
 against its recurrence evaluated densely, and the per-term multiply-add counts against
 a count made from the dense factors."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,7 @@ import bigT
 from bigT.errors import BigTError, StoreError
 from bigT.storage.inverse_store import TermRecord
 
-from inverse_helpers import dense, random_dominant
+from inverse_helpers import dense, dense_stratified, random_dominant
 
 
 def _pruned(A, t):
@@ -169,3 +171,29 @@ def test_the_bracket_is_asked_for_only_when_m_has_no_positive_entry(
     d = np.diag(A)
     exact = max(abs(np.linalg.eigvals(np.eye(300) - A / d[None, :])))
     assert abs(rep.spectral_radius - exact) <= rep.spectral_uncertainty + 1e-6
+
+
+def test_power_terms_carry_untouched_tiles_of_x_by_link(tmp_path, make_store, monkeypatch):
+    """The power form rewrites only the tiles of X that Q_k touches and hard-links the
+    rest: with light going only between pixel sets A and B, M is bipartite, so M^2
+    touches none of the A-B tiles that X_1 = F^-1 (I + M) holds, and term 2 carries
+    them. The inverse still equals eq. 13 evaluated densely."""
+    from bigT.storage import writer
+
+    rng = np.random.default_rng(3)
+    n, half = 64, 32
+    C = np.zeros((n, n))
+    C[:half, half:] = rng.uniform(0, 0.6 / half, (half, half))
+    C[half:, :half] = rng.uniform(0, 0.6 / half, (half, half))
+    T = np.diag(rng.uniform(1.5, 2.5, n)) + C
+    linked = []
+    real_link_tree = writer._link_tree
+    monkeypatch.setattr(writer, "_link_tree",
+                        lambda src, dst: (linked.append(src), real_link_tree(src, dst)))
+    out = tmp_path / "X.zarr"
+    bigT.stratified_inverse(make_store(T, tile_size=16), out, terms=3, prune=0.0,
+                            progress=False)
+    np.testing.assert_allclose(dense(out), dense_stratified(T, 3), rtol=1e-12, atol=1e-15)
+    carried = {(Path(p).parent.name, Path(p).name) for p in linked}
+    # term 2 carries X_1's A-B tiles: tile rows 0, 1 x tile columns 2, 3 and back
+    assert {("0", "2"), ("0", "3"), ("2", "0"), ("3", "1")} <= carried

@@ -3,7 +3,7 @@ under SIGKILL: no ``finally``, no cleanup) just before its k-th file-system muta
 then rerun it and compare, for every k, as SQLite's crash tests do.
 
 The mutations counted are the calls that change what is on disk: ``os.replace``,
-``os.rename``, ``os.unlink``/``os.remove``, ``os.rmdir``, ``os.mkdir``, ``os.fsync``
+``os.rename``, ``os.unlink``/``os.remove``, ``os.rmdir``, ``os.mkdir``, ``os.link``, ``os.fsync``
 (the file written, not yet renamed) and every ``open`` for writing. ``shutil.rmtree``
 and ``os.makedirs`` go through them, so a crash half way through a deletion is tried
 too.
@@ -92,7 +92,7 @@ def _uninstall(originals: dict) -> None:
         setattr(os, name, func)
 
 
-_OS_MUTATIONS = ("replace", "rename", "unlink", "remove", "rmdir", "mkdir", "fsync")
+_OS_MUTATIONS = ("replace", "rename", "unlink", "remove", "rmdir", "mkdir", "fsync", "link")
 
 
 def _fresh_dask_pools() -> None:
@@ -125,6 +125,11 @@ def run_forked(argv: list[str], crash_at: int | None = None, fail_with: int | No
         try:
             os.close(read_end)
             _fresh_dask_pools()
+            from bigT import config
+
+            # one thread mutates, so mutation k is the same one in every run (the
+            # background deletion of dropped terms would interleave)
+            config.BACKGROUND_REMOVAL = False
             counter = _Counter(crash_at, fail_with)
             from bigT.cli import main
 
