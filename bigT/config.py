@@ -194,3 +194,9 @@ COMPENSATE_RESIDENT_FALLBACK_BYTES = 1 << 30
 #: reader and writer threads of a frame stream. One keeps the reader busy while the
 #: products run; more only makes frames of a file wait longer (latency), not faster.
 COMPENSATE_QUEUE_DEPTH = 1
+
+#: Delete a superseded term's directory in a background thread (after its atomic rename
+#: to a hidden ``.trash`` sibling): deleting thousands of tile files waits on the file
+#: system (measured: 2707 entries in 0.3-3.4 s), time the next term's products can use.
+#: The engine waits for these deletions before it returns.
+BACKGROUND_REMOVAL = True

@@ -507,7 +507,10 @@ class _Engine:
             if self.created and self.record.term is None:
                 self.store.discard()
             raise
-        stopped = self._extend(resumed_from)
+        try:
+            stopped = self._extend(resumed_from)
+        finally:
+            self.store.settle()
         if self.record.dir is not None:
             self.store.clean(keep={self.record.dir})  # terms readers held when dropped
         return self._report(stopped, resumed_from, t_rho, time.perf_counter() - t_start, rho)
@@ -587,7 +590,8 @@ class _Engine:
         self._finish_term(k, stats, t0, XZ=self._updated_XZ(stats))
         # the caches let go of the held term first: their open stores hold its lease
         self.runner.end_pass(None, forget=(str(self.store.path / term_dir(held)),))
-        self.store.drop_term(held)
+        # deleted while the next term computes; the run waits for it before it returns
+        self.store.drop_term(held, background=True)
         return None
 
     def _updated_XZ(self, stats: list[BlockStats]) -> np.ndarray | None:

@@ -43,6 +43,7 @@ from .locks import (
     create_reader_lease,
     remove_trash,
     remove_unless_read,
+    wait_for_removals,
 )
 from .writer import (
     clean_partial_rows,
@@ -388,11 +389,17 @@ class InverseStore:
                 remove_unless_read(entry)
         remove_trash(self.path)
 
-    def drop_term(self, k: int) -> None:
+    def settle(self) -> None:
+        """Wait for the deletions :meth:`drop_term` left running in the background."""
+        wait_for_removals()
+
+    def drop_term(self, k: int, background: bool = False) -> None:
         """Delete term ``k``'s directory, or, while a reader holds its X, all of it
-        but that X (deleted by a later :meth:`clean`)."""
+        but that X (deleted by a later :meth:`clean`). With ``background``, the
+        directory is renamed away at once and deleted by a thread
+        (:func:`~.locks.wait_for_removals` waits for it)."""
         directory = self.path / term_dir(k)
-        if remove_unless_read(directory) or not directory.is_dir():
+        if remove_unless_read(directory, background) or not directory.is_dir():
             return
         for entry in directory.iterdir():
             if entry.is_dir() and not (entry / READER_LEASE).exists():

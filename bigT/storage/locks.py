@@ -21,10 +21,12 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import threading
 import time
 import warnings
 from pathlib import Path
 
+from .. import config
 from ..atomic import dead_writers_siblings, hidden_sibling
 from ..errors import StoreError
 
@@ -150,8 +152,37 @@ def create_reader_lease(store: str | os.PathLike) -> None:
     Path(os.fspath(store), READER_LEASE).touch()
 
 
-def remove_unless_read(directory: str | os.PathLike) -> bool:
-    """Delete ``directory`` unless a reader holds a lease on a store inside it.
+_removals: list[threading.Thread] = []
+_removals_lock = threading.Lock()
+
+
+def _remove_tree(trash: Path, background: bool) -> None:
+    """``rmtree(trash)``, in a thread of its own when ``background`` (and
+    ``config.BACKGROUND_REMOVAL``): :func:`wait_for_removals` joins it. A process
+    killed meanwhile leaves the trash to :func:`remove_trash`."""
+    if not (background and config.BACKGROUND_REMOVAL):
+        shutil.rmtree(trash, ignore_errors=True)
+        return
+    thread = threading.Thread(target=shutil.rmtree, args=(trash,), kwargs={"ignore_errors": True},
+                              name=f"bigT-remove-{trash.name}")
+    with _removals_lock:
+        _removals[:] = [t for t in _removals if t.is_alive()]
+        _removals.append(thread)
+    thread.start()
+
+
+def wait_for_removals() -> None:
+    """Wait until every deletion started in the background has finished."""
+    with _removals_lock:
+        pending = list(_removals)
+        _removals.clear()
+    for thread in pending:
+        thread.join()
+
+
+def remove_unless_read(directory: str | os.PathLike, background: bool = False) -> bool:
+    """Delete ``directory`` unless a reader holds a lease on a store inside it
+    (the deletion itself in a background thread when ``background``).
 
     With every lease held exclusively, the directory is first renamed to a hidden
     ``.NAME.PID.HEX.trash`` sibling (one atomic step: a reader that then takes a lease
@@ -185,7 +216,7 @@ def remove_unless_read(directory: str | os.PathLike) -> bool:
     finally:
         for fd in held:
             os.close(fd)
-    shutil.rmtree(trash, ignore_errors=True)
+    _remove_tree(trash, background)
     return True
 
 

@@ -55,6 +55,33 @@ def test_without_readers_only_the_current_term_stays(T, tmp_path):
 
 
 @needs_flock
+def test_dropped_terms_are_deleted_in_the_background_and_waited_for(T, tmp_path,
+                                                                    monkeypatch):
+    """Each superseded term is renamed away at once and deleted by a thread while the
+    next term computes; the run returns only when every deletion has finished."""
+    import threading
+
+    from bigT.storage import locks
+
+    started = []
+    real_start = threading.Thread.start
+
+    def start(thread):
+        if thread.name.startswith("bigT-remove-"):
+            started.append(thread)
+        real_start(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    X = tmp_path / "X.zarr"
+    invert(T, X, terms=3, progress=False)
+    assert len(started) == 3 and not any(t.is_alive() for t in started)
+    assert terms_on_disk(X) == ["t0003"]
+    assert not [p.name for p in X.iterdir() if p.name.endswith(".trash")]
+    monkeypatch.setattr(locks.config, "BACKGROUND_REMOVAL", False)
+    invert(T, X, terms=4, progress=False)
+    assert len(started) == 3 and terms_on_disk(X) == ["t0004"]
+
+
 def test_a_second_writer_is_refused_with_the_first_ones_pid(T, tmp_path, capsys):
     X = tmp_path / "X.zarr"
     invert(T, X, terms=1, progress=False)
