@@ -34,6 +34,8 @@ import bigT  # noqa: E402
 from bigT.compensation import compensate, fluctuation, relative_error, relight, scan_line  # noqa: E402
 from bigT.storage.pixel_order import PixelOrder  # noqa: E402
 
+from _results import Results, run_name  # noqa: E402
+
 
 def _size(text):
     h, w = text.lower().split("x")
@@ -275,7 +277,7 @@ def splu_in_child(path, frames, args):
 
 # --- part 2 -----------------------------------------------------------------------------
 
-def quality(args, out):
+def quality(args, out, figure: Path | None = None):
     size = _size(args.scene_size)
     scene = corner_scene(size, out / f"corner_q_{size[0]}x{size[1]}.zarr", "exact")
     T, what = scene.T, "bigT.scenes.corner (exact)"
@@ -331,7 +333,7 @@ def quality(args, out):
         res.update(splu_in_child(T.path, frames[:8], args))
     from bigT.compensation.figures import scan_lines
 
-    res["plot"] = str(scan_lines(out / "scanlines_terms.png", lines, target=c,
+    res["plot"] = str(scan_lines(figure or out / "scanlines_terms.png", lines, target=c,
                                  title=f"corner {size[0]}x{size[1]}: centre scan line seen by "
                                  "the camera, constant target"))
     return res
@@ -359,12 +361,63 @@ def main(argv=None):
     results = {"cpus": os.cpu_count(), "load_average_at_start": os.getloadavg()}
     print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs "
           "(wall-clock rates scale with the share of the machine this run gets)")
+    res = Results(run_name("compensate"), "Compensation: throughput and quality",
+                  "python benchmarks/bench_compensate.py " + " ".join(
+                      argv if argv is not None else sys.argv[1:]))
+    figure = f"{res.name}-scanlines.png"
     if "quality" not in args.skip:
-        results["quality"] = quality(args, out)
+        results["quality"] = quality(args, out, res.figure_path(figure))
+        record_quality(res, results["quality"], figure)
     if "throughput" not in args.skip:
         results["throughput"] = throughput(args, out)
+        record_throughput(res, results["throughput"])
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     print(f"results -> {out / 'results.json'}")
+    res.save()
+
+
+def record_quality(res: Results, q: dict, figure: str) -> None:
+    """Part 2's printed lines and its plot, handed to RESULTS.md."""
+    H, W = q["size"]
+    res.table("quality", f"a constant target ({q['target']:.3f}) on the {q['scene']} "
+              f"{H}x{W} corner, compensated", ["compensation", "relative error",
+              "fluctuation (image)", "fluctuation (scan line)", "clipped"],
+              [[r["label"], r["rel_error"], r["fluct_image"], r["fluct_scanline"],
+                r["clipped"]] for r in q["rows"]],
+              note="fluctuation: (max - min) / mean of what the camera sees (the paper's "
+                   "measure); clipped: fraction of projector pixels outside [0, 1]")
+    res.figure(figure, f"centre scan line seen by the camera, {H}x{W} corner, constant "
+               "target: uncompensated, 1-4 terms, exact inverse (the paper's Fig. 10)")
+
+
+def throughput_rows(t: dict) -> list[list]:
+    """Part 1's printed rates as (path, frames/s) rows."""
+    rows = []
+    for K in (1, 64):
+        rows += [[f"one pass over X, batch {K}, read from disk",
+                  K / t[f"pass_cold_K{K}_seconds"]],
+                 [f"one pass over X, batch {K}, tiles cached",
+                  K / t[f"pass_warm_K{K}_seconds"]]]
+    rows += [["compensate(), batch 64, end to end, tile cache", t["compensate_batch64_fps"]],
+             ["compensate(), batch 64, end to end, X re-read every batch",
+              t["compensate_batch64_nocache_fps"]]]
+    rows += [[f"matrix-free, 4 terms, batch 64, cache {k.split('cache')[1][:-4]} MiB", v]
+             for k, v in t.items() if k.startswith("matrix_free4_batch64_cache")]
+    if "splu_solve_fps" in t:
+        rows.append([f"scipy splu of T, one solve per frame (factor "
+                     f"{t['splu_factor_seconds']:.1f} s)", t["splu_solve_fps"]])
+    elif "splu" in t:
+        rows.append([f"scipy splu of T: {t['splu']}", None])
+    return rows
+
+
+def record_throughput(res: Results, t: dict) -> None:
+    """Part 1's printed rates, handed to RESULTS.md."""
+    H, W = t["size"]
+    res.table("throughput", f"compensation throughput at {H}x{W}: T {t['T']} "
+              f"({t['nnz_T_per_row']:.0f} a row), X {t['X']} ({t['nnz_X_per_row']:.0f} a row)",
+              ["path", "frames/s"], throughput_rows(t),
+              note=f"auto would take: {t['auto_choice']}")
 
 
 if __name__ == "__main__":

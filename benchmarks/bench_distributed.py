@@ -19,6 +19,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _results import Results, run_name  # noqa: E402
+
 
 def scene(workdir: Path, size, density):
     import bigT.scenes as scenes
@@ -87,12 +89,25 @@ def main(argv=None) -> int:
     head = (f"{'scheduler':<16} {'total s':>8} {'terms s':>34} {'tasks':>6} "
             f"{'ms/task':>8}  peak RSS per process        max |X - X_threads|")
     print(head)
+    rows = []
     for name, r in runs.items():
         diff = abs(bigT.open(r["X"]).to_scipy() - ref).max()
         terms = " ".join(f"{h['seconds']:.1f}" for h in r["history"])
         peaks = ", ".join(f"{int(b) / 2**20:.0f} MiB" for _, b in r["peak_memory"])
+        rows.append([name, r["seconds"], terms, r["tasks"], r["task_overhead_ms"], peaks,
+                     float(diff)])
         print(f"{name:<16} {r['seconds']:>8.1f} {terms:>34} {r['tasks']:>6} "
               f"{r['task_overhead_ms']:>8.1f}  {peaks:<27} {diff:.1e}")
+    res = Results(run_name("distributed"), "The same inversion on three schedulers",
+                  "python benchmarks/bench_distributed.py " + " ".join(argv or sys.argv[1:]))
+    res.table("schedulers", f"{args.terms}-term inverse of the {args.density} corner "
+              f"{size[0]}x{size[1]} (n = {sc.T.shape[0]:,}, {sc.T.nnz / sc.T.shape[0]:.0f} "
+              "nonzeros a row)",
+              ["scheduler", "total s", "terms s", "tasks", "ms/task", "peak RSS per process",
+               "max |X - X_threads|"], rows,
+              note="each run a fresh `bigT invert` process; ms/task: scheduling and idle "
+                   "threads per task")
+    res.save()
     summary = {k: {kk: vv for kk, vv in v.items() if kk != "X"} for k, v in runs.items()}
     (work / "results.json").write_text(json.dumps(summary, indent=1, default=str))
     print(f"-> {work / 'results.json'}")

@@ -37,6 +37,13 @@ import time
 # run from a checkout: the repository's bigT, whatever the venv's install points at
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from _results import Results, run_name  # noqa: E402
+
+TERM_COLUMNS = ["term", "time s", "residual s", "nnz(P)", "nnz(X)", "residual",
+                "multiply-adds", "rate/core (wall)", "kernel rate/core", "kernel share"]
+SETTING_COLUMNS = ["setting", "total s", "spectral radius s", "terms s (residuals included)",
+                   "multiply-adds", "error vs F^-1(I-A)", "nnz(X)/row", "peak RSS GiB"]
+
 
 def _size(text):
     h, w = text.lower().split("x")
@@ -109,20 +116,54 @@ def run_setting(setting: str, scene_path: str, workdir: str, args) -> dict:
     return r
 
 
-def print_terms(rep: dict) -> None:
-    """The per-term table of a report (as a dict), multiply-adds and rates per core."""
+def term_rows(rep: dict) -> list[list]:
+    """The per-term rows of a report (as a dict): ``TERM_COLUMNS``."""
     threads = rep.get("threads", 1)
-    print("| term | time s | residual s | nnz(P) | nnz(X) | residual | multiply-adds | "
-          "rate/core (wall) | kernel rate/core | kernel share |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    rows = []
     for h in rep["history"]:
         madds, kern = h.get("multiply_adds", 0), h.get("kernel_seconds", 0.0)
         wall_rate = madds / (h["seconds"] * threads) if madds else 0.0
         kern_rate = madds / kern if madds and kern else 0.0
         share = kern / (h["seconds"] * threads) if h["seconds"] else 0.0
-        print(f"| {h['term']} | {h['seconds']:.2f} | {h.get('residual_seconds', 0.0):.2f} | "
-              f"{h['nnz_P']} | {h['nnz_X']} | {h['residual']:.3e} | {madds:.3g} | "
-              f"{wall_rate:.3g} | {kern_rate:.3g} | {share:.0%} |")
+        rows.append([h["term"], h["seconds"], h.get("residual_seconds", 0.0), h["nnz_P"],
+                     h["nnz_X"], h["residual"], madds, wall_rate, kern_rate, share])
+    return rows
+
+
+def print_terms(rep: dict) -> None:
+    """The per-term table of a report (as a dict), multiply-adds and rates per core."""
+    print("| " + " | ".join(TERM_COLUMNS) + " |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for term, secs, rsecs, nnz_p, nnz_x, resid, madds, wall_rate, kern_rate, share in \
+            term_rows(rep):
+        print(f"| {term} | {secs:.2f} | {rsecs:.2f} | {nnz_p} | {nnz_x} | {resid:.3e} | "
+              f"{madds:.3g} | {wall_rate:.3g} | {kern_rate:.3g} | {share:.0%} |")
+
+
+def setting_row(r: dict) -> list:
+    """One setting's totals: ``SETTING_COLUMNS``."""
+    rep = r["report"]
+    return [r["setting"], r["wall_s"], rep["seconds_spectral_radius"],
+            sum(h["seconds"] for h in rep["history"]),
+            sum(h.get("multiply_adds", 0) for h in rep["history"]),
+            r["error_vs_true_inverse"], r["nnz_X"] / r["n"], r["peak_rss_bytes"] / 2**30]
+
+
+def record(results: list[dict], args, scene_text: str) -> None:
+    """The printed tables, handed to RESULTS.md (``_results.Results``)."""
+    res = Results(run_name("inverse"), f"The stratified inverse term by term, "
+                  f"{args.size[0]}x{args.size[1]} {args.density} corner",
+                  "python benchmarks/bench_inverse.py " + " ".join(sys.argv[1:]))
+    res.table("settings", f"{args.terms} terms per setting (method:prune[:prune_feed])",
+              SETTING_COLUMNS, [setting_row(r) for r in results],
+              note=f"{scene_text}; error: relative Frobenius against F^-1 (I - A)"
+                   + (f" on {args.sample} sampled rows" if args.sample else ""))
+    for r in results:
+        res.table(f"terms:{r['setting']}", f"per term, {r['setting']}", TERM_COLUMNS,
+                  term_rows(r["report"]),
+                  note="rates are multiply-adds per second per core: over the term's wall "
+                       "time, and inside the product kernel")
+    res.save()
 
 
 def main(argv=None):
@@ -158,22 +199,20 @@ def main(argv=None):
     scene_path = os.path.join(workdir, f"corner-{args.size[0]}x{args.size[1]}-{args.density}.zarr")
     if not os.path.exists(scene_path):
         sc, t_scene = make_scene(args.size, scene_path, density)
-        print(f"built in {t_scene:.1f} s: " + sc.describe())
+        scene_text = f"built in {t_scene:.1f} s: " + sc.describe()
     else:
-        print("reused: " + bigT.scenes.load(scene_path).describe())
+        scene_text = "reused: " + bigT.scenes.load(scene_path).describe()
+    print(scene_text)
     settings = (args.settings.split(",") if args.settings
                 else [f"{m}:{args.prune:g}" for m in args.method.split(",")])
     results = [run_setting(setting, scene_path, workdir, args) for setting in settings]
     print("\n| setting | total s | spectral radius s | terms s (residuals included) | multiply-adds | "
           "error vs F^-1(I-A) | nnz(X)/row | peak RSS GiB |")
     print("|---|---|---|---|---|---|---|---|")
-    for r in results:
-        rep = r["report"]
-        madds = sum(h.get("multiply_adds", 0) for h in rep["history"])
-        print(f"| {r['setting']} | {r['wall_s']:.1f} | {rep['seconds_spectral_radius']:.1f} | "
-              f"{sum(h['seconds'] for h in rep['history']):.1f} | {madds:.3g} | "
-              f"{r['error_vs_true_inverse']:.2e} | {r['nnz_X'] / r['n']:.0f} | "
-              f"{r['peak_rss_bytes'] / 2**30:.2f} |")
+    for setting, wall, rho_s, terms_s, madds, err, per_row, peak in map(setting_row, results):
+        print(f"| {setting} | {wall:.1f} | {rho_s:.1f} | {terms_s:.1f} | {madds:.3g} | "
+              f"{err:.2e} | {per_row:.0f} | {peak:.2f} |")
+    record(results, args, scene_text)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1, default=str)

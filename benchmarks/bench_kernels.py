@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import argparse
 import gc
+import sys
 import time
 
 import numpy as np
 import scipy.sparse as sp
+from _results import Results, run_name
 
 
 def corner_M(H, W, ff_cut, threshold):
@@ -130,7 +132,8 @@ def profile_spgemm(M, threshold, repeat):
 
 
 def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False, ff_cut=2e-4,
-               scene_threshold=1e-6):
+               scene_threshold=1e-6, res=None):
+    """Time M @ M (and A @ X) at H x W, print the tables and hand them to ``res``."""
     from bigT import kernels  # noqa: PLC0415
 
     M, source = corner_M(H, W, ff_cut, scene_threshold)
@@ -209,8 +212,18 @@ def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False, ff_cu
 
     print("   (sparse_dot_topn top_n = largest row of the unpruned product, %d)" % top_n)
     print(f"   {'method':<30} {'time [s]':>9} {'scipy/x':>8} {'nnz/row':>8} {'max|diff|':>10}")
-    for name, t, C in rows:
-        print(f"   {name:<30} {t:9.3f} {t_ref / t:8.2f} {C.nnz / n:8.0f} {maxdiff(C, ref):10.2e}")
+    table = [[name, t, t_ref / t, C.nnz / n, maxdiff(C, ref)] for name, t, C in rows]
+    for name, t, ratio, per_row, diff in table:
+        print(f"   {name:<30} {t:9.3f} {ratio:8.2f} {per_row:8.0f} {diff:10.2e}")
+    if res is not None:
+        res.table(f"spgemm:{H}x{W}", f"pruned product M @ M at {H}x{W} (n = {n:,}, "
+                  f"{M.nnz / n:.0f} nonzeros a row), threshold {threshold:g}, best of "
+                  f"{repeat}", ["method", "time s", "scipy/x", "nnz/row", "max|diff|"], table,
+                  note=f"input: {source}; scipy/x: scipy's M@M + prune time over this one's")
+        res.value(f"speedup:{H}x{W}", t_ref / rows[1][1],
+                  f"bigT's pruned product M·M ({n_threads} threads) against scipy's M@M + "
+                  f"prune at {H}x{W} ({M.nnz / n:.0f} nonzeros a row), scipy's time over "
+                  "bigT's")
 
     if profile:
         profile_spgemm(M, threshold, repeat)
@@ -218,13 +231,18 @@ def bench_size(H, W, threshold, repeat, n_threads, methods, profile=False, ff_cu
     print(f"   spmm_dense: A @ X, X of shape (n, k), {M.dtype}")
     print(f"   {'k':>4} {'scipy [s]':>10} {'bigT [s]':>9} {'scipy/bigT':>10} {'max|diff|':>10}")
     rng = np.random.default_rng(1)
+    dense = []
     for k in (1, 64):
         X = rng.random((n, k)).astype(M.dtype)
         reps = max(repeat, 20 if k == 1 else 5)
         kernels.spmm_dense(M[:64], X)
         ts, Ys = timed(lambda: M @ X, reps)
         tb, Yb = timed(lambda: kernels.spmm_dense(M, X, n_threads=n_threads), reps)
-        print(f"   {k:>4} {ts:10.4f} {tb:9.4f} {ts / tb:10.2f} {np.abs(Ys - Yb).max():10.2e}")
+        dense.append([k, ts, tb, ts / tb, float(np.abs(Ys - Yb).max())])
+        print(f"   {k:>4} {ts:10.4f} {tb:9.4f} {ts / tb:10.2f} {dense[-1][-1]:10.2e}")
+    if res is not None:
+        res.table(f"spmm:{H}x{W}", f"A @ X at {H}x{W}, X of shape (n, k), {M.dtype}",
+                  ["k", "scipy s", "bigT s", "scipy/bigT", "max|diff|"], dense)
 
 
 def main(argv=None):
@@ -240,10 +258,13 @@ def main(argv=None):
     ap.add_argument("--scene-threshold", type=float, default=1e-6, help="scene threshold on T")
     args = ap.parse_args(argv)
     methods = set(filter(None, args.methods.split(",")))
+    res = Results(run_name("kernels"), "Kernels: the pruned product against scipy and rivals",
+                  "python benchmarks/bench_kernels.py " + " ".join(argv or sys.argv[1:]))
     for size in args.sizes.split(","):
         H, W = (int(v) for v in size.lower().split("x"))
         bench_size(H, W, args.threshold, args.repeat, args.threads, methods, args.profile,
-                   args.ff_cut, args.scene_threshold)
+                   args.ff_cut, args.scene_threshold, res)
+    res.save()
 
 
 if __name__ == "__main__":

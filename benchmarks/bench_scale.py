@@ -16,7 +16,8 @@ in a fresh child process:
   and the compensated error.
 
 The fitted exponent of time against n (least squares in log-log) is printed, and a
-log-log plot is written::
+log-log plot is written beside the record RESULTS.md is made from (``_results``:
+``$BIGT_BENCH_OUT``, default bench-out/)::
 
     python benchmarks/bench_scale.py --max-size 49152    # make bench --quick: ~1 min
     python benchmarks/bench_scale.py --max-size 2073600  # the full-HD point: ~30 min
@@ -37,6 +38,8 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from _results import Results, run_name  # noqa: E402
 
 #: (H, W) of the sizes measured: n = 12288 (for a quick fit), 49152, 196608, 786432,
 #: 2073600.
@@ -158,6 +161,36 @@ def fit_exponent(xs, ys) -> float:
     return sum((a - mx) * (b - my) for a, b in zip(lx, ly)) / sxx
 
 
+def exponents(rows) -> dict[str, tuple[float, str]]:
+    """The fitted exponents (least squares in log-log), each with what it measures."""
+    ns, secs = [r["n"] for r in rows], [r["invert_s"] for r in rows]
+    return {
+        "time": (fit_exponent(ns, secs), "exponent of the inverse's time in n"),
+        "time-nnz": (fit_exponent([r["nnz_T"] for r in rows], secs),
+                     "exponent of the inverse's time in nnz(T)"),
+        "peak": (fit_exponent(ns, [r["peak_gib"] for r in rows]),
+                 "exponent of the inverse's peak RSS in n"),
+        "build": (fit_exponent(ns, [r["build_s"] for r in rows]),
+                  "exponent of the scene build's time in n"),
+    }
+
+
+def record_rows(res, rows, args) -> None:
+    """The printed table, handed to RESULTS.md (``_results.Results``)."""
+    res.table("scale", f"{args.terms}-term inverse (prune {args.prune:g}, memory limit "
+              f"{args.memory_limit}) against n, the corner at ~constant nonzeros per row",
+              ["size", "n", "T nnz/row", "build s", "build peak GiB", "inverse s",
+               "terms s", "peak GiB", "X on disk GiB", "error", "residual",
+               "compensate s", "compensated error"],
+              [[r["size"], r["n"], r["nnz_T_per_row"], r["build_s"], r["build_peak_gib"],
+                r["invert_s"], " ".join(f"{t:.1f}" for t in r["term_s"]), r["peak_gib"],
+                r["X_disk_gib"], r["sampled_error"], r["residual"], r["compensate_s"],
+                r["compensated_error"]] for r in rows],
+              note=f"error: against the exact inverse F^-1 (I - A) on {args.sample} "
+                   "sampled rows; peak GiB: the inverse's process; compensate: "
+                   "`bigT compensate --simulate` of one image, streamed (time and error).")
+
+
 def plot(rows, path: str) -> str:
     import matplotlib
 
@@ -248,13 +281,20 @@ def main(argv=None):
               f"{r['peak_gib']:>8.2f} {r['X_disk_gib']:>6.2f} {r['sampled_error']:>9.2e} "
               f"{comp}")
     ns = [r["n"] for r in rows]
+    res = Results(run_name("scale"), "Cost of a 4-term inverse against n",
+                  "python benchmarks/bench_scale.py " + " ".join(sys.argv[1:]))
+    record_rows(res, rows, args)
     if len(rows) > 1:
-        print(f"fitted exponent of the inverse's time in n: "
-              f"{fit_exponent(ns, [r['invert_s'] for r in rows]):.2f}; in nnz(T): "
-              f"{fit_exponent([r['nnz_T'] for r in rows], [r['invert_s'] for r in rows]):.2f}; "
-              f"of its peak RSS in n: {fit_exponent(ns, [r['peak_gib'] for r in rows]):.2f}; "
-              f"of the build's time: {fit_exponent(ns, [r['build_s'] for r in rows]):.2f}")
-        print("plot:", plot(rows, os.path.join(args.workdir, "scale.png")))
+        exps = exponents(rows)
+        print(f"fitted exponent of the inverse's time in n: {exps['time'][0]:.2f}; in nnz(T): "
+              f"{exps['time-nnz'][0]:.2f}; of its peak RSS in n: {exps['peak'][0]:.2f}; "
+              f"of the build's time: {exps['build'][0]:.2f}")
+        for key, (value, what) in exps.items():
+            res.value(f"exponent:{key}", value, what)
+        print("plot:", plot(rows, str(res.figure_path(f"{res.name}.png"))))
+        res.figure(f"{res.name}.png", "time and peak memory of the 4-term inverse and the "
+                   "scene build against n (log-log, fitted slopes in the legend)")
+    res.save()
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1, default=str)

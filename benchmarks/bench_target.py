@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -38,6 +39,11 @@ from bigT.algorithms.target import (
     measure_term,
     probe_vectors,
 )
+
+from _results import Results, run_name
+
+COLUMNS = ["scene", "rho", "E", "chosen setting", "time s", "best fixed setting",
+           "its time s", "ratio", "error reached", "load"]
 
 #: (name, albedo) per size giving rho(M) ~ 0.2, 0.5, 0.9 (measured with bigT scene)
 SCENES = {
@@ -125,12 +131,21 @@ def bench_scene(name, albedo, size, targets, root: Path) -> list[dict]:
     return rows
 
 
+def _ratio(r) -> float:
+    return r["time"] / r["best_time"] if np.isfinite(r["best_time"]) else float("nan")
+
+
+def table_rows(rows) -> list[list]:
+    """The table's cells (``COLUMNS``), for RESULTS.md."""
+    return [[r["scene"], r["rho"], r["E"], r["chosen"], r["time"], r["best"],
+             r["best_time"], _ratio(r),
+             f"{r['error']:.2e}{'' if r['met'] else ' (not met)'}", r["load"]] for r in rows]
+
+
 def table(rows) -> str:
-    lines = ["| scene | rho | E | chosen setting | time s | best fixed setting | its time s "
-             "| ratio | error reached | load |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        ratio = r["time"] / r["best_time"] if np.isfinite(r["best_time"]) else float("nan")
+        ratio = _ratio(r)
         lines.append(f"| {r['scene']} | {r['rho']:.2f} | {r['E']:.3g} | {r['chosen']} | "
                      f"{r['time']:.1f} | {r['best']} | {r['best_time']:.1f} | {ratio:.2f} | "
                      f"{r['error']:.2e}{'' if r['met'] else ' (not met)'} | {r['load']:.1f} |")
@@ -163,6 +178,14 @@ def main(argv=None) -> None:
         shutil.rmtree(root, ignore_errors=True)
     text = table(rows)
     print(text)
+    res = Results(run_name("target"), "`bigT invert --target-error` against a sweep of "
+                  "fixed settings", "python benchmarks/bench_target.py " + " ".join(
+                      argv if argv is not None else sys.argv[1:]))
+    res.table("target", "the setting --target-error chose against the best fixed one",
+              COLUMNS, table_rows(rows),
+              note="time to E: engine time up to the first term whose worst probe error is "
+                   "<= E; ratio: chosen over best fixed (a sweep of method x prune)")
+    res.save()
     if args.out:
         Path(args.out).write_text(text + "\n")
 

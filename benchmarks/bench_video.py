@@ -42,6 +42,8 @@ from bigT.compensation.core import choose_path  # noqa: E402
 from bigT.compensation.realtime import Compensator, run_stream, video_batches  # noqa: E402
 from bigT.compensation.video import VideoSink, VideoSource  # noqa: E402
 
+from _results import Results, run_name  # noqa: E402
+
 
 def _size(text):
     h, w = text.lower().split("x")
@@ -170,6 +172,27 @@ def copy_bandwidth(mb=512, repeats=5) -> float:
     return 2 * a.nbytes / min(ts) / 1e9
 
 
+def record(rows: list[Row], products: list[tuple], X, frames: int) -> None:
+    """The printed tables, handed to RESULTS.md (``_results.Results``)."""
+    H, W = X.pixel_order.image_shape
+    res = Results(run_name("video"), "Real-time compensation of a video",
+                  "python benchmarks/bench_video.py " + " ".join(sys.argv[1:]))
+    res.table("video", f"{frames} frames of {H}x{W} through `bigT compensate X.zarr in.mp4 "
+              f"-o out.mp4`'s pipeline, X {X.nnz:,} nonzeros ({X.nnz / X.shape[0]:.0f} a row)",
+              ["mode", "precision", "batch", "frames", "frames/s", "latency mean ms",
+               "latency p50 ms", "latency p95 ms", "without queueing p50 ms",
+               "without queueing p95 ms", "MB of X per frame", "effective GB/s",
+               "max error vs float32", "load 1/5/15 min"],
+              [[r.mode, r.precision, r.batch, r.frames, r.fps, r.mean, r.p50, r.p95, r.own50,
+                r.own95, r.mb_per_frame, r.gbps, r.err, r.load] for r in rows],
+              note="latency: read start to written, queueing included; without queueing: "
+                   "read + compensate + write")
+    res.table("products", "the products alone (X in memory, no I/O)",
+              ["precision", "batch", "ms per frame", "frames/s", "MB of X per frame", "GB/s",
+               "load"], [list(p) for p in products])
+    res.save()
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--T", help="X's transport store (named in the header, its shape checked; "
@@ -244,8 +267,10 @@ def main():
         print()
         print("| precision | batch | ms per frame | frames/s | MB of X per frame | GB/s | load |")
         print("|---|---|---|---|---|---|---|")
-        for prec, k, ms, fps, mb, gbps, load in kernel_rows(X, ("float32", "float16")):
+        products = kernel_rows(X, ("float32", "float16"))
+        for prec, k, ms, fps, mb, gbps, load in products:
             print(f"| {prec} | {k} | {ms:.2f} | {fps:.0f} | {mb:.1f} | {gbps:.2f} | {load} |")
+        record(rows, products, X, frames)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

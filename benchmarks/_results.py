@@ -1,0 +1,249 @@
+"""What a benchmark hands to ``benchmarks/RESULTS.md``: its tables, figures, named values
+and, for the paper's figures, the paper's claim beside the value measured.
+
+Every benchmark script keeps printing its own tables; it also records them here::
+
+    from _results import Results, run_name
+    res = Results(run_name("scale"))             # one per script run
+    res.table("inverse", "4-term inverse against n", ["n", "s", "error"], rows)
+    png = res.figure_path("scale.png")           # where to save a plot
+    ...; res.figure("scale.png", "time and peak memory against n")
+    res.value("exponent", 0.73, "fitted exponent of time against n")
+    res.claim("Fig. 6", "T_7^-1 > 8x faster than the true inverse", "11.2x faster")
+    res.save()                                   # -> $BIGT_BENCH_OUT/scale.json
+
+``run_all.py`` sets ``BIGT_BENCH_OUT`` (``benchmarks/results`` for the full plan,
+``bench-out`` for ``--quick`` and for a script run by hand) and ``BIGT_BENCH_NAME`` (the
+plan's name for the run, so one script run twice with other arguments keeps two
+records), stamps the machine and versions into ``machine.json`` (:func:`machine`) and,
+once every script has run, ``report.py`` assembles RESULTS.md from the JSON files:
+nothing in RESULTS.md is typed in by hand. Values are plain numbers (or strings), so the
+summary at the top of RESULTS.md can quote them by ``(benchmark, key)``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+#: Where every benchmark writes its JSON record and figures (``run_all.py`` sets it).
+OUT_ENV = "BIGT_BENCH_OUT"
+#: The name ``run_all.py`` gives a run of a script (one script may run twice in a plan,
+#: with other arguments: each run needs its own record).
+NAME_ENV = "BIGT_BENCH_NAME"
+#: The stamp of the machine and versions, written by ``run_all.py`` as the run starts.
+MACHINE_FILE = "machine.json"
+#: The packages whose versions the stamp names (the rivals only when installed).
+PACKAGES = ("numpy", "scipy", "numba", "dask", "distributed", "zarr")
+RIVALS = ("sparse_dot_topn", "python-graphblas", "pypardiso")
+
+
+def out_dir() -> Path:
+    """The directory benchmarks write their records and figures into (created)."""
+    path = Path(os.environ.get(OUT_ENV, "bench-out"))
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def run_name(default: str) -> str:
+    """The record's name: ``run_all.py``'s name for this run, else ``default``."""
+    return os.environ.get(NAME_ENV) or default
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table of RESULTS.md: ``rows`` are lists of cells (numbers or strings), one per
+    column; ``note`` is a sentence printed under it (what was run, how to read it)."""
+
+    key: str
+    title: str
+    columns: list[str]
+    rows: list[list[Any]]
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A PNG written into :func:`out_dir` (``file`` is relative to it)."""
+
+    file: str
+    caption: str
+
+
+@dataclass(frozen=True)
+class Value:
+    """A named number the summary can quote."""
+
+    key: str
+    value: Any
+    what: str
+
+
+@dataclass(frozen=True)
+class Claim:
+    """One of the paper's claims and what this run measured for it."""
+
+    figure: str
+    paper: str
+    measured: str
+    holds: bool | None = None
+
+
+def _jsonable(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if hasattr(x, "item") and callable(x.item):  # numpy scalars
+        return _jsonable(x.item())
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    return x
+
+
+@dataclass
+class Results:
+    """The record of one benchmark run (one JSON file, ``<name>.json``)."""
+
+    name: str
+    title: str = ""
+    command: str = ""
+    tables: list[Table] = field(default_factory=list)
+    figures: list[Figure] = field(default_factory=list)
+    values: list[Value] = field(default_factory=list)
+    claims: list[Claim] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    started: float = field(default_factory=time.time)
+
+    def table(self, key: str, title: str, columns: Sequence[str],
+              rows: Sequence[Sequence[Any]], note: str = "") -> None:
+        self.tables.append(Table(key, title, list(columns), [list(r) for r in rows], note))
+
+    def figure_path(self, file: str) -> Path:
+        """Where to save figure ``file`` (a PNG name, no directories)."""
+        return out_dir() / file
+
+    def figure(self, file: str, caption: str) -> None:
+        self.figures.append(Figure(file, caption))
+
+    def value(self, key: str, value: Any, what: str) -> None:
+        self.values.append(Value(key, value, what))
+
+    def claim(self, figure: str, paper: str, measured: str, holds: bool | None = None) -> None:
+        self.claims.append(Claim(figure, paper, measured, holds))
+
+    def note(self, text: str) -> None:
+        self.notes.append(text)
+
+    def save(self) -> Path:
+        """Write ``<name>.json`` into :func:`out_dir` and return its path."""
+        record = asdict(self)
+        record["seconds"] = time.time() - self.started
+        path = out_dir() / f"{self.name}.json"
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(_jsonable(record), indent=1))
+        os.replace(tmp, path)
+        return path
+
+
+@dataclass(frozen=True)
+class Machine:
+    """The machine a run ran on and the code it ran: stamped on RESULTS.md and on every
+    figure, so a number is never read without them."""
+
+    cpu_model: str
+    cores: int  # os.cpu_count()
+    usable_cores: int  # the affinity: what this process may run on
+    memory_gib: float
+    python: str
+    commit: str  # short hash, "+dirty" when the work tree differed from it
+    versions: dict[str, str]
+    load_average: list[float]  # at the start: the machine may be shared
+    started: float
+
+    def line(self) -> str:
+        """One line: the machine, then the versions."""
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(self.started))
+        vers = ", ".join(f"{k} {v}" for k, v in self.versions.items())
+        return (f"{self.cpu_model}, {self.cores} cores ({self.usable_cores} usable), "
+                f"{self.memory_gib:.1f} GiB; bigT {self.commit}, Python {self.python}, "
+                f"{vers}; {when}")
+
+    def save(self, directory: Path) -> Path:
+        path = Path(directory) / MACHINE_FILE
+        path.write_text(json.dumps(asdict(self), indent=1))
+        return path
+
+    @classmethod
+    def load(cls, directory: Path) -> "Machine | None":
+        path = Path(directory) / MACHINE_FILE
+        return cls(**json.loads(path.read_text())) if path.exists() else None
+
+
+def _proc_field(path: str, key: str) -> str | None:
+    """The value of the first ``key: value`` line of a /proc file (None off Linux)."""
+    try:
+        for line in Path(path).read_text().splitlines():
+            name, _, value = line.partition(":")
+            if name.strip() == key:
+                return value.strip()
+    except OSError:
+        pass
+    return None
+
+
+def _git_commit(root: Path) -> str:
+    """Short hash of HEAD, "+dirty" when tracked or untracked files differ from it (the
+    results this run writes excepted: they are not the code that made them)."""
+    def git(*args):
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True,
+                              text=True, timeout=30).stdout.strip()
+    try:
+        head = git("rev-parse", "--short", "HEAD")
+        dirty = git("status", "--porcelain", "--", ".", ":!benchmarks/results",
+                    ":!benchmarks/RESULTS.md", ":!bench-out")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (head or "unknown") + ("+dirty" if dirty else "")
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in PACKAGES + RIVALS:
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            if pkg in PACKAGES:
+                out[pkg] = "not installed"
+    return out
+
+
+def machine(root: Path | None = None) -> Machine:
+    """Read the stamp off this machine and the checkout at ``root`` (this repository)."""
+    root = root or Path(__file__).resolve().parent.parent
+    kib = _proc_field("/proc/meminfo", "MemTotal")
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        usable = os.cpu_count() or 1
+    return Machine(
+        cpu_model=_proc_field("/proc/cpuinfo", "model name") or platform.processor()
+        or platform.machine(),
+        cores=os.cpu_count() or 1, usable_cores=usable,
+        memory_gib=int(kib.split()[0]) / 2**20 if kib else float("nan"),
+        python=platform.python_version(), commit=_git_commit(root), versions=_versions(),
+        load_average=[round(v, 2) for v in os.getloadavg()], started=time.time())
+
+
+def load(path: Path) -> dict:
+    """A record written by :meth:`Results.save`, as a dict."""
+    return json.loads(Path(path).read_text())

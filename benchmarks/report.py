@@ -1,0 +1,636 @@
+"""Write RESULTS.md from the records the benchmarks left in the output directory.
+
+    python benchmarks/report.py [--out DIR] [--results FILE]
+
+Reads every ``<name>.json`` there (written by ``_results.Results``), ``machine.json``
+(the stamp ``run_all.py`` takes as a run starts) and ``runs.json`` (each benchmark's
+command, exit status and time, in the plan's order), and writes RESULTS.md: the stamp,
+a summary whose every sentence is generated from the records and quotes their numbers,
+the paper's claims beside what was measured, then one section per benchmark with its
+tables, figures (linked relatively, so the file displays on GitHub), notes, values and
+run time. Every figure gets the stamp drawn under it. Nothing here is typed by hand:
+a benchmark that did not run says "not measured in this run".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _results import (  # noqa: E402
+    MACHINE_FILE,
+    OUT_ENV,
+    Claim,
+    Figure,
+    Machine,
+    Table,
+    Value,
+    machine,
+)
+
+#: What ``run_all.py`` writes beside the records: the plan's order and each run's status.
+RUNS_FILE = "runs.json"
+#: The PNG text key marking a figure already stamped (a rerun of the report leaves it).
+STAMP_KEY = "bigT-stamp"
+#: Lines of a failed benchmark's log quoted in RESULTS.md.
+LOG_TAIL = 25
+#: Lines quoted of a benchmark that prints its tables without recording them.
+OUTPUT_TAIL = 60
+NOT_MEASURED = "not measured in this run"
+
+
+# --- what run_all.py hands over -----------------------------------------------------------
+
+@dataclass(frozen=True)
+class Run:
+    """One benchmark of a plan as ``run_all.py`` ran it."""
+
+    name: str
+    command: list[str]
+    returncode: int | None  # None: started and never finished (interrupted)
+    seconds: float
+    log: str  # its printed output, a file in the output directory
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The plan's order of names and the runs done so far (``runs.json``)."""
+
+    kind: str  # "full", "quick" or "custom"
+    order: list[str]
+    runs: list[Run]
+
+    def run(self, name: str) -> Run | None:
+        return next((r for r in self.runs if r.name == name), None)
+
+    def save(self, directory: Path) -> Path:
+        path = Path(directory) / RUNS_FILE
+        path.write_text(json.dumps(asdict(self), indent=1))
+        return path
+
+    @classmethod
+    def load(cls, directory: Path) -> "Plan | None":
+        path = Path(directory) / RUNS_FILE
+        if not path.exists():
+            return None
+        d = json.loads(path.read_text())
+        return cls(d["kind"], d["order"], [Run(**r) for r in d["runs"]])
+
+
+# --- the records ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Record:
+    """A benchmark's ``<name>.json``, read back."""
+
+    name: str
+    title: str
+    command: str
+    tables: list[Table]
+    figures: list[Figure]
+    values: dict[str, Value]
+    claims: list[Claim]
+    notes: list[str]
+    seconds: float | None
+    started: float | None
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Record":
+        return cls(d["name"], d.get("title", ""), d.get("command", ""),
+                   [Table(**t) for t in d.get("tables", [])],
+                   [Figure(**f) for f in d.get("figures", [])],
+                   {v["key"]: Value(**v) for v in d.get("values", [])},
+                   [Claim(**c) for c in d.get("claims", [])], list(d.get("notes", [])),
+                   d.get("seconds"), d.get("started"))
+
+    def table(self, key: str) -> Table | None:
+        return next((t for t in self.tables if t.key == key), None)
+
+    def tables_from(self, prefix: str) -> list[Table]:
+        return [t for t in self.tables if t.key.startswith(prefix)]
+
+    def value(self, key: str, default: Any = None) -> Any:
+        v = self.values.get(key)
+        return default if v is None else v.value
+
+
+def load_records(directory: Path) -> dict[str, Record]:
+    """Every record in ``directory`` by name (the stamp and the plan are not records)."""
+    out = {}
+    for path in sorted(Path(directory).glob("*.json")):
+        if path.name in (MACHINE_FILE, RUNS_FILE):
+            continue
+        try:
+            rec = Record.from_json(json.loads(path.read_text()))
+        except (ValueError, KeyError, TypeError):  # not a record: a script's own JSON
+            continue
+        out[rec.name] = rec
+    return out
+
+
+# --- numbers and markdown -------------------------------------------------------------------
+
+def fmt(x: Any) -> str:
+    """A cell: 3 significant digits, scientific below 1e-3 (errors) and from 1e6."""
+    if x is None:
+        return "–"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, int):
+        return f"{x:,}" if abs(x) >= 1000 else str(x)
+    if isinstance(x, float):
+        if not math.isfinite(x):
+            return "–"
+        a = abs(x)
+        if a == 0:
+            return "0"
+        if a < 1e-3 or a >= 1e6:
+            mant, exp = f"{x:.2e}".split("e")
+            return f"{mant}e{int(exp)}"
+        return f"{x:,.0f}" if a >= 100 else f"{x:.3g}"
+    if isinstance(x, (list, tuple)):
+        return " ".join(fmt(v) for v in x)
+    return str(x)
+
+
+def _cell(x: Any) -> str:
+    return fmt(x).replace("|", "\\|").replace("\n", " ")
+
+
+def md_table(t: Table) -> list[str]:
+    lines = [f"**{t.title or t.key}**", "",
+             "| " + " | ".join(_cell(c) for c in t.columns) + " |",
+             "|" + "---|" * len(t.columns)]
+    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in t.rows]
+    if t.note:
+        lines += ["", f"*{t.note}*"]
+    return lines + [""]
+
+
+def _num(x: Any) -> float | None:
+    """A cell as a number (None for text such as "did not fit", or a missing value)."""
+    if isinstance(x, bool) or x is None:
+        return None
+    if isinstance(x, (int, float)):
+        return float(x) if math.isfinite(x) else None
+    try:
+        return float(str(x).replace(",", ""))
+    except ValueError:
+        return None
+
+
+def _rows(t: Table) -> list[dict[str, Any]]:
+    return [dict(zip(t.columns, row)) for row in t.rows]
+
+
+def _when(stamp: float | None) -> str:
+    return time.strftime("%Y-%m-%d %H:%M", time.localtime(stamp)) if stamp else "?"
+
+
+# --- the summary ----------------------------------------------------------------------------
+
+#: Frame counts the alternatives are compared at: one image, a clip, a long video.
+FRAME_COUNTS = (1, 1000)
+
+
+@dataclass(frozen=True)
+class Cost:
+    """One method's cost at one size, from the alternatives table."""
+
+    method: str
+    setup: float
+    frame1: float | None  # s per frame at batch 1
+    frame64: float | None  # s per frame at batch 64
+    error: Any
+    peak: float | None
+
+    def total(self, frames: int) -> float | None:
+        """Setup and ``frames`` frames, batched when there are enough to batch."""
+        per = self.frame64 if frames >= 64 and self.frame64 is not None else self.frame1
+        return None if per is None else self.setup + frames * per
+
+    def per_frame(self, frames: int) -> float | None:
+        return self.frame64 if frames >= 64 and self.frame64 is not None else self.frame1
+
+
+def _costs(rows: list[dict]) -> list[Cost]:
+    out = []
+    for r in rows:
+        setup = _num(r.get("setup s"))
+        f1, f64 = _num(r.get("frame s (batch 1)")), _num(r.get("frame s (batch 64)"))
+        if setup is None or (f1 is None and f64 is None):
+            continue
+        out.append(Cost(str(r.get("method")), setup, f1, f64, r.get("error"),
+                        _num(r.get("peak MiB"))))
+    return out
+
+
+def _break_even(a: Cost, b: Cost, frames: int) -> float | None:
+    """Frames after which ``a`` (more setup, cheaper frames) overtakes ``b``."""
+    pa, pb = a.per_frame(frames), b.per_frame(frames)
+    if pa is None or pb is None or pb <= pa:
+        return None
+    return max((a.setup - b.setup) / (pb - pa), 0.0)
+
+
+def _cost_text(c: Cost, frames: int) -> str:
+    total = c.total(frames)
+    per = c.per_frame(frames)
+    batch = "batch 64" if frames >= 64 and c.frame64 is not None else "batch 1"
+    return (f"{c.method} ({fmt(c.setup)} s setup + {fmt(frames)} × {fmt(per)} s a frame "
+            f"at {batch} = {fmt(total)} s; error {fmt(c.error)})")
+
+
+def _crossings(costs: list[Cost], few: Cost, many: Cost) -> str:
+    """Where the quickest for many frames overtakes the quickest for one, and where the
+    method with the cheapest frames pays back its setup against it."""
+    text, big = "", FRAME_COUNTS[-1]
+    if few.method != many.method:
+        k = _break_even(many, few, big)
+        if k is not None:
+            text += f" {many.method} overtakes {few.method} after about {fmt(math.ceil(k))} frames."
+    cheapest = min(costs, key=lambda c: c.per_frame(big))
+    if cheapest.method != many.method:
+        k = _break_even(cheapest, many, big)
+        if k is not None:
+            text += (f" {cheapest.method} has the cheapest frames ({fmt(cheapest.per_frame(big))}"
+                     f" s each, batched) and pays back its {fmt(cheapest.setup)} s setup "
+                     f"against {many.method} after about {fmt(math.ceil(k))} frames.")
+    return text
+
+
+def summary_alternatives(rec: Record | None) -> list[str]:
+    """Per size: the quickest for one frame and for many, where they cross, memory."""
+    table = rec.table("alternatives") if rec else None
+    if table is None:
+        return ["The alternatives a user would pick instead (dense inverse, sparse LU, "
+                f"PARDISO, GMRES, Jacobi, bigT's two paths): {NOT_MEASURED}."]
+    rows = _rows(table)
+    out, wins = [], {}
+    for size in dict.fromkeys(r.get("size") for r in rows):
+        sized = [r for r in rows if r.get("size") == size]
+        costs = _costs(sized)
+        if not costs:
+            continue
+        n = fmt(sized[0].get("n"))
+        best = {k: min(costs, key=lambda c: c.total(k) if c.total(k) is not None
+                       else math.inf) for k in FRAME_COUNTS}
+        parts = [f"for {fmt(k)} frame{'s' if k > 1 else ''} the quickest is "
+                 f"{_cost_text(best[k], k)}" for k in FRAME_COUNTS]
+        text = f"At {size} (n = {n}): " + "; ".join(parts) + "."
+        text += _crossings(costs, best[FRAME_COUNTS[0]], best[FRAME_COUNTS[-1]])
+        light = [c for c in costs if c.peak is not None]
+        if light:
+            low = min(light, key=lambda c: c.peak)
+            text += f" Least memory: {low.method} ({fmt(low.peak)} MiB peak)."
+        skipped = [f"{r.get('method')} ({r.get('setup s')})" for r in sized
+                   if _num(r.get("setup s")) is None and r.get("setup s") not in (None, "")]
+        if skipped:
+            text += " Not run here: " + ", ".join(skipped) + "."
+        out.append(text)
+        for k in FRAME_COUNTS:
+            wins.setdefault((best[k].method, k), []).append(str(size))
+    out += [f"{m} is the quickest for {fmt(k)} frame{'s' if k > 1 else ''} at "
+            f"{', '.join(sizes)}." for (m, k), sizes in sorted(wins.items())]
+    out += _quoted_values(rec, "winner:")
+    return out or [f"The alternatives table has no timed rows: {NOT_MEASURED}."]
+
+
+def _is_front(x: Any) -> bool:
+    return x is True or str(x).strip().lower() in ("yes", "true", "1", "✓", "x", "*")
+
+
+def _decades(errors: list[float]) -> list[float]:
+    """Up to three error targets (powers of ten) the front spans, loosest first."""
+    lo, hi = min(errors), max(errors)
+    top = 10.0 ** math.ceil(math.log10(hi))
+    targets = [top / 10**i for i in range(12) if top / 10**i >= lo]
+    return targets[-3:] if targets else [top]
+
+
+def summary_tradeoff(rec: Record | None) -> list[str]:
+    """Per scene: the fastest setting on the Pareto front reaching each error target."""
+    tables = rec.tables_from("pareto") if rec else []
+    if not tables:
+        return [f"Time against error (the prune threshold and method trade): {NOT_MEASURED}."]
+    out = []
+    for t in tables:
+        front = [r for r in _rows(t) if _is_front(r.get("on front"))
+                 and _num(r.get("error")) is not None and _num(r.get("seconds")) is not None]
+        if not front:
+            continue
+        parts = []
+        for target in _decades([_num(r["error"]) for r in front]):
+            ok = [r for r in front if _num(r["error"]) <= target]
+            if ok:
+                r = min(ok, key=lambda r: _num(r["seconds"]))
+                parts.append(f"error ≤ {fmt(target)} takes {fmt(r['seconds'])} s "
+                             f"({r.get('method')}, prune {fmt(r.get('prune'))}, feed "
+                             f"{fmt(r.get('feed'))}: error {fmt(r['error'])}, nnz(X) "
+                             f"{fmt(r.get('nnz(X)'))})")
+        out.append(f"{t.title or t.key}: " + "; ".join(parts) + ".")
+    return (out or [f"The Pareto tables have no front: {NOT_MEASURED}."]) + _quoted_values(
+        rec, "best:")
+
+
+def _quoted_values(rec: Record, prefix: str) -> list[str]:
+    """The verdicts a benchmark recorded itself, quoted as it worded them."""
+    out = []
+    for key, v in rec.values.items():
+        if key.startswith(prefix):
+            # the key names what the wording may not (the size of "winner:<size>:...")
+            where = key[len(prefix):].split(":")[0]
+            out.append(f"{v.what}{'' if where in v.what else f' ({where})'}: {fmt(v.value)}.")
+    return out
+
+
+def summary_scale(rec: Record | None) -> list[str]:
+    """The largest size's time, memory and error, and the fitted exponents."""
+    table = rec.table("scale") if rec else None
+    if table is None or not table.rows:
+        return [f"Scaling of the 4-term inverse with n: {NOT_MEASURED}."]
+    rows = _rows(table)
+    last = rows[-1]
+    text = (f"At {last.get('size')} (n = {fmt(last.get('n'))}, "
+            f"{fmt(last.get('T nnz/row'))} nonzeros a row) the 4-term inverse took "
+            f"{fmt(last.get('inverse s'))} s at {fmt(last.get('peak GiB'))} GiB peak, "
+            f"error {fmt(last.get('error'))} against the exact inverse")
+    e_t, e_m = rec.value("exponent:time"), rec.value("exponent:peak")
+    if e_t is not None:
+        text += (f"; from {rows[0].get('size')} to {last.get('size')} its time grows as "
+                 f"n^{fmt(e_t)} and its peak memory as n^{fmt(e_m)}")
+    return [text + "."]
+
+
+def summary_kernels(rec: Record | None) -> list[str]:
+    """Per size: every method's time for the pruned product, and bigT against scipy."""
+    tables = rec.tables_from("spgemm:") if rec else []
+    if not tables:
+        return [f"The pruned product against scipy and its rivals: {NOT_MEASURED}."]
+    out = []
+    for t in tables:
+        times = ", ".join(f"{r.get('method')} {fmt(r.get('time s'))} s" for r in _rows(t))
+        ratio = rec.value(f"speedup:{t.key.split(':', 1)[1]}")
+        out.append(f"{t.title}: {times}" + (f"; bigT is {fmt(ratio)}× scipy's speed"
+                                             if ratio is not None else "") + ".")
+    return out
+
+
+def summary_distributed(rec: Record | None) -> list[str]:
+    """The total time on each scheduler."""
+    table = rec.table("schedulers") if rec else None
+    if table is None:
+        return [f"The same inversion on threads, local:2 and two dask workers: {NOT_MEASURED}."]
+    parts = [f"{r.get('scheduler')} {fmt(r.get('total s'))} s" for r in _rows(table)]
+    return [f"{table.title}: " + ", ".join(parts) + "."]
+
+
+def summary_video(rec: Record | None) -> list[str]:
+    """Frames per second with X in memory (float32, H.264), batch 1 and 64."""
+    table = rec.table("video") if rec else None
+    if table is None:
+        return [f"Real-time compensation of a video: {NOT_MEASURED}."]
+    rows = [r for r in _rows(table) if str(r.get("mode", "")).startswith("in memory, mp4")
+            and r.get("precision") == "float32"]
+    parts = [f"{fmt(r.get('frames/s'))} frames/s at batch {r.get('batch')}" for r in rows]
+    return [f"{table.title}: X held in memory compensates " + ", ".join(parts) + "."] \
+        if parts else []
+
+
+def summary_target(rec: Record | None) -> list[str]:
+    """The range of --target-error's time over the best fixed setting's."""
+    table = rec.table("target") if rec else None
+    if table is None:
+        return [f"`--target-error` against the best fixed setting: {NOT_MEASURED}."]
+    ratios = [_num(r.get("ratio")) for r in _rows(table)]
+    ratios = [x for x in ratios if x is not None]
+    if not ratios:
+        return []
+    lo, hi = fmt(min(ratios)), fmt(max(ratios))
+    cases = f"{len(ratios)} case{'s' if len(ratios) > 1 else ''}"
+    return [f"`--target-error` reached its target in {lo if lo == hi else f'{lo}–{hi}'}× "
+            f"the time of the best fixed setting found by a sweep ({cases})."]
+
+
+def summary_paper(records: Iterable[Record], found: bool) -> list[str]:
+    """How many of the paper's claims hold, and which do not."""
+    claims = [c for r in records for c in r.claims]
+    if not found:
+        return [f"Figs. 5, 6, 9 and 10(a) reproduced on bigT's scenes: {NOT_MEASURED}."]
+    judged = [c for c in claims if c.holds is not None]
+    held = [c for c in judged if c.holds]
+    text = f"{len(held)} of {len(judged)} of the paper's claims checked hold on bigT's scenes"
+    # each failing claim once (a claim measured several ways fails once here); the
+    # measured values are in the claims table, too long for a sentence
+    failed = dict.fromkeys(f'{c.figure} "{c.paper}"' for c in judged if not c.holds)
+    return [text + ("; not: " + "; ".join(failed) + " (measured values in the table below)"
+                    if failed else "") + "."]
+
+
+def summary(records: dict[str, Record]) -> list[str]:
+    """The generated summary: each topic's sentences under a bold lead."""
+    topics = [
+        ("When bigT's stratified inverse, sparse LU or the matrix-free path is the "
+         "right tool", summary_alternatives(records.get("alternatives"))),
+        ("Which setting meets an error target fastest", summary_tradeoff(records.get("tradeoff"))
+         + summary_target(records.get("target"))),
+        ("How it scales", summary_scale(records.get("scale"))
+         + summary_distributed(records.get("distributed"))),
+        ("Kernels and throughput", summary_kernels(records.get("kernels"))
+         + summary_video(records.get("video"))),
+        ("The paper's figures", summary_paper(records.values(), "paper" in records)),
+    ]
+    lines = ["## Summary", ""]
+    for lead, sentences in topics:
+        lines.append(f"**{lead}.**")
+        lines += [f"- {s}" for s in sentences]
+        lines.append("")
+    return lines
+
+
+def claims_table(records: Iterable[Record]) -> list[str]:
+    claims = [(r.name, c) for r in records for c in r.claims]
+    lines = ["## The paper's claims against this run", ""]
+    if not claims:
+        return lines + [f"The paper's figures: {NOT_MEASURED}.", ""]
+    lines += ["| figure | the paper | measured here | holds |", "|---|---|---|---|"]
+    lines += [f"| {_cell(c.figure)} | {_cell(c.paper)} | {_cell(c.measured)} | "
+              f"{'–' if c.holds is None else fmt(bool(c.holds))} |" for _, c in claims]
+    return lines + [""]
+
+
+# --- the sections ---------------------------------------------------------------------------
+
+def _link(path: Path, base: Path) -> str:
+    return Path(os.path.relpath(path, base)).as_posix()
+
+
+def _log_tail(path: Path, count: int = LOG_TAIL) -> list[str]:
+    try:
+        lines = path.read_text(errors="replace").splitlines()[-count:]
+    except OSError:
+        return ["(no log)"]
+    return ["```", *lines, "```"]
+
+
+def _status(run: Run | None, rec: Record | None, out: Path, base: Path,
+            stamp: Machine | None) -> list[str]:
+    """The line under a section's heading: command, exit, time, log; or the failure."""
+    if run is None:
+        when = _when(rec.started) if rec else "?"
+        return [f"Not run by this plan: the record is from {when}.", ""]
+    log = out / run.log
+    head = f"`{' '.join(run.command)}`"
+    link = f"[{run.log}]({_link(log, base)})"
+    if run.returncode is None:
+        return [f"{head}: **did not finish** (interrupted after {fmt(run.seconds)} s); "
+                f"the end of its log, {link}:", "", *_log_tail(log), ""]
+    if run.returncode:
+        return [f"{head}: **failed** (exit {run.returncode} after {fmt(run.seconds)} s); "
+                f"the end of its log, {link}:", "", *_log_tail(log), ""]
+    stale = ""
+    if rec and stamp and rec.started and rec.started < stamp.started - 1:
+        stale = f" The record below is from an earlier run ({_when(rec.started)})."
+    return [f"{head}: ran in {fmt(run.seconds)} s; its output: {link}.{stale}", ""]
+
+
+def section(i: int, name: str, run: Run | None, rec: Record | None, out: Path,
+            base: Path, stamp: Machine | None) -> list[str]:
+    title = rec.title if rec and rec.title else name
+    lines = [f"## {i}. {title} (`{name}`)", ""] + _status(run, rec, out, base, stamp)
+    if rec is None:
+        if run is None:
+            lines += [f"{NOT_MEASURED[0].upper()}{NOT_MEASURED[1:]}.", ""]
+        elif run.returncode == 0:  # a script that prints its tables and records none
+            lines += [f"It records no tables; the end of its output ({OUTPUT_TAIL} lines "
+                      "at most):", "", *_log_tail(out / run.log, OUTPUT_TAIL), ""]
+        return lines
+    if run is not None and run.returncode:
+        return lines  # a failed run's record, if any, is not its result
+    for t in rec.tables:
+        lines += md_table(t)
+    for f in rec.figures:
+        alt = f.caption.replace("[", "(").replace("]", ")")  # a bracket would end the link
+        lines += [f"![{alt}]({_link(out / f.file, base)})", "", f"*{f.caption}*", ""]
+    if rec.values:
+        lines += [f"- {v.what} (`{v.key}`): **{fmt(v.value)}**" for v in rec.values.values()]
+        lines.append("")
+    for note in rec.notes:
+        lines += [note, ""]
+    return lines
+
+
+# --- figures --------------------------------------------------------------------------------
+
+def stamp_figure(path: Path, text: str) -> bool:
+    """Draw ``text`` in a band under the PNG at ``path`` (once: a PNG text chunk marks
+    it, so a second report over the same figure leaves it). True when stamped."""
+    from PIL import Image, ImageDraw, ImageFont, PngImagePlugin
+
+    with Image.open(path) as im:
+        if STAMP_KEY in getattr(im, "text", {}):
+            return False
+        im = im.convert("RGB")
+    font = ImageFont.load_default(size=max(10, im.width // 75))
+    lines = _wrap(text, font, im.width - 12)
+    step = int(font.size * 1.3)
+    out = Image.new("RGB", (im.width, im.height + step * len(lines) + 8), "white")
+    out.paste(im, (0, 0))
+    draw = ImageDraw.Draw(out)
+    for i, line in enumerate(lines):
+        draw.text((6, im.height + 4 + i * step), line, fill=(90, 90, 90), font=font)
+    info = PngImagePlugin.PngInfo()
+    info.add_text(STAMP_KEY, text)
+    out.save(path, pnginfo=info)
+    return True
+
+
+def _wrap(text: str, font, width: int) -> list[str]:
+    """Greedy word wrap to ``width`` pixels."""
+    lines, cur = [], ""
+    for word in text.split(" "):
+        trial = f"{cur} {word}".strip()
+        if cur and font.getlength(trial) > width:
+            lines.append(cur)
+            cur = word
+        else:
+            cur = trial
+    return lines + [cur] if cur else lines
+
+
+# --- the whole file -------------------------------------------------------------------------
+
+def render(out: Path, results: Path) -> str:
+    """RESULTS.md's text for the records in ``out``, linking from ``results``' folder."""
+    out, base = Path(out), Path(results).parent
+    records = load_records(out)
+    plan = Plan.load(out)
+    stamp = Machine.load(out)
+    order = list(plan.order) if plan else []
+    order += [n for n in records if n not in order]
+    lines = ["# bigT benchmark results", ""]
+    lines += _stamp_lines(stamp, plan)
+    lines += summary(records)
+    lines += claims_table(records[n] for n in order if n in records)
+    for i, name in enumerate(order, 1):
+        lines += section(i, name, plan.run(name) if plan else None, records.get(name), out,
+                         base, stamp)
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _duration(seconds: float) -> str:
+    return f"{fmt(seconds)} s" if seconds < 120 else f"{fmt(seconds / 60)} min"
+
+
+def _stamp_lines(stamp: Machine | None, plan: Plan | None) -> list[str]:
+    if stamp is None:  # records without run_all.py: the best stamp left is this machine
+        stamp, taken = machine(), "as this report was written: no machine.json"
+    else:
+        taken = "as the run started"
+    kind = f"the {plan.kind} plan" if plan else "no plan (records only)"
+    total = sum(r.seconds for r in plan.runs) if plan else None
+    lines = [f"Generated by `benchmarks/report.py` from {kind}"
+             + (f", {_duration(total)} of benchmarks" if total else "")
+             + ". Every number below comes from that run; rerun with `make bench` "
+               "(`--quick` for small sizes).", "",
+             f"**Machine and versions** (taken {taken}): {stamp.line()}; load average "
+             f"{' / '.join(fmt(v) for v in stamp.load_average)} at the start. "
+             "Timings on a shared machine drift; compare within one table.", ""]
+    return lines
+
+
+def write(out: Path, results: Path | None = None) -> Path:
+    """Stamp the figures in ``out`` and write RESULTS.md (default ``out/RESULTS.md``)."""
+    out = Path(out)
+    results = Path(results) if results else out / "RESULTS.md"
+    stamp = Machine.load(out) or machine()
+    for rec in load_records(out).values():
+        for f in rec.figures:
+            if (out / f.file).exists():
+                stamp_figure(out / f.file, stamp.line())
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text(render(out, results), encoding="utf-8")
+    return results
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default=os.environ.get(OUT_ENV, "bench-out"),
+                   help="where the records are (default $BIGT_BENCH_OUT or bench-out)")
+    p.add_argument("--results", default=None, help="RESULTS.md to write (default OUT/RESULTS.md)")
+    args = p.parse_args(argv)
+    print(write(Path(args.out), Path(args.results) if args.results else None))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
