@@ -198,5 +198,6 @@ COMPENSATE_QUEUE_DEPTH = 1
 #: Delete a superseded term's directory in a background thread (after its atomic rename
 #: to a hidden ``.trash`` sibling): deleting thousands of tile files waits on the file
 #: system (measured: 2707 entries in 0.3-3.4 s), time the next term's products can use.
-#: The engine waits for these deletions before it returns.
+#: The engine waits for these deletions before it returns; meanwhile the disk holds
+#: the dropped term too (set False when the disk is nearly full).
 BACKGROUND_REMOVAL = True

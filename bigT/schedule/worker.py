@@ -251,16 +251,18 @@ class TaskContext:
                                     self.shared["active"], self.dtype)
 
     def write(self, name: str, rows: sp.csr_array, keep_from: str | None = None,
-              kept_columns=()) -> bool:
+              kept_columns=(), kept_nnz=()) -> bool:
         """Write this block's rows of output ``name`` (idempotent: a row already
         complete, e.g. by a task run twice, is left alone); the tiles of input
-        ``keep_from`` in ``kept_columns`` are carried over unchanged (hard-linked),
-        ``rows`` holding nothing in those tile columns."""
+        ``keep_from`` in ``kept_columns`` (holding ``kept_nnz`` entries each) are
+        carried over unchanged (hard-linked), ``rows`` holding nothing in those tile
+        columns."""
         path = self.spec.output_path(name)
         keep = None
         if keep_from is not None and len(kept_columns):
             keep = KeptTiles(Path(self.spec.input_path(keep_from)),
-                             tuple(int(j) for j in kept_columns))
+                             tuple(int(j) for j in kept_columns),
+                             tuple(int(c) for c in kept_nnz))
         return write_tile_row(path, STATE.store_attrs(path), self.block.index, rows, keep=keep)
 
     def product(self, left: sp.csr_array, right_name: str, threshold: float):

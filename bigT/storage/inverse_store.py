@@ -43,7 +43,6 @@ from .locks import (
     create_reader_lease,
     remove_trash,
     remove_unless_read,
-    wait_for_removals,
 )
 from .writer import (
     clean_partial_rows,
@@ -205,6 +204,7 @@ class InverseStore:
     def __init__(self, path):
         self.path = Path(os.fspath(path))
         self.lock = WriterLock(self.path)
+        self._removals: list = []  # threads deleting dropped terms (drop_term, settle)
 
     def close(self) -> None:
         """Release the writer lock (:meth:`open_or_create` took it)."""
@@ -391,15 +391,17 @@ class InverseStore:
 
     def settle(self) -> None:
         """Wait for the deletions :meth:`drop_term` left running in the background."""
-        wait_for_removals()
+        while self._removals:
+            self._removals.pop().join()
 
     def drop_term(self, k: int, background: bool = False) -> None:
         """Delete term ``k``'s directory, or, while a reader holds its X, all of it
         but that X (deleted by a later :meth:`clean`). With ``background``, the
         directory is renamed away at once and deleted by a thread
-        (:func:`~.locks.wait_for_removals` waits for it)."""
+        (:meth:`settle` waits for it). The disk holds both terms a little longer."""
         directory = self.path / term_dir(k)
-        if remove_unless_read(directory, background) or not directory.is_dir():
+        removals = self._removals if background else None
+        if remove_unless_read(directory, removals) or not directory.is_dir():
             return
         for entry in directory.iterdir():
             if entry.is_dir() and not (entry / READER_LEASE).exists():

@@ -152,37 +152,22 @@ def create_reader_lease(store: str | os.PathLike) -> None:
     Path(os.fspath(store), READER_LEASE).touch()
 
 
-_removals: list[threading.Thread] = []
-_removals_lock = threading.Lock()
-
-
-def _remove_tree(trash: Path, background: bool) -> None:
-    """``rmtree(trash)``, in a thread of its own when ``background`` (and
-    ``config.BACKGROUND_REMOVAL``): :func:`wait_for_removals` joins it. A process
-    killed meanwhile leaves the trash to :func:`remove_trash`."""
-    if not (background and config.BACKGROUND_REMOVAL):
+def _remove_tree(trash: Path, removals: list | None) -> None:
+    """``rmtree(trash)``; in a thread of its own, appended to ``removals`` for the
+    caller to join, when a list is given and ``config.BACKGROUND_REMOVAL`` is on. A
+    process killed meanwhile leaves the trash to :func:`remove_trash`."""
+    if removals is None or not config.BACKGROUND_REMOVAL:
         shutil.rmtree(trash, ignore_errors=True)
         return
     thread = threading.Thread(target=shutil.rmtree, args=(trash,), kwargs={"ignore_errors": True},
                               name=f"bigT-remove-{trash.name}")
-    with _removals_lock:
-        _removals[:] = [t for t in _removals if t.is_alive()]
-        _removals.append(thread)
     thread.start()
+    removals.append(thread)
 
 
-def wait_for_removals() -> None:
-    """Wait until every deletion started in the background has finished."""
-    with _removals_lock:
-        pending = list(_removals)
-        _removals.clear()
-    for thread in pending:
-        thread.join()
-
-
-def remove_unless_read(directory: str | os.PathLike, background: bool = False) -> bool:
-    """Delete ``directory`` unless a reader holds a lease on a store inside it
-    (the deletion itself in a background thread when ``background``).
+def remove_unless_read(directory: str | os.PathLike, removals: list | None = None) -> bool:
+    """Delete ``directory`` unless a reader holds a lease on a store inside it (the
+    deletion itself in a background thread, appended to ``removals``, when given).
 
     With every lease held exclusively, the directory is first renamed to a hidden
     ``.NAME.PID.HEX.trash`` sibling (one atomic step: a reader that then takes a lease
@@ -216,7 +201,7 @@ def remove_unless_read(directory: str | os.PathLike, background: bool = False) -
     finally:
         for fd in held:
             os.close(fd)
-    _remove_tree(trash, background)
+    _remove_tree(trash, removals)
     return True
 
 

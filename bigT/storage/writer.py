@@ -260,11 +260,13 @@ class KeptTiles:
     nor rewritten. Store files are written once and never modified in place, so a
     link is as good as a copy, and deleting the old store leaves the new one whole.
 
-    ``columns`` : tile columns, each stored in the old row.
+    ``columns`` : tile columns, each stored in the old row; ``nnz`` : their entries
+    (the old store's ``tile_nnz``), in the same order.
     """
 
     store: Path
     columns: tuple[int, ...]
+    nnz: tuple[int, ...]
 
 
 def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
@@ -317,7 +319,8 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
 def _link_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, tmp: Path, path: Path,
                      written: set[int]) -> dict[int, int]:
     """Hard-link ``keep``'s tiles into the row being built in ``tmp``; returns
-    ``{tile column: nnz}`` of the linked tiles, read from the old row's marker."""
+    ``{tile column: nnz}`` of the linked tiles (checked against the old row's marker:
+    a link to a tile that is not there would be a store that lies)."""
     source = Path(keep.store)
     def layout(a: StoreAttrs):
         return a.shape, a.tile_size, a.dtype, a.inner_format
@@ -328,14 +331,14 @@ def _link_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, tmp: Path, path
     marker = row_marker(source, i)
     old = {} if marker is None else dict(zip(marker["tile_columns"], marker["tile_nnz"]))
     out = {}
-    for j in keep.columns:
+    for j, nnz in zip(keep.columns, keep.nnz, strict=True):
         j = int(j)
-        if j not in old or j in written:
-            raise StoreError(f"tile row {i}: tile column {j} is "
-                             + ("also written" if j in written else f"not stored in {source}"),
-                             path)
+        if old.get(j) != nnz or j in written:
+            raise StoreError(f"tile row {i}: tile column {j} is " + (
+                "also written" if j in written
+                else f"not stored with {nnz} entries in {source}"), path)
         _link_tree(source / fmt.row_path(i) / str(j), tmp / str(j))
-        out[j] = int(old[j])
+        out[j] = int(nnz)
     return out
 
 
@@ -351,9 +354,11 @@ def _link_tree(src: Path, dst: Path) -> None:
         try:
             os.link(entry.path, target)
         except OSError as exc:
-            if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP):
+            # file systems without links answer EXDEV, EPERM, EMLINK, ENOTSUP, ENOSYS,
+            # EINVAL...: copy instead; a full disk is a full disk
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise
-            shutil.copy2(entry.path, target)
+            shutil.copyfile(entry.path, target)
 
 
 def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:

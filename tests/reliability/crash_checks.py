@@ -71,23 +71,28 @@ def dense(path) -> np.ndarray:
     return open_store(path).to_scipy().toarray()
 
 
-def choose(kinds: list[str], sample: int, every_point: bool) -> list[int]:
-    """Every point, or every ``sample``-th first point of a kind."""
+def choose(kinds: list[str], sample: int, every_point: bool, op: str = "") -> list[int]:
+    """Every point, or every ``sample``-th first point of a kind (of the mutations
+    ``op`` only, when given)."""
     if every_point:
-        return list(range(1, len(kinds) + 1))
-    return first_of_each_kind(kinds)[::sample]
+        return [k for k in range(1, len(kinds) + 1) if kinds[k - 1].startswith(op)]
+    return [k for k in first_of_each_kind(kinds) if kinds[k - 1].startswith(op)][::sample]
 
 
-def check_invert(tmp: Path, sample: int = 1, every_point: bool = False) -> CrashResult:
-    """Crash a 2-term invert of a 64 x 64 T (4 x 4 tiles) and resume it."""
+def check_invert(tmp: Path, sample: int = 1, every_point: bool = False, T=None,
+                 terms: int = 2, op: str = "") -> CrashResult:
+    """Crash a ``terms``-term invert of a 64 x 64 T (4 x 4 tiles; default a random
+    diagonally dominant one) at its mutations (``op``'s only, when given) and resume
+    it."""
     tmp.mkdir(parents=True, exist_ok=True)
-    store(tmp, random_dominant(64, seed=1), "T.zarr", tile_size=16)
-    argv = lambda out: ["invert", str(tmp / "T.zarr"), "-o", str(out), "--terms", "2", "-q"]
+    store(tmp, random_dominant(64, seed=1) if T is None else T, "T.zarr", tile_size=16)
+    argv = lambda out: ["invert", str(tmp / "T.zarr"), "-o", str(out), "--terms", str(terms),
+                        "-q"]
     assert main(argv(tmp / "warm.zarr")) == 0  # children start with everything imported
     status, kinds = run_forked(argv(tmp / "reference.zarr"))
     assert status == 0
     reference = dense(tmp / "reference.zarr")
-    points, problems = choose(kinds, sample, every_point), []
+    points, problems = choose(kinds, sample, every_point, op), []
     for k in points:
         out = tmp / f"crash{k}"
         out.mkdir()

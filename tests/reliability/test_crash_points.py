@@ -12,6 +12,7 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -33,6 +34,19 @@ def assert_all_recovered(result) -> None:
 def test_invert_resumes_bit_identically_after_a_crash(tmp_path, sample):
     result = check_invert(tmp_path, sample)
     assert result.mutations > 500  # every tile's files count: about 2000
+    assert_all_recovered(result)
+
+
+def test_invert_resumes_after_a_crash_while_carrying_tiles(tmp_path):
+    """Light only between pixel sets A and B (M bipartite): terms 2 and 3 carry the
+    tiles of X their product leaves alone by hard links; a crash at any link resumes to
+    the same inverse."""
+    rng = np.random.default_rng(3)
+    T = np.diag(rng.uniform(1.5, 2.5, 64))
+    T[:32, 32:] = rng.uniform(0, 0.6 / 32, (32, 32))
+    T[32:, :32] = rng.uniform(0, 0.6 / 32, (32, 32))
+    result = check_invert(tmp_path, 1, T=T, terms=3, op="link")
+    assert result.points >= 4  # the carried tiles of terms 2 and 3, each file kind
     assert_all_recovered(result)
 
 

@@ -54,7 +54,6 @@ def test_without_readers_only_the_current_term_stays(T, tmp_path):
     assert terms_on_disk(X) == ["t0003"]
 
 
-@needs_flock
 def test_dropped_terms_are_deleted_in_the_background_and_waited_for(T, tmp_path,
                                                                     monkeypatch):
     """Each superseded term is renamed away at once and deleted by a thread while the
@@ -82,6 +81,7 @@ def test_dropped_terms_are_deleted_in_the_background_and_waited_for(T, tmp_path,
     assert len(started) == 3 and terms_on_disk(X) == ["t0004"]
 
 
+@needs_flock
 def test_a_second_writer_is_refused_with_the_first_ones_pid(T, tmp_path, capsys):
     X = tmp_path / "X.zarr"
     invert(T, X, terms=1, progress=False)

@@ -48,7 +48,7 @@ def test_kept_tiles_read_back_and_survive_the_old_store(tmp_path):
         a, b = attrs.tile_row_range(i)
         # tile column 1 carried from A, the others written from B
         write_tile_row(new_path, attrs, i, _only_columns(B[a:b], (0, 2)),
-                       keep=KeptTiles(old.path, (1,)))
+                       keep=KeptTiles(old.path, (1,), (old.get_tile(i, 1).nnz,)))
     want = _only_columns(B, (0, 2)) + _only_columns(A, (1,))
     linked = new_path / "rows" / "0" / "1" / "data" / "c" / "0"
     assert os.stat(linked).st_ino == os.stat(old.path / "rows" / "0" / "1" / "data" / "c" / "0").st_ino
@@ -59,7 +59,8 @@ def test_kept_tiles_read_back_and_survive_the_old_store(tmp_path):
     assert new.verify() == {"tiles": new.n_tiles_stored, "nnz": want.nnz}  # raises if damaged
 
 
-@pytest.mark.parametrize("case", ["also written", "not stored", "other tile size"])
+@pytest.mark.parametrize("case", ["also written", "not stored", "wrong count",
+                                  "other tile size"])
 def test_kept_tiles_that_cannot_be_carried_are_refused(tmp_path, case):
     A = sp.csr_array(sp.random(N, N, density=0.4, random_state=1, format="csr"))
     old = _finished(tmp_path / "old.zarr", A, ts=8 if case == "other tile size" else TS)
@@ -67,7 +68,8 @@ def test_kept_tiles_that_cannot_be_carried_are_refused(tmp_path, case):
     new_path = tmp_path / "new.zarr"
     create_store(new_path, attrs)
     block = _only_columns(A[:TS], (0, 1) if case == "also written" else (0,))
-    keep = KeptTiles(old.path, (7,) if case == "not stored" else (1,))
+    count = old.get_tile(0, 1).nnz + (case == "wrong count")
+    keep = KeptTiles(old.path, (7,) if case == "not stored" else (1,), (count,))
     with pytest.raises(StoreError, match="tile column|another shape"):
         write_tile_row(new_path, attrs, 0, block, keep=keep)
     assert not (new_path / "rows" / "0").exists()
