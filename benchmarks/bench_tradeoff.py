@@ -431,9 +431,15 @@ def plot_terms(points: list[TermPoint], title: str, path: Path) -> None:
             ax.annotate(str(p.term), (p.seconds, p.error), textcoords="offset points",
                         xytext=(4, 4), fontsize=7, color=COLORS[method])
     ax.axhline(TARGET_ERROR, color="grey", lw=0.8, ls="--")
+    _finish(plt, fig, ax, "cumulative engine time, s (terms 0..n)",
+            "relative error ||X_n - T^-1||_F (dotted: residual)", title, path)
+
+
+def _finish(plt, fig, ax, xlabel: str, ylabel: str, title: str, path: Path) -> None:
+    """Log y axis, labels, legend and grid; the figure saved to ``path`` and closed."""
     ax.set_yscale("log")
-    ax.set_xlabel("cumulative engine time, s (terms 0..n)")
-    ax.set_ylabel("relative error ||X_n - T^-1||_F (dotted: residual)")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
@@ -470,15 +476,8 @@ def plot_sweep(points: list[SweepPoint], front: set[int], title: str, path: Path
     ax.step([p.seconds for p in on], [p.error for p in on], "k-", where="post", lw=0.8,
             label="Pareto front")
     _log_time_axis(ax, [p.seconds for p in points])
-    ax.set_yscale("log")
-    ax.set_xlabel("engine time, s (terms 0..4)")
-    ax.set_ylabel("||X - T^-1||_F / ||T^-1||_F")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _finish(plt, fig, ax, "engine time, s (terms 0..4)", "||X - T^-1||_F / ||T^-1||_F",
+            title, path)
 
 
 # --- the two parts ----------------------------------------------------------------------------
