@@ -100,23 +100,23 @@ def power_task(ctx: TaskContext):
 def _x_updated(ctx: TaskContext, Q: sp.csr_array):
     """X_k = X_{k-1} + F^-1 Q_k on the block's tile row, as (the rows of the tiles Q_k
     touches, updated; the other stored tile columns of X_{k-1}, (m,) int64; their
-    entries, (m,) int64). Only the touched tiles are read and rewritten: the others are carried
-    over unchanged (hard-linked), which saves most of X's rewrite in the late terms,
-    where Q_k is small."""
+    entries, (m,) int64). Only the touched tiles are read and rewritten: the others
+    are carried over unchanged (hard-linked), which saves most of X's rewrite in the
+    late terms, where Q_k is small."""
     X_prev = ctx.operand("X").store
     i = ctx.block.index
     if (X_prev.tile_size != ctx.spec.block_rows or i >= X_prev.grid[0]
             or X_prev.tile_row_range(i) != (ctx.start, ctx.stop)):  # another tiling: read all
-        part = _read_rows(ctx, "X")
-        return (blocks.add_scaled(part, ctx.finv[ctx.start:ctx.stop], Q) if Q.nnz else part,
-                np.empty(0, np.int64), np.empty(0, np.int64))
-    stored = X_prev.tile_columns(i)
-    touched = np.isin(stored, np.unique(Q.indices // X_prev.tile_size))
-    part = X_prev.get_tile_row(i, columns=stored[touched])
+        part, kept, kept_nnz = _read_rows(ctx, "X"), np.empty(0, np.int64), np.empty(0, np.int64)
+    else:
+        stored = X_prev.tile_columns(i)
+        touched = np.isin(stored, np.unique(Q.indices // X_prev.tile_size))
+        part = X_prev.get_tile_row(i, columns=stored[touched])
+        stored_nnz = X_prev.tile_nnz[X_prev.tile_indptr[i]:X_prev.tile_indptr[i + 1]]
+        kept, kept_nnz = stored[~touched], stored_nnz[~touched]
     if Q.nnz:
         part = blocks.add_scaled(part, ctx.finv[ctx.start:ctx.stop], Q)
-    stored_nnz = X_prev.tile_nnz[X_prev.tile_indptr[i]:X_prev.tile_indptr[i + 1]]
-    return part, stored[~touched], stored_nnz[~touched]
+    return part, kept, kept_nnz
 
 
 def _probed(ctx: TaskContext, Q: sp.csr_array):
