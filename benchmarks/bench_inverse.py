@@ -15,8 +15,10 @@ child's peak RSS.
     python benchmarks/bench_inverse.py --size 384x512 --density dense \
         --settings power:1e-5,power:1e-5:1e-4,horner:4e-5 --sample 2048
 
-A setting is ``method:prune`` or ``power:prune:prune_feed`` (the power form feeding
-on P_k pruned at ``prune_feed``, see ``bigT.algorithms.stratified``, "Carrying").
+A setting is ``method:prune``, ``power:prune:prune_feed`` (the power form feeding
+on P_k pruned at ``prune_feed``, see ``bigT.algorithms.stratified``, "Carrying") or
+``power:prune:prune_feed:prune_operator`` (and M pruned at ``prune_operator`` in the
+products after the first term).
 
 The scene comes from ``bigT.scenes.corner(size=..., path=..., density=...)`` (a
 ``--workdir`` that already holds it is reused); the error is
@@ -79,7 +81,8 @@ def child(args):
         shutil.rmtree(out)
     t0 = time.perf_counter()
     rep = bigT.stratified_inverse(T, out, terms=args.terms, prune=args.prune,
-                                  prune_feed=args.prune_feed, method=args.method,
+                                  prune_feed=args.prune_feed,
+                                  prune_operator=args.prune_operator, method=args.method,
                                   memory_limit=args.memory_limit, progress=False)
     wall = time.perf_counter() - t0
     peak = peak_rss()
@@ -94,11 +97,12 @@ def child(args):
 
 def run_setting(setting: str, scene_path: str, workdir: str, args) -> dict:
     """One setting in a fresh child; prints its per-term table and returns its result."""
-    method, prune, *feed = setting.split(":")
+    method, prune, *thresholds = setting.split(":")
     cmd = [sys.executable, os.path.abspath(__file__), "--_child", "--scene", scene_path,
            "--workdir", workdir, "--method", method, "--terms", str(args.terms),
            "--prune", prune, "--setting", setting]
-    cmd += ["--prune-feed", feed[0]] if feed else []
+    for flag, value in zip(("--prune-feed", "--prune-operator"), thresholds):
+        cmd += [flag, value]
     cmd += ["--memory-limit", args.memory_limit] if args.memory_limit else []
     cmd += ["--sample", str(args.sample)] if args.sample else []
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -154,7 +158,7 @@ def record(results: list[dict], args, scene_text: str) -> None:
     res = Results(run_name("inverse"), f"The stratified inverse term by term, "
                   f"{args.size[0]}x{args.size[1]} {args.density} corner",
                   "python benchmarks/bench_inverse.py " + " ".join(sys.argv[1:]))
-    res.table("settings", f"{args.terms} terms per setting (method:prune[:prune_feed])",
+    res.table("settings", f"{args.terms} terms per setting (method:prune[:prune_feed[:prune_operator]])",
               SETTING_COLUMNS, [setting_row(r) for r in results],
               note=f"{scene_text}; error: relative Frobenius against F^-1 (I - A)"
                    + (f" on {args.sample} sampled rows" if args.sample else ""))
@@ -176,7 +180,8 @@ def main(argv=None):
     p.add_argument("--method", default="power,horner",
                    help="comma-separated: power, horner, newton-schulz (at --prune)")
     p.add_argument("--settings", default=None,
-                   help="comma-separated method:prune[:prune_feed] (instead of --method)")
+                   help="comma-separated method:prune[:prune_feed[:prune_operator]] "
+                        "(instead of --method)")
     p.add_argument("--sample", type=int, default=None,
                    help="measure the error on this many random rows (default: all)")
     p.add_argument("--memory-limit", default=None)
@@ -186,6 +191,7 @@ def main(argv=None):
     p.add_argument("--scene", default=None, help=argparse.SUPPRESS)
     p.add_argument("--setting", default=None, help=argparse.SUPPRESS)
     p.add_argument("--prune-feed", type=float, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--prune-operator", type=float, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args._child:
         return child(args)

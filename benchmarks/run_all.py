@@ -53,7 +53,8 @@ FULL = [
     ("distributed", ["bench_distributed.py", "--size", "192x256",
                      "--workdir", "bench-out/distributed"]),
     ("inverse-dense", ["bench_inverse.py", "--size", "384x512", "--density", "dense",
-                       "--settings", "power:1e-5,power:3e-6:1e-4", "--sample", "2048",
+                       "--settings", "power:1e-5,power:3e-6:1e-4,power:3e-6:1e-4:1e-5,"
+                       "power:3e-6:1e-4:3e-5", "--sample", "2048",
                        "--memory-limit", "2GiB", "--workdir", "bench-out/inverse"]),
     ("video", ["bench_video.py", "--out", "bench-out/video"]),
     ("compensate", ["bench_compensate.py", "--skip", "throughput"]),

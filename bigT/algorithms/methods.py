@@ -79,12 +79,15 @@ def power_task(ctx: TaskContext):
     Why two thresholds: an entry dropped from Q_k only stays in X, so its error
     reaches the residual through M times it (the next terms miss M D_k, M^2 D_k, ...),
     not as D_k itself: P_k, which sets the next product's cost, may be pruned harder
-    for the same error (:mod:`.stratified`, "Carrying")."""
+    for the same error (:mod:`.stratified`, "Carrying"). Likewise the entries of M
+    below the spec's ``operator_threshold`` are left out of the product M P_{k-1}
+    (k >= 2): what they would add is one bounce further down, D P_{k-1}, not D."""
     M = ctx.M.rows(ctx.start, ctx.stop)
     computed = skipped = 0
     spec = ctx.spec
     if "P" in dict(spec.inputs):
-        Q, computed, skipped = ctx.product(M, "P", spec.threshold)
+        left = M if spec.operator_threshold is None else prune(M, threshold=spec.operator_threshold)
+        Q, computed, skipped = ctx.product(left, "P", spec.threshold)
     else:
         Q = prune(M, threshold=spec.threshold)
     feed = spec.threshold if spec.feed_threshold is None else spec.feed_threshold

@@ -39,6 +39,12 @@ def register(subparsers) -> None:
                    help="power form: prune P_k, the factor of the next product, at this "
                         "(>= --prune) while X keeps each term's entries down to --prune: "
                         "less work for about the same error (default: --prune)")
+    p.add_argument("--prune-operator", dest="prune_operator", type=number(0), default=None,
+                   help="power form: leave M's entries below this (>= --prune) out of the "
+                        "products of the terms after the first, M P_{k-1}; the first term "
+                        "still adds M down to --prune. What they would add is one bounce "
+                        "further down: less work for about the same error (default: none "
+                        "left out)")
     p.add_argument("--tol", type=number(0), default=None,
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
     p.add_argument("--method", choices=tuple(METHODS), default=None,
@@ -51,7 +57,7 @@ def register(subparsers) -> None:
                         "relative error of compensated probe images below E (e.g. "
                         "0.0039 = 1/255 for an 8-bit display) at the least cost, and "
                         "stop there; exit 1 when it stops short (best effort). Refuses "
-                        "--terms, --tol, --prune-feed and --force")
+                        "--terms, --tol, --prune-feed, --prune-operator and --force")
     p.add_argument("--first-bounce", default="diag", metavar="diag|identity|FILE.npy",
                    help="F: diag(T) (default), identity (the naive choice), or a .npy vector "
                         "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii)")
@@ -98,7 +104,7 @@ def invert_cmd(args) -> int:
     report = stratified_inverse(
         args.T, args.output, terms=4 if args.terms is None else args.terms,
         prune=config.DEFAULT_PRUNE if args.prune is None else args.prune, tol=args.tol,
-        prune_feed=args.prune_feed,
+        prune_feed=args.prune_feed, prune_operator=args.prune_operator,
         first_bounce=fb, method=args.method or "power", scheduler=args.scheduler,
         memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
         workers=args.workers, overwrite=args.overwrite)
@@ -116,7 +122,9 @@ def _invert_to_target(args, fb) -> int:
     from ..errors import BigTError
 
     for given, name in ((args.terms, "--terms"), (args.tol, "--tol"),
-                        (args.prune_feed, "--prune-feed"), (args.force or None, "--force")):
+                        (args.prune_feed, "--prune-feed"),
+                        (args.prune_operator, "--prune-operator"),
+                        (args.force or None, "--force")):
         if given is not None:
             raise BigTError(f"{name} cannot be combined with --target-error, which chooses "
                             "the number of terms and stops on the measured error itself")

@@ -84,6 +84,9 @@ class PassSpec:
     feed_threshold : float or None
         The power form's threshold on P_k, the factor of the next product, when it
         is pruned harder than the term added to X (None: ``threshold``).
+    operator_threshold : float or None
+        The power form's threshold on M's entries inside the products of the terms
+        k >= 2 (M P_{k-1}); term 1 adds M pruned at ``threshold`` only (None: M whole).
     kernel_threads : int
         Threads of one product (1 when tasks already fill the threads).
     pass_id : str
@@ -111,6 +114,7 @@ class PassSpec:
     right: str | None = None
     threshold: float = 0.0
     feed_threshold: float | None = None
+    operator_threshold: float | None = None
     kernel_threads: int = 1
     pass_id: str = ""
     cache_bytes: int | None = None

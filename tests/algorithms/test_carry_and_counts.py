@@ -18,9 +18,10 @@ def _pruned(A, t):
     return np.where(np.abs(A) >= t, A, 0.0)
 
 
-def dense_carried_power(T, n, prune, feed):
-    """Q_k = prune(M P_{k-1}, prune), X_k = X_{k-1} + F^-1 Q_k, P_k = prune(Q_k, feed),
-    with P_0 = I and Q_1 = prune(M, prune): the carried power form, densely.
+def dense_carried_power(T, n, prune, feed, operator=0.0):
+    """Q_k = prune(M_o P_{k-1}, prune), X_k = X_{k-1} + F^-1 Q_k, P_k = prune(Q_k, feed),
+    with P_0 = I, Q_1 = prune(M, prune) and M_o = prune(M, operator): the carried power
+    form, densely.
 
     Returns (X, [M-row nnz x P row lengths per term]): the multiply-adds of the
     product M P_{k-1} are sum over M's entries (i, j) of nnz(P_{k-1}[j, :]).
@@ -30,13 +31,14 @@ def dense_carried_power(T, n, prune, feed):
     np.fill_diagonal(M, 0.0)
     X = np.diag(1 / f)
     P = np.eye(len(T))
+    M_o = _pruned(M, operator)
     madds = [0]
     for k in range(1, n + 1):
         if k == 1:
             Q, work = _pruned(M, prune), 0
         else:
-            Q = _pruned(M @ P, prune)
-            work = int(((M != 0) * np.count_nonzero(P, axis=1)[None, :]).sum())
+            Q = _pruned(M_o @ P, prune)
+            work = int(((M_o != 0) * np.count_nonzero(P, axis=1)[None, :]).sum())
         X = X + Q / f[:, None]
         P = _pruned(Q, feed)
         madds.append(work)
@@ -58,6 +60,54 @@ def test_carried_power_matches_dense_recurrence(tmp_path, make_store, prune, fee
     assert rep.prune_feed == (None if feed == prune else feed)
 
 
+@pytest.mark.parametrize("prune,feed,operator", [(1e-5, 1e-5, 1e-3), (1e-6, 1e-3, 3e-3),
+                                                 (0.0, 0.0, 2e-2)])
+def test_operator_pruned_power_matches_dense_recurrence(tmp_path, make_store, prune, feed,
+                                                        operator):
+    A = random_dominant(80, seed=23, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=4, prune=prune,
+                                  prune_feed=feed, prune_operator=operator,
+                                  progress=False)
+    want, madds = dense_carried_power(A, 4, prune, feed, operator)
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), want, rtol=1e-10, atol=1e-13)
+    assert [h.multiply_adds for h in rep.history] == madds[:len(rep.history)]
+    assert rep.prune_operator == operator
+    assert f"M pruned at {operator:g} in the products" in rep.table()
+    # term 1 is M down to prune: the operator threshold leaves it alone
+    want_1, _ = dense_carried_power(A, 1, prune, feed)
+    bigT.stratified_inverse(T, tmp_path / "X1.zarr", terms=1, prune=prune,
+                            prune_feed=feed, prune_operator=operator, progress=False)
+    np.testing.assert_allclose(dense(tmp_path / "X1.zarr"), want_1, rtol=1e-10, atol=1e-13)
+
+
+def test_pruning_the_operator_costs_a_bounce_down(tmp_path, make_store):
+    """What the left factor drops, D_o P_{k-1}, is one bounce below D_o: against the
+    exact inverse, the error grows far less than pruning X at the same threshold
+    would cost, while the multiply-adds fall. M's entries span five decades, as a
+    transport's do, and the threshold is their median."""
+    rng = np.random.default_rng(8)
+    n = 120
+    C = (rng.random((n, n)) < 0.5) * 10 ** rng.uniform(-6, -1, (n, n))
+    np.fill_diagonal(C, 0.0)
+    d = C.sum(axis=0) / 0.4  # M = -C / d: column sums 0.4
+    A = C + np.diag(d)
+    t = float(np.median((C / d[None, :])[C > 0]))
+    T = make_store(A, tile_size=32)
+    exact = np.linalg.inv(A)
+    err = {}
+    work = {}
+    for name, kw in {"plain": {}, "operator": {"prune_operator": t},
+                     "x pruned": {"prune": t}}.items():
+        out = tmp_path / f"{name}.zarr"
+        rep = bigT.stratified_inverse(T, out, terms=4, progress=False,
+                                      **{"prune": 0.0, **kw})
+        err[name] = np.linalg.norm(dense(out) - exact) / np.linalg.norm(exact)
+        work[name] = sum(h.multiply_adds for h in rep.history)
+    assert work["operator"] < 0.8 * work["plain"]
+    assert err["operator"] - err["plain"] < 0.5 * (err["x pruned"] - err["plain"])
+
+
 def test_feeding_on_less_does_less_work_for_the_same_x_threshold(tmp_path, make_store):
     A = random_dominant(96, seed=5, density=0.3, margin=0.8)
     T = make_store(A, tile_size=32)
@@ -77,6 +127,12 @@ def test_feed_threshold_checked(tmp_path, make_store):
     with pytest.raises(BigTError, match="horner method has none"):
         bigT.stratified_inverse(T, tmp_path / "X.zarr", method="horner", prune_feed=1e-3,
                                 progress=False)
+    with pytest.raises(BigTError, match="prune_operator must be >= prune"):
+        bigT.stratified_inverse(T, tmp_path / "X.zarr", prune=1e-3, prune_operator=1e-4,
+                                progress=False)
+    with pytest.raises(BigTError, match="products M P_{k-1}; the newton-schulz method"):
+        bigT.stratified_inverse(T, tmp_path / "X.zarr", method="newton-schulz",
+                                prune_operator=1e-3, progress=False)
 
 
 def test_another_feed_threshold_is_not_resumed(tmp_path, make_store):
@@ -93,6 +149,9 @@ def test_another_feed_threshold_is_not_resumed(tmp_path, make_store):
     bigT.stratified_inverse(T, fed, terms=1, prune=1e-5, prune_feed=1e-3, progress=False)
     with pytest.raises(StoreError, match="different prune_feed .*prune_feed=0.001"):
         bigT.stratified_inverse(T, fed, terms=2, prune=1e-5, progress=False)
+    with pytest.raises(StoreError, match="different prune_operator"):
+        bigT.stratified_inverse(T, fed, terms=2, prune=1e-5, prune_feed=1e-3,
+                                prune_operator=1e-3, progress=False)
 
 
 def test_counts_of_each_term_and_the_table(tmp_path, make_store):

@@ -42,6 +42,28 @@ def test_invert_table_json_info_and_resume(tmp_path, make_store, capsys):
     assert "stopped: already held term 2" in capsys.readouterr().out
 
 
+def test_invert_with_feed_and_operator_thresholds(tmp_path, make_store, capsys):
+    """--prune-feed and --prune-operator reach the engine: the table says so, and
+    X is the carried power form with M pruned in the later products, evaluated
+    densely; a threshold below --prune is refused in one line."""
+    from test_carry_and_counts import dense_carried_power
+
+    A = random_dominant(48, seed=13, density=0.4)
+    T = make_store(A, tile_size=16)
+    X = tmp_path / "X.zarr"
+    assert main(["invert", T.path.as_posix(), "-o", str(X), "--terms", "3", "--prune",
+                 "1e-5", "--prune-feed", "1e-3", "--prune-operator", "2e-3",
+                 "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "P_k pruned at 0.001, M pruned at 0.002 in the products" in out
+    want, _ = dense_carried_power(A, 3, 1e-5, 1e-3, 2e-3)
+    np.testing.assert_allclose(dense(X), want, rtol=1e-10, atol=1e-13)
+    assert main(["invert", T.path.as_posix(), "-o", str(tmp_path / "Y.zarr"), "--prune",
+                 "1e-3", "--prune-operator", "1e-4", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "prune_operator must be >= prune" in err and len(_lines(err)) == 1
+
+
 def test_invert_errors_are_one_line(tmp_path, make_store, capsys):
     A = random_dominant(32, seed=12)
     T = make_store(A, tile_size=16)

@@ -93,7 +93,9 @@ def test_cli_target_error_summary_json_and_bad_values(scenes, tmp_path, capsys):
              for v in ("0", "1", "-0.1", "nan", "2", "x")]
     cases += [(["--target-error", "1e-9"], "below what T's float32 can show"),
               (["--target-error", "0.01", "--terms", "3"], "--terms cannot be combined"),
-              (["--target-error", "0.01", "--tol", "1e-3"], "--tol cannot be combined")]
+              (["--target-error", "0.01", "--tol", "1e-3"], "--tol cannot be combined"),
+              (["--target-error", "0.01", "--prune-operator", "1e-3"],
+               "--prune-operator cannot be combined")]
     for extra, message in cases:
         assert main(["invert", T, "-o", str(tmp_path / "Y.zarr"), "--no-progress"]
                     + extra) == 2
