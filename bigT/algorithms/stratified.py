@@ -111,6 +111,7 @@ import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -124,7 +125,7 @@ from ..schedule.spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
 from ..spectral import SpectralRadius, spectral_radius
 from ..storage import InverseStore, StoreAttrs, TermRecord
 from ..storage import open as open_store
-from ..storage.inverse_store import term_dir
+from ..storage.inverse_store import InverseRecord, term_dir
 from ..storage.writer import completed_rows
 from .first_bounce import FirstBounce, resolve_first_bounce
 from .methods import METHODS as SERIES_METHODS
@@ -322,6 +323,7 @@ class _Options:
     overwrite: bool = False
     prune_feed: float | None = None
     prune_operator: float | None = None
+    on_term: Callable[[InverseRecord], str | None] | None = None
 
 
 def _check_arguments(method, terms, prune, tol, prune_feed=None,
@@ -351,7 +353,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        first_bounce="diag", method="power", client=None, memory_limit=None,
                        progress=True, force=False, *, workers=2, seed=0,
                        scheduler=None, overwrite=False, prune_feed=None,
-                       prune_operator=None) -> InverseReport:
+                       prune_operator=None, on_term=None) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -405,6 +407,12 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     overwrite : bool
         Delete an inverse ``out`` holds (whatever its parameters) and start anew;
         never anything that is not a bigT inverse store.
+    on_term : callable, optional
+        ``on_term(record)`` is called after each term this run computes is published
+        (``record`` the store's :class:`InverseRecord`; ``out`` then holds that term);
+        a string returned stops the run there, as its ``stopped`` reason. One run
+        with it costs less than a run per term (one set-up, one spectral radius
+        read): :func:`bigT.algorithms.target.invert_to_target` measures each term so.
 
     Returns
     -------
@@ -437,7 +445,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                              "T (apply the pixel correspondence first)", T.path)
     out = local_path(out, "inverse store")
     opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite,
-                    prune_feed, prune_operator)
+                    prune_feed, prune_operator, on_term)
     memory_limit = parse_bytes(memory_limit)
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
     store = InverseStore(out)
@@ -582,6 +590,9 @@ class _Engine:
                 return f"tol {self.opts.tol:g} reached"
             computed = True
             reason = self._next_term()
+            if reason:
+                return reason
+            reason = self.opts.on_term(self.record) if self.opts.on_term else None
             if reason:
                 return reason
         if self._tol_reached():

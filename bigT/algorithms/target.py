@@ -17,8 +17,12 @@ projector's [0, 1] (when X d >= 0). The decisions use the unclipped error; the r
 also gives the clipped error of each probe scaled so (``clipped_errors``).
 
 Probes (:func:`probe_images`): a constant image, a smooth gradient and low-pass
-filtered noise, all in [0.2, 0.8], zero on pixels the inverse leaves out. Each term
-costs two streamed products for all probes together: Y = X D, then T [Y, clip(s Y)].
+filtered noise, all in [0.2, 0.8], zero on pixels the inverse leaves out. A term
+measured costs two streamed products for all probes together: Y = X D, then
+T [Y, clip(s Y)]. The engine runs once per (method, prune) and hands each term over
+as it is published (``on_term``); a term is measured where the target may be met
+(the truncation part below it), at terms 4, 8, 16, ... and at every Newton-Schulz
+step.
 
 Decomposing the error
 ---------------------
@@ -28,9 +32,9 @@ by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper th
 sparse product): it gives the number of terms the series needs
 (:func:`truncation_curve`). After each term the measured residual r_k = (I - T X_k) d
 minus M^(k+1) d is exactly what pruning added (stratified.py's docstring: M P_n
-- sum_k D_k for the power form), so a prune too large for the target is seen from the
-first terms (term 1 costs no product) and the run restarts with a smaller one instead
-of running into the floor.
+- sum_k D_k for the power form), so a prune too large for the target is seen at the
+first term measured (by term 4 in a long series) and the run restarts with a smaller
+one instead of running into the floor.
 
 Rules (constants below, measured by ``benchmarks/bench_target.py``)
 -------------------------------------------------------------------
@@ -38,7 +42,9 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
   The probes are dominated by the slowest mode of M and agree within a few per cent;
   the 20 % margin covers a fresh image (tests/algorithms/test_target_error.py checks
   random low-pass images against the exact inverse).
-* prune: the largest decade <= target / PRUNE_RATIO. Restart with a smaller decade
+* prune: the largest decade <= target (1 - r) / PRUNE_RATIO, with r the rate at which
+  the truncation curve falls per term (about rho(M)): pruned entries are carried by
+  every later bounce, so their error adds up like 1 / (1 - r). Restart with a smaller decade
   (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
   part exceeds PRUNE_SHARE * SAFETY * target, or the series is exhausted or stalls
   above the target; at most MAX_RESTARTS restarts.
@@ -49,10 +55,12 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
   terms after j steps) are at most NS_PRODUCT_SHARE of the power form's (n - 1 for n
   terms, the first one free), else "power". Measured on the 48x64 Cornell box at
   rho = 0.89, prune 1e-5: term 31 after 51 s by Newton-Schulz, 146 s by the power
-  form. Horner is never chosen: it was slower than power at every scene and target
-  of the sweep and no more accurate at the same prune on these scenes (its floor at
-  prune 1e-5 on the rho = 0.52 Cornell box was 2.3e-3 against power's 1.6e-3), since
-  every product multiplies by the whole S.
+  form. Horner is not chosen: every product multiplies by the whole S, so it loses
+  where the products dominate (dense 192x256 corner, 4 terms to 1e-4: Horner 21 s,
+  power fed on P_k pruned at 1e-4 6.7 s, benchmarks/RESULTS.md), and it was no more
+  accurate at the same prune on the Cornell box (floor at prune 1e-5, rho = 0.52:
+  2.3e-3 against power's 1.6e-3). On tiny scenes, where each term's store writes
+  dominate, it is up to ~1.3x quicker (one store a term against power's two).
 * a target below TARGET_FLOOR_EPS machine epsilons of T's dtype is refused: the
   rounding of T X d in that precision alone is of that order.
 """
@@ -70,8 +78,8 @@ from .first_bounce import resolve_first_bounce
 
 #: Stop when the worst probe's error is below SAFETY * target.
 SAFETY = 0.8
-#: The first prune tried: the largest decade <= target / PRUNE_RATIO.
-PRUNE_RATIO = 250.0
+#: The first prune tried: the largest decade <= target (1 - rate) / PRUNE_RATIO.
+PRUNE_RATIO = 50.0
 #: The pruning part must exceed the truncation part this many times to be a floor.
 FLOOR_DOMINANCE = 2.0
 #: The pruning part may take this share of the (safe) target before a restart.
@@ -296,9 +304,22 @@ def measure_term(products: _Products, X, D: np.ndarray, truncation: np.ndarray,
 
 # --- the choice ------------------------------------------------------------------------
 
-def first_prune(target: float) -> float:
-    """The largest decade <= target / PRUNE_RATIO."""
-    return 10.0 ** math.floor(math.log10(target / PRUNE_RATIO) + 1e-9)
+def first_prune(target: float, rate: float = 0.0) -> float:
+    """The largest decade <= target (1 - rate) / PRUNE_RATIO (module docstring);
+    ``rate`` is :func:`decay_rate`'s, in [0, 1)."""
+    slack = 1.0 - min(max(rate, 0.0), 0.99)
+    return 10.0 ** math.floor(math.log10(target * slack / PRUNE_RATIO) + 1e-9)
+
+
+def decay_rate(powers: list[np.ndarray], D: np.ndarray) -> float:
+    """The rate at which the truncation curve falls per term (about rho(M)): the last
+    step's ratio of the worst probe's ||M^(k+1) d|| / ||d||; for a curve of one point,
+    that point (||M d|| / ||d||, at most rho(M)'s order). In [0, 1) when the series
+    converges."""
+    worst = [float(_rel(P, D).max()) for P in powers[-2:]]
+    if len(worst) == 1:
+        return min(worst[0], 0.99)
+    return min(worst[1] / worst[0], 0.99) if worst[0] > 0 else 0.0
 
 
 def floored(m: TermErrors, target: float) -> bool:
@@ -354,44 +375,70 @@ class _Setting:
 
 def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
                  t0, overwrite):
-    """Terms of one (method, prune) until the target, a floor or the cap.
+    """Terms of one (method, prune) until the target, a floor or the cap: one engine
+    run, each term measured as it is published (the engine's ``on_term``).
 
     Returns
     -------
     (Attempt, InverseReport, reason to restart or None)
     """
+    from ..storage import open as open_store
     from .stratified import stratified_inverse
 
-    # term 0 (F^-1, nothing pruned) has the error ||M d|| / ||d|| already known, so the
-    # first call goes to term 1: one call and one measurement fewer
-    measured, report, term = [], None, min(1, cap)
-    while True:
-        report = stratified_inverse(
-            T, out, terms=term, prune=prune, method=method, first_bounce=ctx.first_bounce,
-            memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
-            progress=ctx.progress, seed=ctx.seed, overwrite=overwrite and not measured)
-        held = report.terms
-        if "exhausted" in report.stopped:
-            held = min(held, term)
-        from ..storage import open as open_store
+    measured: list[TermErrors] = []
+    verdict: list[tuple[str, str | None]] = []  # (how the attempt ended, restart reason)
 
-        m = measure_term(products, open_store(out), D, _power(products, powers, held), held,
-                         time.perf_counter() - t0)
-        measured.append(m)
-        done = m.worst <= SAFETY * target
-        if done:
-            return Attempt(method, prune, tuple(measured), "target reached"), report, None
-        if floored(m, target):
-            return (Attempt(method, prune, tuple(measured), "pruning floor"), report,
-                    f"at term {held} the pruning part {m.pruning:.2e} exceeds "
-                    f"{PRUNE_SHARE:g} of the safe target {SAFETY * target:.2e} and "
-                    f"{FLOOR_DOMINANCE:g}x the truncation part {m.truncation:.2e}")
-        if "exhausted" in report.stopped:
-            return (Attempt(method, prune, tuple(measured), report.stopped), report,
-                    f"{report.stopped} with error {m.worst:.2e} above the target")
-        if held >= cap:
-            return (Attempt(method, prune, tuple(measured), f"term cap {cap}"), report, None)
-        term = held + 1
+    def measure(held: int) -> None:
+        measured.append(measure_term(products, open_store(out), D,
+                                     _power(products, powers, held), held,
+                                     time.perf_counter() - t0))
+
+    def on_term(record) -> str | None:
+        if not _worth_measuring(method, record.term, products, powers, D, target):
+            return None
+        measure(record.term)
+        verdict[:] = [_verdict(measured[-1], target)]
+        return verdict[0][0] if verdict[0][0] else None
+
+    # term 0 (F^-1, nothing pruned) has the error ||M d|| / ||d|| already known: the
+    # first term measured is term 1
+    report = stratified_inverse(
+        T, out, terms=cap, prune=prune, method=method, first_bounce=ctx.first_bounce,
+        memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
+        progress=ctx.progress, seed=ctx.seed, overwrite=overwrite, on_term=on_term)
+    if not measured or measured[-1].term != min(report.terms, report.history[-1].term):
+        measure(min(report.terms, report.history[-1].term))  # cap 0, or exhausted
+        verdict[:] = [_verdict(measured[-1], target)]
+    ended, reason = verdict[0]
+    if not ended and "exhausted" in report.stopped:
+        ended, reason = report.stopped, (f"{report.stopped} with error "
+                                         f"{measured[-1].worst:.2e} above the target")
+    return Attempt(method, prune, tuple(measured), ended or f"term cap {cap}"), report, reason
+
+
+def _worth_measuring(method: str, term: int, products: _Products, powers, D,
+                     target: float) -> bool:
+    """Whether to measure the probes' error after ``term`` (two streamed products):
+    always for Newton-Schulz (few, costly steps); else once the truncation part alone
+    is below the safe target (the error may be met), and at terms 4, 8, 16, ... to
+    see a pruning floor early in a long series. A short series (small rho) is so
+    measured only where it can stop."""
+    if method == "newton-schulz" or (term >= 4 and term & (term - 1) == 0):
+        return True
+    return float(_rel(_power(products, powers, term), D).max()) <= SAFETY * target
+
+
+def _verdict(m: TermErrors, target: float) -> tuple[str, str | None]:
+    """(why the attempt ends after term ``m``, or "" to go on; the reason to restart
+    with a smaller prune, or None)."""
+    if m.worst <= SAFETY * target:
+        return "target reached", None
+    if floored(m, target):
+        return "pruning floor", (f"at term {m.term} the pruning part {m.pruning:.2e} "
+                                 f"exceeds {PRUNE_SHARE:g} of the safe target "
+                                 f"{SAFETY * target:.2e} and {FLOOR_DOMINANCE:g}x the "
+                                 f"truncation part {m.truncation:.2e}")
+    return "", None
 
 
 def invert_to_target(T, out, target: float, *, method: str | None = None,
@@ -411,7 +458,7 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
     method : str, optional
         Fix the method instead of choosing it.
     prune : float, optional
-        The first prune tried (default: the largest decade <= target / 100); smaller
+        The first prune tried (default: :func:`first_prune`); smaller
         ones follow when it floors above the target.
     max_terms : int, optional
         Cap on the terms (default: the unpruned series' count + 3, at most 200).
@@ -448,7 +495,7 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
             method, method_why = choose_method(predicted)
         else:
             method_why = f"{method} (given)"
-        p = first_prune(target) if prune is None else float(prune)
+        p = first_prune(target, decay_rate(powers, D)) if prune is None else float(prune)
         attempts, restarts = [], []
         while True:
             attempt, report, reason = _run_attempt(

@@ -256,3 +256,25 @@ def test_power_terms_carry_untouched_tiles_of_x_by_link(tmp_path, make_store, mo
     carried = {(Path(p).parent.name, Path(p).name) for p in linked}
     # term 2 carries X_1's A-B tiles: tile rows 0, 1 x tile columns 2, 3 and back
     assert {("0", "2"), ("0", "3"), ("2", "0"), ("3", "1")} <= carried
+
+
+def test_on_term_sees_each_published_term_and_may_stop_the_run(tmp_path, make_store):
+    """``on_term`` is called with the record once each computed term is published (the
+    store then holds it); a reason returned stops the run there, and the same store
+    resumes from it."""
+    A = random_dominant(48, seed=17)
+    T = make_store(A, tile_size=16)
+    out = tmp_path / "X.zarr"
+    seen = []
+
+    def on_term(record):
+        seen.append((record.term, bigT.open(out).metadata["inverse"]["term"]))
+        return "enough" if record.term == 2 else None
+
+    rep = bigT.stratified_inverse(T, out, terms=5, prune=0.0, on_term=on_term,
+                                  progress=False)
+    assert seen == [(1, 1), (2, 2)] and rep.terms == 2 and rep.stopped == "enough"
+    np.testing.assert_allclose(dense(out), dense_stratified(A, 2), atol=1e-12)
+    rep = bigT.stratified_inverse(T, out, terms=3, prune=0.0, progress=False)
+    assert rep.terms == 3 and rep.resumed_from == 2
+    np.testing.assert_allclose(dense(out), dense_stratified(A, 3), atol=1e-12)
