@@ -366,6 +366,25 @@ def scale_cols_internal(indices, data, d, out):
 
 
 @njit(nogil=True, cache=True)
+def scale_cols_off_diagonal_internal(indptr, indices, data, d, offset, indptr_out,
+                                     indices_out, data_out):
+    """Row i's entries times d of their column, those in column i + ``offset`` (the
+    diagonal of a row block starting at global row ``offset``) left out: one pass,
+    into ``*_out`` (sized nnz; the first ``indptr_out[-1]`` entries are written)."""
+    q = 0
+    indptr_out[0] = 0
+    for i in range(indptr.shape[0] - 1):
+        diag = i + offset
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j != diag:
+                indices_out[q] = j
+                data_out[q] = data[p] * d[j]
+                q += 1
+        indptr_out[i + 1] = q
+
+
+@njit(nogil=True, cache=True)
 def diagonal_internal(indptr, indices, data, out):
     """out[i] = A[i, i] (sums duplicates, works on unsorted rows)."""
     for i in range(out.shape[0]):
@@ -918,3 +937,30 @@ def split_column_tiles_internal(indptr, indices, data, tile_size):
         for r in range(n_rows):
             tile_indptr[t, r + 1] += tile_indptr[t, r]
     return tile_cols, tile_indptr, local, values, bounds
+
+
+@njit(nogil=True, cache=True)
+def join_column_tiles_internal(tile_cols, tile_indptr, local, values, bounds, tile_size,
+                               indptr_out, indices_out, data_out):
+    """The inverse of :func:`split_column_tiles_internal`: rows of global columns from
+    their column tiles (ascending), row by row, each tile's part of the row appended
+    in turn, so rows stay column-sorted. Writes ``indptr_out`` (n_rows + 1,),
+    ``indices_out`` and ``data_out`` (nnz,) in place: one counting pass, one copy."""
+    k = tile_indptr.shape[0]
+    n_rows = tile_indptr.shape[1] - 1
+    indptr_out[0] = 0
+    for r in range(n_rows):
+        count = 0
+        for t in range(k):
+            count += tile_indptr[t, r + 1] - tile_indptr[t, r]
+        indptr_out[r + 1] = indptr_out[r] + count
+    for r in range(n_rows):
+        at = indptr_out[r]
+        for t in range(k):
+            base = tile_cols[t] * tile_size
+            p0 = bounds[t] + tile_indptr[t, r]
+            p1 = bounds[t] + tile_indptr[t, r + 1]
+            for p in range(p0, p1):
+                indices_out[at] = local[p] + base
+                data_out[at] = values[p]
+                at += 1

@@ -96,6 +96,19 @@ def scale_cols(indices, data, d):
     return data * d[indices]
 
 
+def scale_cols_off_diagonal(indptr, indices, data, d, offset, indptr_out, indices_out,
+                            data_out):
+    """``scale_cols_off_diagonal_internal``: the entries off the block's diagonal kept,
+    scaled by their column's d."""
+    rows = row_ids(indptr)
+    keep = indices != rows + offset
+    indptr_out[0] = 0
+    np.cumsum(np.bincount(rows[keep], minlength=len(indptr) - 1), out=indptr_out[1:])
+    kept = int(keep.sum())
+    indices_out[:kept] = indices[keep]
+    data_out[:kept] = data[keep] * d[indices[keep]]
+
+
 def diagonal(indptr, indices, data, out):
     """``diagonal_internal``: out[i] += A[i, i] (duplicates summed, any row order)."""
     rows = row_ids(indptr)
@@ -154,3 +167,20 @@ def split_column_tiles(indptr, indices, data, tile_size: int):
         np.cumsum(counts, out=tile_indptr[t, 1:])
     local = (indices[order] - tcol[order] * tile_size).astype(np.int32)
     return tile_cols.astype(np.int64), tile_indptr, local, data[order], bounds
+
+
+def join_column_tiles(tile_cols, tile_indptr, local, values, bounds, tile_size,
+                      indptr_out, indices_out, data_out):
+    """``join_column_tiles_internal``: each tile's entries scattered to their place in
+    the joined rows (the row's start plus the entries of earlier tiles in that row)."""
+    counts = np.diff(tile_indptr, axis=1)  # (k, n_rows)
+    indptr_out[0] = 0
+    np.cumsum(counts.sum(axis=0), out=indptr_out[1:])
+    fill = indptr_out[:-1].copy()
+    for t in range(len(tile_cols)):
+        lens = counts[t]
+        part = slice(bounds[t], bounds[t + 1])
+        dest = np.repeat(fill - tile_indptr[t, :-1], lens) + np.arange(bounds[t + 1] - bounds[t])
+        indices_out[dest] = local[part] + tile_cols[t] * tile_size
+        data_out[dest] = values[part]
+        fill += lens

@@ -642,6 +642,37 @@ def _scaled(A, d, axis: int):
     return _csr_result(a.shape, a.indptr.copy(), a.indices.copy(), out)
 
 
+def scale_cols_off_diagonal(A, d, offset: int):
+    """A @ diag(d) without the entries (i, i + offset): rows ``offset:offset + m`` of
+    a matrix with its diagonal left out, each column scaled (M = -T F^-1 off the
+    diagonal, from a row block of T). One pass; A's dtype (d is cast to it).
+
+    Parameters
+    ----------
+    A : sparse, shape (m, n)
+    d : (n,) array
+    offset : int, the global index of A's first row
+
+    Returns
+    -------
+    csr_array, shape (m, n), sorted indices
+    """
+    a = _as_csr(A, "A")
+    d = np.ascontiguousarray(_vector(d, a.shape[1], "d", "one factor per column"),
+                             a.data.dtype)
+    indptr = np.empty(a.shape[0] + 1, np.int64)
+    indices = np.empty_like(a.indices)
+    data = np.empty_like(a.data)
+    args = (a.indptr, a.indices, a.data, d)
+    if _small_enough(a.nnz):
+        _small.scale_cols_off_diagonal(*args, int(offset), indptr, indices, data)
+    else:
+        _numba().scale_cols_off_diagonal_internal(*args, np.int64(offset), indptr, indices,
+                                                  data)
+    nnz = int(indptr[-1])
+    return _csr_result(a.shape, indptr, indices[:nnz], data[:nnz])
+
+
 def diagonal(A):
     """The main diagonal of A, shape (min(m, n),), A's float dtype."""
     a = _as_csr(A, "A", canonical=False)
@@ -707,3 +738,30 @@ def split_column_tiles(indptr, indices, data, tile_size: int) -> ColumnTiles:
                                                       int(tile_size)))
     return ColumnTiles(*_numba().split_column_tiles_internal(
         indptr.astype(np.int64, copy=False), indices, np.asarray(data), np.int64(tile_size)))
+
+
+def join_column_tiles(tiles: ColumnTiles, tile_size: int, n_cols: int):
+    """Rows of global columns from their column tiles: the inverse of
+    :func:`split_column_tiles` (the store's tiles of one tile row joined).
+
+    Trusts its input (tiles read and checked by the store): ``tiles.cols`` ascending,
+    each tile's rows column-sorted, so the joined rows are too.
+
+    Returns
+    -------
+    (indptr (n_rows + 1,) int64, indices (nnz,) int32 (int64 when ``n_cols`` or nnz
+    reach 2**31), data (nnz,) of ``tiles.data``'s dtype)
+    """
+    n_rows = tiles.indptr.shape[1] - 1
+    nnz = int(tiles.bounds[-1])
+    wide = n_cols >= 2**31 or nnz >= 2**31
+    indptr = np.empty(n_rows + 1, np.int64)
+    indices = np.empty(nnz, np.int64 if wide else np.int32)
+    data = np.empty(nnz, tiles.data.dtype)
+    args = (tiles.cols.astype(np.int64, copy=False), tiles.indptr.astype(np.int64, copy=False),
+            tiles.indices, tiles.data, tiles.bounds.astype(np.int64, copy=False))
+    if _small_enough(nnz):
+        _small.join_column_tiles(*args, int(tile_size), indptr, indices, data)
+    else:
+        _numba().join_column_tiles_internal(*args, np.int64(tile_size), indptr, indices, data)
+    return indptr, indices, data

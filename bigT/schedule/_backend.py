@@ -5,12 +5,14 @@ the layers' contracts (docs/CONTRACTS.md) are used in one spot."""
 from __future__ import annotations
 
 from bigT.kernels import (SPGEMM_GROUP, add_diag_scaled, prune, release_workspaces, scale_cols,
-                          scale_rows, spgemm, spmm_dense, workspace_bytes)
+                          scale_cols_off_diagonal, scale_rows, spgemm, spmm_dense,
+                          workspace_bytes)
 from bigT.storage import BlockCSR, KeptTiles, from_scipy, read_store_attrs, row_marker, write_tile_row
 from bigT.storage import open as open_store
 
 __all__ = [
     "SPGEMM_GROUP", "BlockCSR", "KeptTiles", "add_diag_scaled", "from_scipy", "open_store", "prune",
-    "read_store_attrs", "release_workspaces", "row_marker", "scale_cols", "scale_rows", "spgemm",
+    "read_store_attrs", "release_workspaces", "row_marker", "scale_cols",
+    "scale_cols_off_diagonal", "scale_rows", "spgemm",
     "spmm_dense", "workspace_bytes", "write_tile_row",
 ]

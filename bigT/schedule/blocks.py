@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._backend import add_diag_scaled, prune, scale_cols, spgemm
+from ._backend import add_diag_scaled, prune, scale_cols_off_diagonal, spgemm
 
 
 @dataclass
@@ -92,30 +92,21 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
     -------
     csr_array, shape (r, n), sorted indices
     """
-    M = scale_cols(T_rows, -np.asarray(finv, dtype=T_rows.dtype))
-    # CSR surgery instead of a COO round trip: a tile row of a big T has ~10^7 entries
-    # and every extra copy of them counts against the memory limit.
-    rows = np.repeat(np.arange(M.shape[0], dtype=M.indices.dtype), np.diff(M.indptr))
-    on = M.indices == rows + start
-    del rows
-    d = None
+    minus_finv = -np.asarray(finv, dtype=T_rows.dtype)
+    # one pass, no COO round trip: a tile row of a big T has ~10^7 entries and every
+    # extra copy of them counts against the memory limit
+    M = scale_cols_off_diagonal(T_rows, minus_finv, start)
     if not zero_diagonal:
-        d = np.asarray(active_rows, dtype=M.dtype) + M.diagonal(k=start)
-    if on.any():
-        keep = ~on
-        cs = np.concatenate([[0], np.cumsum(on, dtype=np.int64)])
-        indptr = (M.indptr - cs[M.indptr]).astype(M.indptr.dtype)
-        M = sp.csr_array((M.data[keep], M.indices[keep], indptr), shape=M.shape)
-        M.has_sorted_indices = True
-    if d is not None:
+        r = T_rows.shape[0]
+        d = (np.asarray(active_rows, dtype=M.dtype)
+             + T_rows.diagonal(k=start) * minus_finv[start:start + r])
         nz = np.flatnonzero(d)
-        D = sp.csr_array((d[nz], (nz, nz + start)), shape=M.shape)
-        M = sp.csr_array(M + D)
+        M = sp.csr_array(M + sp.csr_array((d[nz], (nz, nz + start)), shape=M.shape))
         M.sort_indices()
-        if M.nnz < 2**31 and M.shape[1] < 2**31:
-            # scipy's sum may widen the indices; the memory plan counts int32 ones
-            M.indices = M.indices.astype(np.int32, copy=False)
-            M.indptr = M.indptr.astype(np.int32, copy=False)
+    if M.nnz < 2**31 and M.shape[1] < 2**31:
+        # scipy's sum may widen the indices; the memory plan counts int32 ones
+        M.indices = M.indices.astype(np.int32, copy=False)
+        M.indptr = M.indptr.astype(np.int32, copy=False)
     return M
 
 

@@ -156,8 +156,10 @@ def read_array_files(adir: Path) -> np.ndarray | None:
         frame, stored = raw[:-4], raw[-4:]
         if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
             raise ValueError(f"crc32c checksum mismatch in chunk file {adir.name}/c/{c}")
-        values = np.frombuffer(codec.decode(frame), dtype)
-        out[start:stop] = values[:stop - start]
+        if stop - start == chunk:  # a whole chunk: decoded in place, no copy
+            codec.decode(frame, out=out[start:stop])
+        else:
+            out[start:stop] = np.frombuffer(codec.decode(frame), dtype)[:stop - start]
     return out.astype(dtype.newbyteorder("="), copy=False)
 
 

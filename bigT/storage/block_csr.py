@@ -391,28 +391,23 @@ class BlockCSR:
         only the tiles in ``columns`` (tile columns) when given, the others empty."""
         r0, r1 = self.tile_row_range(i)
         rows = r1 - r0
+        from ..kernels.csr import ColumnTiles, join_column_tiles  # numba: big rows only
+
         tiles = list(self.iter_tiles(i, columns))
         if not tiles:
             return sp.csr_array((rows, self.shape[1]), dtype=self.dtype)
-        counts = np.zeros(rows, dtype=np.int64)
-        for _, t in tiles:
-            counts += np.diff(t.indptr)
-        indptr = np.zeros(rows + 1, dtype=np.int64)
-        np.cumsum(counts, out=indptr[1:])
-        idx_dtype = np.int32 if self.shape[1] < 2**31 and indptr[-1] < 2**31 else np.int64
-        indices = np.empty(indptr[-1], dtype=idx_dtype)
-        data = np.empty(indptr[-1], dtype=self.dtype)
-        fill = indptr[:-1].copy()
-        # Tiles in ascending column order: appending each tile's part of a row keeps the
-        # row's columns sorted.
-        for j, t in tiles:
-            c0 = j * self.tile_size
-            lens = np.diff(t.indptr)
-            dest = np.repeat(fill - t.indptr[:-1], lens) + np.arange(t.nnz)
-            indices[dest] = t.indices + c0
-            data[dest] = t.data
-            fill += lens
-        out = sp.csr_array((data, indices, indptr.astype(idx_dtype)), shape=(rows, self.shape[1]))
+        bounds = np.zeros(len(tiles) + 1, np.int64)
+        np.cumsum([t.nnz for _, t in tiles], out=bounds[1:])
+        # tiles in ascending column order: appending each tile's part of a row keeps the
+        # row's columns sorted
+        joined = ColumnTiles(
+            np.array([j for j, _ in tiles], np.int64),
+            np.stack([np.asarray(t.indptr, np.int64) for _, t in tiles]),
+            np.concatenate([t.indices for _, t in tiles]),
+            np.concatenate([t.data for _, t in tiles]).astype(self.dtype, copy=False), bounds)
+        indptr, indices, data = join_column_tiles(joined, self.tile_size, self.shape[1])
+        out = sp.csr_array((data, indices, indptr.astype(indices.dtype)),
+                           shape=(rows, self.shape[1]))
         out.has_sorted_indices = True
         return out
 

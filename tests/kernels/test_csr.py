@@ -15,6 +15,7 @@ from bigT.kernels import (
     diagonal,
     prune,
     scale_cols,
+    scale_cols_off_diagonal,
     scale_rows,
     spgemm,
     spmm_dense,
@@ -278,6 +279,26 @@ def test_scale_rows_cols_diagonal(data, dtype):
     assert S.dtype == np.result_type(dtype, dc.dtype)
     np.testing.assert_allclose(S.toarray(), _dense64(A) * dc[None, :], rtol=1e-6)
     np.testing.assert_array_equal(diagonal(A), A.diagonal())
+
+
+@SETTINGS
+@given(st.data(), DTYPES)
+def test_scale_cols_off_diagonal(data, dtype):
+    """A @ diag(d) with the entries (i, i + offset) left out, for a row block of a
+    larger matrix starting at row ``offset``: against dense numpy."""
+    m, n = data.draw(dims()), data.draw(dims())
+    A = data.draw(sparse((m, n), dtype=dtype))
+    offset = data.draw(st.integers(0, max(n - 1, 0)))
+    d = np.random.default_rng(data.draw(st.integers(0, 999))).uniform(0.5, 2, n)
+    S = scale_cols_off_diagonal(A, d, offset)
+    _assert_canonical(S)
+    assert S.dtype == dtype
+    want = _dense64(A) * d.astype(dtype)[None, :]
+    rows = np.arange(m)
+    on = rows + offset < n
+    want[rows[on], rows[on] + offset] = 0.0
+    np.testing.assert_allclose(S.toarray(), want, rtol=1e-6)
+    assert S.nnz == A.nnz - np.count_nonzero(_dense64(A)[rows[on], rows[on] + offset])
 
 
 def test_elementwise_checks():

@@ -1,12 +1,13 @@
-"""``split_column_tiles`` (the storage writer's cut of a tile row into its tiles), on
-both backends (conftest runs every test with the numba kernel and its numpy twin),
-against scipy's column slicing."""
+"""``split_column_tiles`` (the storage writer's cut of a tile row into its tiles) and
+``join_column_tiles`` (the reader's join of them), on both backends (conftest runs
+every test with the numba kernel and its numpy twin), against scipy's column slicing
+and stacking."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from bigT.kernels.csr import split_column_tiles
+from bigT.kernels.csr import ColumnTiles, join_column_tiles, split_column_tiles
 
 
 def _reference(A: sp.csr_array, ts: int):
@@ -52,3 +53,47 @@ def test_unsorted_rows_keep_their_order_within_each_tile():
     np.testing.assert_array_equal(tiles.indptr, [[0, 2, 4], [0, 2, 2]])
     np.testing.assert_array_equal(tiles.indices, [1, 3, 2, 0, 1, 4])
     np.testing.assert_array_equal(tiles.data, [1, 3, 4, 5, 0, 2])
+
+
+@pytest.mark.parametrize("shape, ts, density, dtype", [
+    ((37, 100), 16, 0.2, np.float32),
+    ((64, 64), 64, 0.5, np.float64),
+    ((50, 300), 7, 0.02, np.float32),
+    ((20, 90), 10, 0.0, np.float32),
+])
+def test_join_matches_scipy_hstack(shape, ts, density, dtype):
+    """Tiles made by scipy's column slices joined back equal the matrix; with some
+    tiles left out, the matrix with those columns zeroed (a partial tile row)."""
+    A = sp.random_array(shape, density=density, format="csr", dtype=dtype,
+                        rng=np.random.default_rng(2))
+    A.sort_indices()
+    ref = _reference(A, ts)
+    for keep in (sorted(ref), sorted(ref)[::2]):
+        tiles = [ref[j] for j in keep]
+        bounds = np.cumsum([0] + [t.nnz for t in tiles]).astype(np.int64)
+        joined = ColumnTiles(
+            np.array(keep, np.int64),
+            np.stack([t.indptr.astype(np.int64) for t in tiles]) if tiles
+            else np.zeros((0, shape[0] + 1), np.int64),
+            np.concatenate([t.indices for t in tiles] or [np.empty(0, np.int32)]).astype(np.int32),
+            np.concatenate([t.data for t in tiles] or [np.empty(0, dtype)]), bounds)
+        indptr, indices, data = join_column_tiles(joined, ts, shape[1])
+        mask = np.zeros(shape[1], bool)
+        for j in keep:
+            mask[j * ts:(j + 1) * ts] = True
+        want = sp.csr_array(A.toarray() * mask[None, :])
+        assert indices.dtype == np.int32 and data.dtype == dtype
+        np.testing.assert_array_equal(indptr, want.indptr)
+        np.testing.assert_array_equal(indices, want.indices)
+        np.testing.assert_array_equal(data, want.data)
+
+
+def test_split_then_join_is_the_identity_on_rows_spanning_many_tiles():
+    A = sp.random_array((300, 5000), density=0.05, format="csr", dtype=np.float32,
+                        rng=np.random.default_rng(3))
+    A.sort_indices()
+    indptr, indices, data = join_column_tiles(split_column_tiles(A.indptr, A.indices,
+                                                                 A.data, 128), 128, 5000)
+    np.testing.assert_array_equal(indptr, A.indptr)
+    np.testing.assert_array_equal(indices, A.indices)
+    np.testing.assert_array_equal(data, A.data)
