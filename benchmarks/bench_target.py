@@ -6,7 +6,8 @@ prune in decades around the one it starts from), each fixed run term by term on 
 same probe images: its time to reach E is the engine's time up to the first term whose
 worst probe error is <= E (the measurements are not counted: a fixed run would not
 make them). A fixed run stops once it is slower than the best fixed time known for
-every target it has not met, or than 3x the target run's time. The sweep runs a term
+every target it has not met, or than 3x the target run's time, or once its error
+stalls (its pruning floor). The sweep runs a term
 per call, which costs each call's set-up; so the best RETIME settings per target are
 then timed as a user would run them, ``stratified_inverse(terms=k)`` once from
 scratch (wall time, the best of TIMINGS runs), and the target run too is the best of
@@ -56,7 +57,12 @@ SCENES = {
     (48, 64): [("corner", 0.5), ("cornell", 0.6), ("cornell", 0.81)],
     (96, 128): [("corner", 0.5), ("cornell", 0.7), ("cornell", 0.99)],
 }
-METHODS = ("power", "horner", "newton-schulz")
+#: Newton-Schulz first: at a high rho it is quickest, and its time bounds the others'
+METHODS = ("newton-schulz", "power", "horner")
+#: A fixed run whose worst error fell by less than this share over STALL_TERMS terms
+#: has met its pruning floor: it stops there.
+STALL_SHARE = 0.01
+STALL_TERMS = 3
 MAX_FIXED_TERMS = 127
 #: Settings per target timed again as one run, and runs timed (the best is taken).
 RETIME = 3
@@ -75,7 +81,7 @@ class Fixed:
 def sweep_one(T, out, method, prune, targets, budget, products, D, powers) -> Fixed:
     """Run (method, prune) term by term; the engine time to the first term meeting each
     target. ``budget(target)`` is the time past which this setting cannot matter."""
-    reached, engine, term = {}, 0.0, 0
+    reached, engine, term, worst = {}, 0.0, 0, []
     while term <= MAX_FIXED_TERMS:
         r = stratified_inverse(T, out, terms=term, prune=prune, method=method,
                                progress=False, overwrite=term == 0)
@@ -88,6 +94,10 @@ def sweep_one(T, out, method, prune, targets, budget, products, D, powers) -> Fi
         unmet = [E for E in targets if E not in reached]
         if not unmet or r.terms < term or "exhausted" in r.stopped:
             break
+        worst.append(m.worst)
+        if (len(worst) > STALL_TERMS
+                and worst[-1] > (1 - STALL_SHARE) * worst[-1 - STALL_TERMS]):
+            break  # its pruning floor
         if all(engine > budget(E) for E in unmet):
             break
         term = r.terms + 1

@@ -21,8 +21,8 @@ filtered noise, all in [0.2, 0.8], zero on pixels the inverse leaves out. A term
 measured costs two streamed products for all probes together: Y = X D, then
 T [Y, clip(s Y)]. The engine runs once per (method, prune) and hands each term over
 as it is published (``on_term``); a term is measured where the target may be met
-(the truncation part below it), at terms 4, 8, 16, ... and at every Newton-Schulz
-step.
+(the truncation part within MEASURE_WITHIN of it), at terms 4, 8, 16, ... and at
+every Newton-Schulz step.
 
 Decomposing the error
 ---------------------
@@ -59,8 +59,10 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
   where the products dominate (dense 192x256 corner, 4 terms to 1e-4: Horner 21 s,
   power fed on P_k pruned at 1e-4 6.7 s, benchmarks/RESULTS.md), and it was no more
   accurate at the same prune on the Cornell box (floor at prune 1e-5, rho = 0.52:
-  2.3e-3 against power's 1.6e-3). On tiny scenes, where each term's store writes
-  dominate, it is up to ~1.3x quicker (one store a term against power's two).
+  2.3e-3 against power's 1.6e-3; at 6 terms, 3.7e-3 against 3.0e-3: the error of
+  either is not monotone in the terms). On tiny scenes, where each term's store
+  writes and X's merge dominate, it is up to ~1.5x quicker per term (one store a
+  term against power's two), which the sweep's ratios at rho 0.19-0.52 show.
 * a target below TARGET_FLOOR_EPS machine epsilons of T's dtype is refused: the
   rounding of T X d in that precision alone is of that order.
 """
@@ -91,6 +93,11 @@ MAX_RESTARTS = 3
 TARGET_FLOOR_EPS = 64
 #: Newton-Schulz is chosen when its products are at most this share of power's.
 NS_PRODUCT_SHARE = 0.5
+#: A term is measured once the truncation part alone is within this factor of the
+#: safe target: the pruning part may cancel much of it (M = -|M| alternates in sign;
+#: on the rho = 0.52 Cornell box, term 6 of prune 1e-5 measured 2.97e-3 against a
+#: truncation part of 7.5e-3).
+MEASURE_WITHIN = 4.0
 
 
 @dataclass(frozen=True)
@@ -420,12 +427,14 @@ def _worth_measuring(method: str, term: int, products: _Products, powers, D,
                      target: float) -> bool:
     """Whether to measure the probes' error after ``term`` (two streamed products):
     always for Newton-Schulz (few, costly steps); else once the truncation part alone
-    is below the safe target (the error may be met), and at terms 4, 8, 16, ... to
+    is within MEASURE_WITHIN of the safe target (the error may be met), and at terms
+    4, 8, 16, ... to
     see a pruning floor early in a long series. A short series (small rho) is so
     measured only where it can stop."""
     if method == "newton-schulz" or (term >= 4 and term & (term - 1) == 0):
         return True
-    return float(_rel(_power(products, powers, term), D).max()) <= SAFETY * target
+    truncation = float(_rel(_power(products, powers, term), D).max())
+    return truncation <= MEASURE_WITHIN * SAFETY * target
 
 
 def _verdict(m: TermErrors, target: float) -> tuple[str, str | None]:
