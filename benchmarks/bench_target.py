@@ -37,6 +37,9 @@ import bigT
 from bigT.algorithms import stratified_inverse
 from bigT.algorithms.first_bounce import resolve_first_bounce
 from bigT.algorithms.target import (
+    FLOOR_DOMINANCE,
+    PRUNE_SHARE,
+    SAFETY,
     _power,
     _Products,
     decay_rate,
@@ -59,8 +62,8 @@ SCENES = {
 }
 #: Newton-Schulz first: at a high rho it is quickest, and its time bounds the others'
 METHODS = ("newton-schulz", "power", "horner")
-#: A fixed run whose worst error fell by less than this share over STALL_TERMS terms
-#: has met its pruning floor: it stops there.
+#: A fixed run whose worst error fell by less than this share over STALL_TERMS terms,
+#: its pruning part dominating, has met its pruning floor: it stops there.
 STALL_SHARE = 0.01
 STALL_TERMS = 3
 MAX_FIXED_TERMS = 127
@@ -95,7 +98,7 @@ def sweep_one(T, out, method, prune, targets, budget, products, D, powers) -> Fi
         if not unmet or r.terms < term or "exhausted" in r.stopped:
             break
         worst.append(m.worst)
-        if (len(worst) > STALL_TERMS
+        if (len(worst) > STALL_TERMS and m.pruning > FLOOR_DOMINANCE * m.truncation
                 and worst[-1] > (1 - STALL_SHARE) * worst[-1 - STALL_TERMS]):
             break  # its pruning floor
         if all(engine > budget(E) for E in unmet):
@@ -112,14 +115,15 @@ def bench_scene(name, albedo, size, targets, root: Path) -> list[dict]:
     fb = resolve_first_bounce(T, "diag")
     products = _Products(T, fb, 2)
     D = probe_vectors(T, fb.active)
-    powers = [products.M(D)]
+    # the truncation curve as invert_to_target computes it: its rate sets the prunes
+    # swept around the first one it tries; the sweep's measurements extend it
+    powers = truncation_curve(products, D, SAFETY * min(targets) * (1 - PRUNE_SHARE), 200)
     chosen, found = {}, {E: [] for E in targets}
     try:
         for E in targets:  # interleaved: the target run, then the sweep's settings
             chosen[E] = _best_of(lambda: invert_to_target(T, root / "Xt.zarr", E,
                                                           overwrite=True))
-        curve = truncation_curve(products, D, min(targets), 200)
-        p0 = min(first_prune(E, decay_rate(curve, D)) for E in targets)
+        p0 = min(first_prune(E, decay_rate(powers, D)) for E in targets)
         prunes = sorted({p0 * 100, p0 * 10, p0, p0 / 10}, reverse=True)
         for method in METHODS:
             for prune in prunes:

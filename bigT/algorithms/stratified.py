@@ -409,7 +409,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         never anything that is not a bigT inverse store.
     on_term : callable, optional
         ``on_term(record)`` is called after each term this run computes is published
-        (``record`` the store's :class:`InverseRecord`; ``out`` then holds that term);
+        (``record`` the store's :class:`InverseRecord`; ``out`` then holds that term),
+        and first for the term held when the run resumes a store short of ``terms``;
         a string returned stops the run there, as its ``stopped`` reason. One run
         with it costs less than a run per term (one set-up, one spectral radius
         read): :func:`bigT.algorithms.target.invert_to_target` measures each term so.
@@ -585,6 +586,11 @@ class _Engine:
             self._save(rec.replace(term=terms))
             return f"series exhausted at term {rec.exhausted_at}"
         computed = False
+        if resumed_from is not None and self.opts.on_term and self.record.term < terms:
+            # the term held may already be enough: the callback sees it before any work
+            reason = self.opts.on_term(self.record)
+            if reason:
+                return reason
         while self.record.term < terms:
             if self._tol_reached():
                 return f"tol {self.opts.tol:g} reached"
@@ -701,9 +707,13 @@ class _Engine:
                           pixel_order=self.T.pixel_order)
 
     def _term_metadata(self) -> dict:
-        return {"method": self.series.name, "prune": self.opts.prune,
+        meta = {"method": self.series.name, "prune": self.opts.prune,
                 "first_bounce": self.fb.kind, "spectral_radius": self.record.spectral_radius,
                 "excluded_pixels": self.fb.excluded}
+        for name in ("prune_feed", "prune_operator"):  # when set (bigT info shows them)
+            if getattr(self.opts, name) is not None:
+                meta[name] = getattr(self.opts, name)
+        return meta
 
     def _finish_term(self, k: int, stats: list[BlockStats], t0: float,
                      XZ: np.ndarray | None = None) -> None:

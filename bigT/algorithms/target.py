@@ -249,9 +249,11 @@ class _Products:
         return np.asarray(stream_matmul(A, V, runner=self.runner, cache_bytes=budget),
                           dtype=np.float64)
 
-    def M(self, V: np.ndarray) -> np.ndarray:
-        """M V = V - T F^-1 V on the kept pixels, shape (n, k)."""
-        return (V - self.times(self.T, self.fb.finv[:, None] * V, cache=True)) \
+    def M(self, V: np.ndarray, cache: bool = True) -> np.ndarray:
+        """M V = V - T F^-1 V on the kept pixels, shape (n, k); T's tiles kept in the
+        tile cache unless ``cache`` is False (between the engine's terms, whose M rows
+        the cache holds under the engine's memory plan)."""
+        return (V - self.times(self.T, self.fb.finv[:, None] * V, cache=cache)) \
             * self.fb.active[:, None]
 
     def close(self) -> None:
@@ -285,11 +287,13 @@ def truncation_curve(products: _Products, D: np.ndarray, goal: float,
     return powers
 
 
-def _power(products: _Products, powers: list[np.ndarray], k: int) -> np.ndarray:
+def _power(products: _Products, powers: list[np.ndarray], k: int,
+           cache: bool = True) -> np.ndarray:
     """M^(k+1) D, extending ``powers`` (M^(j+1) D for j < len) where the curve stopped
-    short (Newton-Schulz holds 2^j - 1 terms, past the count asked)."""
+    short (Newton-Schulz holds 2^j - 1 terms, past the count asked); ``cache`` as
+    :meth:`_Products.M`'s."""
     while len(powers) <= k:
-        powers.append(products.M(powers[-1]))
+        powers.append(products.M(powers[-1], cache=cache))
     return powers[k]
 
 
@@ -395,10 +399,11 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     measured: list[TermErrors] = []
     verdict: list[tuple[str, str | None]] = []  # (how the attempt ended, restart reason)
 
-    def measure(held: int) -> None:
+    def measure(held: int, during_run: bool = True) -> None:
+        # during the engine's run, the curve's extensions leave the tile cache alone
         measured.append(measure_term(products, open_store(out), D,
-                                     _power(products, powers, held), held,
-                                     time.perf_counter() - t0))
+                                     _power(products, powers, held, cache=not during_run),
+                                     held, time.perf_counter() - t0))
 
     def on_term(record) -> str | None:
         if not _worth_measuring(method, record.term, products, powers, D, target):
@@ -413,8 +418,9 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
         T, out, terms=cap, prune=prune, method=method, first_bounce=ctx.first_bounce,
         memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
         progress=ctx.progress, seed=ctx.seed, overwrite=overwrite, on_term=on_term)
-    if not measured or measured[-1].term != min(report.terms, report.history[-1].term):
-        measure(min(report.terms, report.history[-1].term))  # cap 0, or exhausted
+    held = min(report.terms, report.history[-1].term)  # an exhausted series: its last
+    if not measured or measured[-1].term != held:  # cap 0, exhausted, or not worth it
+        measure(held, during_run=False)
         verdict[:] = [_verdict(measured[-1], target)]
     ended, reason = verdict[0]
     if not ended and "exhausted" in report.stopped:
@@ -428,12 +434,11 @@ def _worth_measuring(method: str, term: int, products: _Products, powers, D,
     """Whether to measure the probes' error after ``term`` (two streamed products):
     always for Newton-Schulz (few, costly steps); else once the truncation part alone
     is within MEASURE_WITHIN of the safe target (the error may be met), and at terms
-    4, 8, 16, ... to
-    see a pruning floor early in a long series. A short series (small rho) is so
-    measured only where it can stop."""
+    4, 8, 16, ... to see a pruning floor early in a long series. A short series
+    (small rho) is so measured only where it can stop."""
     if method == "newton-schulz" or (term >= 4 and term & (term - 1) == 0):
         return True
-    truncation = float(_rel(_power(products, powers, term), D).max())
+    truncation = float(_rel(_power(products, powers, term, cache=False), D).max())
     return truncation <= MEASURE_WITHIN * SAFETY * target
 
 

@@ -655,11 +655,12 @@ def scale_cols_off_diagonal(A, d, offset: int):
 
     Returns
     -------
-    csr_array, shape (m, n), sorted indices
+    csr_array, shape (m, n), sorted indices, dtype = promotion of A and d
     """
-    a = _as_csr(A, "A")
-    d = np.ascontiguousarray(_vector(d, a.shape[1], "d", "one factor per column"),
-                             a.data.dtype)
+    d = _vector(d, A.shape[1] if sp.issparse(A) else -1, "d", "one factor per column")
+    fdt = _float_dtype(A.dtype, d.dtype, name="A, d")
+    a = _as_csr(A, "A", dtype=fdt)
+    d = np.ascontiguousarray(d, fdt)
     indptr = np.empty(a.shape[0] + 1, np.int64)
     indices = np.empty_like(a.indices)
     data = np.empty_like(a.data)

@@ -156,10 +156,9 @@ def read_array_files(adir: Path) -> np.ndarray | None:
         frame, stored = raw[:-4], raw[-4:]
         if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
             raise ValueError(f"crc32c checksum mismatch in chunk file {adir.name}/c/{c}")
-        if stop - start == chunk:  # a whole chunk: decoded in place, no copy
-            codec.decode(frame, out=out[start:stop])
-        else:
-            out[start:stop] = np.frombuffer(codec.decode(frame), dtype)[:stop - start]
+        # not decoded in place: a frame shorter than the chunk must fail here, not
+        # leave the rest of ``out`` unset
+        out[start:stop] = np.frombuffer(codec.decode(frame), dtype)[:stop - start]
     return out.astype(dtype.newbyteorder("="), copy=False)
 
 

@@ -405,6 +405,7 @@ class BlockCSR:
             np.stack([np.asarray(t.indptr, np.int64) for _, t in tiles]),
             np.concatenate([t.indices for _, t in tiles]),
             np.concatenate([t.data for _, t in tiles]).astype(self.dtype, copy=False), bounds)
+        del tiles  # two copies of the row at most: the joined tiles and the output
         indptr, indices, data = join_column_tiles(joined, self.tile_size, self.shape[1])
         out = sp.csr_array((data, indices, indptr.astype(indices.dtype)),
                            shape=(rows, self.shape[1]))

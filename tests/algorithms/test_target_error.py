@@ -65,6 +65,19 @@ def test_target_met_on_probes_and_fresh_images(scenes, rho, tmp_path):
     assert report.why and report.method == choose_method(report.predicted_terms)[0]
 
 
+def test_rerun_on_a_store_that_meets_the_target_computes_nothing(scenes, tmp_path):
+    """The same target again on the same output: the engine resumes the store and
+    hands the held term to the measurement first, which meets the target; no term is
+    computed and the store keeps its term."""
+    out = tmp_path / "X.zarr"
+    first = invert_to_target(scenes[0.2].T, out, TARGET)
+    again = invert_to_target(scenes[0.2].T, out, TARGET)
+    assert again.met and again.terms == first.terms
+    assert again.inverse["resumed_from"] == first.terms
+    assert again.inverse["products"] == 0
+    assert bigT.open(out).metadata["inverse"]["term"] == first.terms
+
+
 def test_too_tight_for_float32_is_refused_before_anything_is_written(scenes, tmp_path):
     out = tmp_path / "X.zarr"
     with pytest.raises(BigTError, match="below what T's float32 can show"):

@@ -204,3 +204,26 @@ def test_from_scipy_keeps_the_float_dtype_unless_told(tmp_path, given, stored):
     A = sp.csr_array(np.array([[1, 0], [0, 1]], dtype=given))
     assert from_scipy(A, tmp_path / "a.zarr").dtype == np.dtype(stored)
     assert from_scipy(A, tmp_path / "b.zarr", dtype="float32").dtype == np.float32
+
+
+@pytest.mark.parametrize("numba_path", [False, True])
+def test_tile_rows_joined_on_both_kernel_paths(tmp_path, monkeypatch, numba_path):
+    """get_tile_row joins a row's tiles (numba above config.KERNEL_NUMPY_MAX_WORK
+    entries, its numpy twin below): ragged last tile row and column, whole rows and
+    rows restricted to some tile columns, against scipy."""
+    if numba_path:
+        monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", -1)
+    A = sp.random_array((70, 90), density=0.2, format="csr", dtype=np.float32,
+                        rng=np.random.default_rng(4))
+    S = from_scipy(A, tmp_path / "A.zarr", tile_size=16)
+    R = _ref(A, np.float32)
+    for i in range(S.grid[0]):
+        r0, r1 = S.tile_row_range(i)
+        assert (S.get_tile_row(i) != R[r0:r1]).nnz == 0
+        cols = list(S.tile_columns(i))[::2]
+        mask = np.zeros(90, bool)
+        for j in cols:
+            mask[j * 16:(j + 1) * 16] = True
+        part = S.get_tile_row(i, columns=cols)
+        assert part.has_sorted_indices
+        np.testing.assert_array_equal(part.toarray(), R[r0:r1].toarray() * mask[None, :])
