@@ -11,7 +11,8 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 import bigT
-from bigT.algorithms.target import SAFETY, choose_method, invert_to_target
+from bigT.algorithms.target import (SAFETY, choose_method, decay_rate, first_prune,
+                                    invert_to_target)
 from bigT.cli import main
 from bigT.compensation.core import to_vectors
 from bigT.errors import BigTError
@@ -76,6 +77,20 @@ def test_rerun_on_a_store_that_meets_the_target_computes_nothing(scenes, tmp_pat
     assert again.inverse["resumed_from"] == first.terms
     assert again.inverse["products"] == 0
     assert bigT.open(out).metadata["inverse"]["term"] == first.terms
+
+
+def test_first_prune_follows_the_rate_of_the_truncation_curve():
+    """Pruned entries are carried by every later bounce (their error adds up like
+    1 / (1 - rho)), so a slower series starts from a smaller prune: the decades of
+    the bench's scenes (rho 0.19, 0.52, 0.89; E = 1/255 and 1e-3)."""
+    D = np.ones((10, 2))
+    curve = [D * 0.3 * 0.5 ** k for k in range(4)]
+    assert decay_rate(curve, D) == pytest.approx(0.5)
+    assert decay_rate(curve[:1], D) == pytest.approx(0.3)  # one point: ||M d|| / ||d||
+    assert decay_rate([D, D * 1.5], D) == 0.99  # a stalling curve: clamped below 1
+    assert [first_prune(1e-3, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 1e-6, 1e-6]
+    assert [first_prune(TARGET, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 1e-5, 1e-6]
+    assert first_prune(1e-3) == 1e-5  # no rate known: the fastest series' prune
 
 
 def test_too_tight_for_float32_is_refused_before_anything_is_written(scenes, tmp_path):
