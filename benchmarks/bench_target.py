@@ -18,6 +18,7 @@ target run and the sweep of one scene are interleaved and the load average print
 
     python benchmarks/bench_target.py            # 48x64 (quick) and 96x128
     python benchmarks/bench_target.py --quick    # 48x64 only
+    python benchmarks/bench_target.py --size 96x128 --rho 0.2   # one size, one scene
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ STALL_TERMS = 3
 MAX_FIXED_TERMS = 127
 #: Settings per target timed again as one run, and runs timed (the best is taken).
 RETIME = 3
-TIMINGS = 2
+TIMINGS = 3
 
 
 @dataclass(frozen=True)
@@ -200,6 +201,8 @@ def table(rows) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="48x64 only")
+    ap.add_argument("--size", default=None, choices=[f"{h}x{w}" for h, w in SCENES],
+                    help="this size only")
     ap.add_argument("--targets", default="0.00392,0.001",
                     help="comma-separated targets (default 1/255 and 1e-3)")
     ap.add_argument("--rho", default=None, help="only these of 0.2,0.5,0.9 (comma-separated)")
@@ -207,6 +210,8 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     targets = [float(t) for t in args.targets.split(",")]
     sizes = [(48, 64)] if args.quick else [(48, 64), (96, 128)]
+    if args.size:
+        sizes = [tuple(int(v) for v in args.size.split("x"))]
     pick = None if args.rho is None else {("0.2", "0.5", "0.9").index(r)
                                           for r in args.rho.split(",")}
     rows = []

@@ -45,7 +45,9 @@ FULL = [
     ("paper", ["bench_paper.py"]),
     ("tradeoff", ["bench_tradeoff.py", "--workdir", "bench-out/tradeoff"]),
     ("target", ["bench_target.py", "--quick", "--rho", "0.2,0.5"]),
-    # rho 0.9 (48x64 Cornell box): tens of terms per setting, ~30 min with its sweep
+    # rho 0.2 at n = 12288, where the runs last seconds, not tenths (fixed costs)
+    ("target-96x128", ["bench_target.py", "--size", "96x128", "--rho", "0.2"]),
+    # rho 0.9 (48x64 Cornell box): tens of terms per setting, ~10 min with its sweep
     ("target-high-rho", ["bench_target.py", "--quick", "--rho", "0.9", "--targets",
                          "0.00392"]),
     ("alternatives", ["bench_alternatives.py", "--workdir", "bench-out/alternatives"]),
