@@ -86,7 +86,8 @@ def power_task(ctx: TaskContext):
     computed = skipped = 0
     spec = ctx.spec
     if "P" in dict(spec.inputs):
-        left = M if spec.operator_threshold is None else prune(M, threshold=spec.operator_threshold)
+        left = (M if spec.operator_threshold is None
+                else prune(M, threshold=spec.operator_threshold))
         Q, computed, skipped = ctx.product(left, "P", spec.threshold)
     else:
         Q = prune(M, threshold=spec.threshold)

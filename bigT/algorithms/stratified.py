@@ -59,7 +59,7 @@ prune(M_o P_{k-1}) and miss D_o P_{k-1}, which is one bounce further down than D
 (||P_{k-1}|| ~ rho^(k-1)), while term 1 still adds M down to ``prune``. Most of a dense
 M's entries are small (on the dense 384x512 corner, 309 a row, 117 of them >= 1e-5),
 and every one of them costs a row of P_{k-1} in the product: dropping them from the
-left factor cuts term 2's multiply-adds 2.3x there for a 0.6 % larger error.
+left factor cuts term 2's multiply-adds 2.3x there for a 0.8 % larger error.
 
 Residual: after every term, ||I - T X||_F is estimated from p = config.RESIDUAL_PROBES
 Rademacher probes z (z_i = +-1 on the pixels kept): r = z - T (X z); since

@@ -44,8 +44,8 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
   random low-pass images against the exact inverse).
 * prune: the largest decade <= target (1 - r) / PRUNE_RATIO, with r the rate at which
   the truncation curve falls per term (about rho(M)): pruned entries are carried by
-  every later bounce, so their error adds up like 1 / (1 - r). Restart with a smaller decade
-  (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
+  every later bounce, so their error adds up like 1 / (1 - r). Restart with a smaller
+  decade (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
   part exceeds PRUNE_SHARE * SAFETY * target, or the series is exhausted or stalls
   above the target; at most MAX_RESTARTS restarts.
 * terms: at most the truncation curve's count + EXTRA_TERMS (a pruned series may need
