@@ -106,6 +106,13 @@ def test_best_effort_stop_is_reported_not_met(scenes, tmp_path, capsys):
     report = invert_to_target(scenes[0.5].T, out, 1e-4, max_terms=1)
     assert not report.met and report.terms == 1
     assert "NOT met" in report.summary()
+    # term 1 was not worth measuring during the run (far from the target): it is
+    # measured once the engine stops at the cap, as is term 0 with a cap of 0
+    assert [t.term for t in report.attempts[-1].terms] == [1]
+    assert report.attempts[-1].ended == "term cap 1"
+    report = invert_to_target(scenes[0.5].T, tmp_path / "X0.zarr", 1e-4, max_terms=0)
+    assert not report.met and report.terms == 0
+    assert [t.term for t in report.attempts[-1].terms] == [0]
 
 
 def test_cli_target_error_summary_json_and_bad_values(scenes, tmp_path, capsys):
