@@ -7,11 +7,10 @@ same probe images: its time to reach E is the engine's time up to the first term
 worst probe error is <= E (the measurements are not counted: a fixed run would not
 make them). A fixed run stops once it is slower than the best fixed time known for
 every target it has not met, or than 3x the target run's time, or once its error
-stalls (its pruning floor). The sweep runs a term
-per call, which costs each call's set-up; so the best RETIME settings per target are
-then timed as a user would run them, ``stratified_inverse(terms=k)`` once from
-scratch (wall time, the best of TIMINGS runs), and the target run too is the best of
-TIMINGS wall times. Prints a markdown
+stalls (its pruning floor). The sweep runs a term per call, which costs each call's
+set-up; so the best RETIME settings per target are then timed as a user would run
+them, ``stratified_inverse(terms=k)`` once from scratch (wall time, the best of
+TIMINGS runs), and the target run too is the best of TIMINGS wall times. Prints a markdown
 table (scene, rho, E, chosen setting, time, best fixed setting and its time, ratio,
 error reached). Timings are reported, never asserted: the machine is shared, so the
 target run and the sweep of one scene are interleaved and the load average printed.

@@ -397,7 +397,6 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     from .stratified import stratified_inverse
 
     measured: list[TermErrors] = []
-    verdict: list[tuple[str, str | None]] = []  # (how the attempt ended, restart reason)
 
     def measure(held: int, during_run: bool = True) -> None:
         # during the engine's run, the curve's extensions leave the tile cache alone
@@ -409,11 +408,10 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
         if not _worth_measuring(method, record.term, products, powers, D, target):
             return None
         measure(record.term)
-        verdict[:] = [_verdict(measured[-1], target)]
-        return verdict[0][0] if verdict[0][0] else None
+        return _verdict(measured[-1], target)[0] or None
 
-    # term 0 (F^-1, nothing pruned) has the error ||M d|| / ||d|| already known: the
-    # first term measured is term 1
+    # term 0 (F^-1, nothing pruned) is never handed over (its error ||M d|| / ||d|| is
+    # known); it is measured only as the held term of a cap of 0
     report = stratified_inverse(
         T, out, terms=cap, prune=prune, method=method, first_bounce=ctx.first_bounce,
         memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
@@ -421,8 +419,7 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     held = min(report.terms, report.history[-1].term)  # an exhausted series: its last
     if not measured or measured[-1].term != held:  # cap 0, exhausted, or not worth it
         measure(held, during_run=False)
-        verdict[:] = [_verdict(measured[-1], target)]
-    ended, reason = verdict[0]
+    ended, reason = _verdict(measured[-1], target)
     if not ended and "exhausted" in report.stopped:
         ended, reason = report.stopped, (f"{report.stopped} with error "
                                          f"{measured[-1].worst:.2e} above the target")

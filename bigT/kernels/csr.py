@@ -645,7 +645,7 @@ def _scaled(A, d, axis: int):
 def scale_cols_off_diagonal(A, d, offset: int):
     """A @ diag(d) without the entries (i, i + offset): rows ``offset:offset + m`` of
     a matrix with its diagonal left out, each column scaled (M = -T F^-1 off the
-    diagonal, from a row block of T). One pass; A's dtype (d is cast to it).
+    diagonal, from a row block of T). One pass.
 
     Parameters
     ----------
