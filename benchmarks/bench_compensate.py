@@ -331,7 +331,7 @@ def quality(args, out, figure: Path | None = None):
           f"frames/s, batch 64 {res['explicit_batch64_fps']:.1f} frames/s")
     if not args.no_splu:
         res.update(splu_in_child(T.path, frames[:8], args))
-    from bigT.compensation.figures import scan_lines
+    from bigT.figures import scan_lines
 
     res["plot"] = str(scan_lines(figure or out / "scanlines_terms.png", lines, target=c,
                                  title=f"corner {size[0]}x{size[1]}: centre scan line seen by "

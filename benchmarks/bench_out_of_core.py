@@ -105,7 +105,7 @@ def main(argv=None):
 
 
 def run(args, workdir):
-    from bigT.algorithms.stratified import parse_bytes
+    from bigT.sizes import parse_size
 
     tpath = os.path.join(workdir, f"T-banded-{args.n}-{args.per_row}-{args.band}.zarr")
     if not os.path.exists(tpath):
@@ -127,7 +127,7 @@ def run(args, workdir):
         raise SystemExit("child failed")
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     rep = r["report"]
-    limit = parse_bytes(args.memory_limit)
+    limit = parse_size(args.memory_limit, "--memory-limit")
     x_disk = disk_bytes(out)
     r.update(limit_bytes=limit, X_disk_bytes=x_disk, n=args.n)
     print(f"{'term':>4} {'time s':>8} {'nnz(P)':>13} {'nnz(X)':>13} {'residual':>10}")

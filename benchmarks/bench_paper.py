@@ -62,7 +62,7 @@ import bigT  # noqa: E402
 from _results import Results, run_name  # noqa: E402
 from bigT.compensation import (  # noqa: E402
     compensate, fluctuation, relative_error, relight, scan_line)
-from bigT.compensation.figures import save_figure, scan_lines  # noqa: E402
+from bigT.figures import save_figure, scan_lines  # noqa: E402
 from bigT.config import DEFAULT_PRUNE  # noqa: E402
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..compensation.figures import _pyplot, save_figure
+from ..figures import pyplot, save_figure
 from ..scenes.builder import distinct_rows
 from ..storage import open as open_store
 from .build import ACQUISITION_KEY, load_correspondence
@@ -59,7 +59,7 @@ def check_white(store) -> WhiteCheck:
 
 def plot_white_check(check: WhiteCheck, path) -> Path:
     """Scan lines of T 1 (dashed) and the captured white (solid), as in paper Fig. 8."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
     ax0.imshow(check.captured, cmap="gray", vmin=0, interpolation="nearest")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -84,7 +84,7 @@ def plot_correspondence(labels: np.ndarray, grid: tuple[int, int], path) -> Path
     """The camera image coloured by the projector super-pixel each pixel belongs to
     (paper Fig. 7b): neighbouring super-pixels get distinct colours, pixels in no group
     are black."""
-    plt = _pyplot()
+    plt = pyplot()
     rng = np.random.default_rng(0)
     palette = rng.uniform(0.25, 1.0, size=(grid[0] * grid[1], 3))
     image = np.zeros(labels.shape + (3,))

@@ -106,8 +106,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import re
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -123,6 +121,7 @@ from ..schedule.operators import StoreOperand
 from ..schedule.runner import ClusterRunner, local_path, new_pass_id, open_runner
 from ..schedule.spec import BlockStats, MemoryPolicy, PassSpec, row_blocks
 from ..spectral import SpectralRadius, spectral_radius
+from ..sizes import parse_size
 from ..storage import InverseStore, StoreAttrs, TermRecord
 from ..storage import open as open_store
 from ..storage.inverse_store import InverseRecord, term_dir
@@ -222,21 +221,6 @@ def _rate(multiply_adds: int, seconds: float) -> str:
     if not multiply_adds or seconds <= 0:
         return "-"
     return f"{multiply_adds / seconds:.3g}"
-
-
-def parse_bytes(value) -> int | None:
-    """``2GiB``, ``500MB``, ``1e9`` or an int -> bytes."""
-    if value is None or isinstance(value, int):
-        return value
-    s = str(value).strip()
-    m = re.fullmatch(r"([0-9.eE+]+)\s*([KMGT]?i?B?)?", s, flags=re.I)
-    if not m:
-        raise ValueError(f"memory_limit: cannot read {value!r} (try 2GiB)")
-    num = float(m.group(1))
-    unit = (m.group(2) or "").upper().rstrip("B")
-    mult = {"": 1, "K": 1e3, "M": 1e6, "G": 1e9, "T": 1e12,
-            "KI": 1024, "MI": 1024**2, "GI": 1024**3, "TI": 1024**4}[unit]
-    return int(num * mult)
 
 
 def _fingerprint(T, fb: FirstBounce, prune: float, method: str,
@@ -447,7 +431,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     out = local_path(out, "inverse store")
     opts = _Options(int(terms), float(prune), tol, progress, force, seed, overwrite,
                     prune_feed, prune_operator, on_term)
-    memory_limit = parse_bytes(memory_limit)
+    memory_limit = None if memory_limit is None else parse_size(memory_limit, "memory_limit")
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
     store = InverseStore(out)
     try:

@@ -18,6 +18,8 @@ import math
 import re
 from typing import Any, Callable
 
+from ..sizes import parse_size
+
 __all__ = ["integer", "number", "memory_size", "image_size", "scheduler_address",
            "clip_range", "density"]
 
@@ -93,22 +95,13 @@ def number(lo: float, hi: float | None = None, *, lo_open: bool = False,
     return _checked(float, in_range, what, what, lambda v, text: repr(text.strip()))
 
 
-#: Multipliers of the memory units; SI prefixes are powers of 1000, binary (Ki, Mi,
-#: ...) of 1024, as ``dask``'s ``parse_bytes`` reads them.
-_UNITS = {"": 1, "k": 10**3, "m": 10**6, "g": 10**9, "t": 10**12,
-          "ki": 2**10, "mi": 2**20, "gi": 2**30, "ti": 2**40}
-_SIZE = re.compile(r"(\d+(?:\.\d*)?(?:e[+-]?\d+)?|\.\d+(?:e[+-]?\d+)?)\s*([kmgt]i?)?b?",
-                   re.IGNORECASE)
-
-
 def memory_size(text: str) -> int:
-    """An argparse type: a memory size such as ``4GiB``, ``500MB``, ``2G`` or ``1e9``, in
-    bytes (int >= 1). Negative, zero, non-finite and unit-less words are refused."""
-    m = _SIZE.fullmatch(text.strip())
-    value = float(m.group(1)) * _UNITS[(m.group(2) or "").lower()] if m else math.nan
-    if not math.isfinite(value) or value < 1:  # also: no match, '-5GiB', 'inf', '1e999'
-        raise _fail(f"must be a positive memory size such as 4GiB or 500MB, got {text!r}")
-    return int(value)
+    """An argparse type: a size in bytes as :func:`bigT.sizes.parse_size` reads it
+    (``4GiB``, ``500MB``, ``2G``, ``1e9``; dask's syntax)."""
+    try:
+        return parse_size(text)
+    except ValueError:
+        raise _fail(f"must be a positive memory size such as 4GiB or 500MB, got {text!r}") from None
 
 
 memory_size.__name__ = "memory size"

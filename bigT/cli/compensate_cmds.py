@@ -248,7 +248,7 @@ def run_compensate(args) -> int:
         else:
             print("  fluctuation: n/a (no constant target frame)")
         name, desired, seen0, l_in, seen = first
-        from ..compensation.figures import scan_lines, side_by_side
+        from ..figures import scan_lines, side_by_side
 
         tag = "" if not source.is_folder else f" (frame {name.name})"
         pic = side_by_side(
@@ -434,7 +434,7 @@ def run_relight(args) -> int:
 def run_bounces(args) -> int:
     from ..compensation._stream import as_store
     from ..compensation.core import bounce_shares, separate_bounces
-    from ..compensation.figures import bounce_strip
+    from ..figures import bounce_strip
     from ..images import read_image, write_image
 
     T = as_store(args.T, "T")

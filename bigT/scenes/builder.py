@@ -358,9 +358,9 @@ def _write_F(gt: Path, F: np.ndarray) -> None:
 def _preview(path: Path, image: np.ndarray, title: str) -> Path:
     """T 1 (the camera's view of a white projector image) with three horizontal scan
     lines drawn on it and plotted beside it (paper Fig. 8)."""
-    from ..compensation.figures import _pyplot, save_figure
+    from ..figures import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     H, W = image.shape
     rows = distinct_rows(image, 3)
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})

@@ -17,7 +17,6 @@ import socket
 from pathlib import Path
 import threading
 import time
-from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp

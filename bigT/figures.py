@@ -1,4 +1,6 @@
-"""Figures of the compensation tools (matplotlib, Agg backend, written as PNG)."""
+"""Figures bigT draws, matplotlib on its Agg backend, written as PNG: scan lines,
+panels side by side, bounce strips. One module for the scenes, acquisition and
+compensation layers alike; matplotlib is imported when a figure is drawn, not before."""
 
 from __future__ import annotations
 
@@ -7,10 +9,12 @@ from typing import Sequence
 
 import numpy as np
 
-from ..atomic import atomic_output
+from .atomic import atomic_output
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend, imported on first use (~0.4 s kept off
+    every command that draws nothing)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -27,7 +31,7 @@ def save_figure(fig, path, dpi: int = 110) -> Path:
         with atomic_output(path, "the figure") as tmp:
             fig.savefig(tmp, dpi=dpi)
     finally:
-        _pyplot().close(fig)
+        pyplot().close(fig)
     return path
 
 
@@ -35,7 +39,7 @@ def side_by_side(path, panels: Sequence[np.ndarray], titles: Sequence[str], *,
                  vmax: float | None = None, suptitle: str | None = None) -> Path:
     """Grayscale (H, W) panels in one row, one shared scale [0, vmax] (default: 1 or the
     largest value when some panel exceeds 1)."""
-    plt = _pyplot()
+    plt = pyplot()
     if vmax is None:
         vmax = max(1.0, max(float(np.max(p)) for p in panels))
     H, W = panels[0].shape
@@ -54,7 +58,7 @@ def side_by_side(path, panels: Sequence[np.ndarray], titles: Sequence[str], *,
 
 def scan_lines(path, lines: dict, *, title: str, target: float | None = None) -> Path:
     """Centre scan lines as in the paper's Fig. 10: one curve per label."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.6))
     for label, values in lines.items():
         ax.plot(np.arange(len(values)), values, label=label, lw=1.3)
@@ -72,7 +76,7 @@ def scan_lines(path, lines: dict, *, title: str, target: float | None = None) ->
 def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
     """b_0 ... b_K and their sum in grey from 0 to each panel's maximum; the remainder,
     which may be negative, on a diverging scale centred on 0 with a colour bar."""
-    plt = _pyplot()
+    plt = pyplot()
     K = parts.shape[0] - 2
     panels = list(parts) + [parts.sum(axis=0)]
     titles = [f"b{k} {'direct' if k == 0 else 'bounce'} {100 * shares[k]:.3g}%"
