@@ -22,15 +22,10 @@ from ..errors import ShapeMismatchError, StoreError
 
 
 def as_store(A, name: str = "matrix"):
-    """A BlockCSR for ``A``: a BlockCSR (returned as is) or the path of a store."""
-    if isinstance(A, (str, os.PathLike)):
-        from ..storage import open as open_store
+    """A BlockCSR for ``A`` (:func:`bigT.storage.as_store`)."""
+    from ..storage import as_store as _as_store
 
-        return open_store(A)
-    if hasattr(A, "get_tile_row") and hasattr(A, "tile_row_range"):
-        return A
-    raise StoreError(f"{name} must be a bigT store (BlockCSR) or the path of one, "
-                     f"got {type(A).__name__}")
+    return _as_store(A, name)
 
 
 def compute_dtype(store) -> np.dtype:

@@ -110,6 +110,23 @@ def row_marker(path: Path, i: int) -> dict | None:
 _LEASE_ATTEMPTS = 5
 
 
+def as_store(A, name: str = "matrix") -> "BlockCSR":
+    """The store ``A`` stands for: a :class:`BlockCSR` as it is, a path opened with
+    :func:`open`. The one way every layer turns an argument into a store.
+
+    Raises
+    ------
+    StoreError
+        ``A`` is neither (naming ``name`` and the type given).
+    """
+    if isinstance(A, BlockCSR):
+        return A
+    if isinstance(A, (str, os.PathLike)):
+        return open(A)
+    raise StoreError(f"{name} must be a bigT store (BlockCSR) or the path of one, "
+                     f"got {type(A).__name__}")
+
+
 def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
     """Open a bigT block-CSR store for reading.
 
