@@ -78,7 +78,7 @@ from _results import Results, run_name  # noqa: E402
 from bench_compensate import _size, corner_scene, stratified  # noqa: E402
 from bench_scale import peak_rss  # noqa: E402
 from bigT.compensation import relative_error, relight  # noqa: E402
-from bigT.compensation.core import to_frames, to_vectors  # noqa: E402
+from bigT.storage.frames import to_frames, to_vectors  # noqa: E402
 
 #: Method keys in table order, and the label each has in the table and the figure.
 METHODS = {
@@ -322,7 +322,7 @@ def setup_bigT(store, job, path: str):
     (after ``stratified_inverse``: X held in memory) or the matrix-free path (T
     streamed with the default tile cache)."""
     from bigT.compensation import choose_path
-    from bigT.compensation._stream import cache_budget
+    from bigT.schedule.stream import cache_budget
     from bigT.compensation.core import first_bounce_diag
     from bigT.compensation.realtime import Compensator
 
@@ -408,7 +408,7 @@ def run_child(job: Job) -> Measured:
 def memory_limit() -> int:
     """Address space a child may take (a runaway factorization fails instead of
     swapping): 3/4 of the memory available now."""
-    from bigT.compensation.resident import available_memory
+    from bigT.schedule.memory import available_memory
 
     return int(0.75 * (available_memory() or 8 << 30))
 

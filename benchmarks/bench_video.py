@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bigT  # noqa: E402
-from bigT.compensation._stream import cache_budget  # noqa: E402
+from bigT.schedule.stream import cache_budget  # noqa: E402
 from bigT.compensation.core import choose_path  # noqa: E402
 from bigT.compensation.realtime import Compensator, run_stream, video_batches  # noqa: E402
 from bigT.compensation.video import VideoSink, VideoSource  # noqa: E402

@@ -5,13 +5,16 @@ goes through :func:`atomic_output`: it is written to a hidden sibling, flushed t
 checked, and renamed over the destination in one step. A full disk, a crash or an
 error half way leaves the destination as it was (absent, or its old contents), never
 a truncated file; the hidden sibling is deleted. Stores (directories) have their own
-protocol (:mod:`bigT.storage.writer`).
+protocol (:mod:`bigT.storage.replace`); their small JSON files are replaced whole by
+:func:`atomic_write_json`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import io
+import json
 import os
 import re
 import uuid
@@ -134,3 +137,37 @@ def atomic_output(path: str | os.PathLike, what: str = "the output") -> Iterator
 def _discard(tmp: Path) -> None:
     with contextlib.suppress(OSError):
         tmp.unlink()
+
+
+def atomic_write_json(path: Path, obj: dict) -> None:
+    """Write ``obj`` as JSON to ``path`` via a temporary file and ``os.replace``.
+
+    A reader sees the old file or the new one, never a torn one; this is what makes
+    the tile-row completion markers and metadata updates atomic.
+    """
+    text = json.dumps(obj, indent=2, allow_nan=False)
+    tmp = hidden_sibling(path, "tmp")
+    try:
+        with io.open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def remove_stale_temp_files(directory: Path) -> int:
+    """Delete the temporary files of :func:`atomic_write_json` (``.NAME.PID.ID.tmp``)
+    in ``directory`` whose writer process is gone (killed between writing and
+    renaming). Returns how many were deleted."""
+    gone = 0
+    for entry in dead_writers_siblings(Path(directory), "tmp"):
+        with contextlib.suppress(OSError):
+            entry.unlink()
+            gone += 1
+    return gone

@@ -38,10 +38,9 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
-from ..storage import BlockCSRWriter, PixelOrder
+from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
+                       read_store_attrs, temporary_sibling)
 from ..storage import open as open_store
-from ..storage.writer import (check_replaceable, move_into_place, read_store_attrs,
-                              temporary_sibling)
 from .captures import Captures
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
 from .manifest import Manifest, patterns_folder, read_manifest

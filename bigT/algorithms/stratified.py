@@ -125,7 +125,7 @@ from ..sizes import parse_size
 from ..storage import InverseStore, StoreAttrs, TermRecord
 from ..storage import open as open_store
 from ..storage.inverse_store import InverseRecord, term_dir
-from ..storage.writer import completed_rows
+from ..storage import completed_rows
 from .first_bounce import FirstBounce, resolve_first_bounce
 from .methods import METHODS as SERIES_METHODS
 from .methods import TERM_ZERO, Pass, SeriesMethod

@@ -75,7 +75,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .. import config
 from ..errors import BigTError
+from ..schedule.runner import ThreadRunner
+from ..schedule.stream import forget_tiles, stream_matmul
+from ..storage import as_store
+from ..storage.frames import pixel_order_of, to_vectors
 from .first_bounce import resolve_first_bounce
 
 #: Stop when the worst probe's error is below SAFETY * target.
@@ -221,8 +226,6 @@ def probe_images(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
 def probe_vectors(T, active: np.ndarray, seed: int = 0) -> np.ndarray:
     """The probes in T's pixel order, shape (n, 3), zero on pixels left out (no inverse
     can light them, so they would only add a constant to every error)."""
-    from ..compensation.core import pixel_order_of, to_vectors
-
     n = T.shape[0]
     order = pixel_order_of(T, (n, 1))  # the store's own order when it records one
     D = to_vectors(probe_images(order.image_shape, seed), order, np.float64)
@@ -236,15 +239,10 @@ class _Products:
     (the truncation curve passes over T once per term)."""
 
     def __init__(self, T, fb, workers: int):
-        from ..schedule.runner import ThreadRunner
-
         self.T, self.fb = T, fb
         self.runner = ThreadRunner(max(1, int(workers)))
 
     def times(self, A, V: np.ndarray, cache: bool = False) -> np.ndarray:
-        from .. import config
-        from ..compensation import stream_matmul
-
         budget = config.COMPENSATE_CACHE_BYTES if cache else 0
         return np.asarray(stream_matmul(A, V, runner=self.runner, cache_bytes=budget),
                           dtype=np.float64)
@@ -257,8 +255,6 @@ class _Products:
             * self.fb.active[:, None]
 
     def close(self) -> None:
-        from ..compensation._stream import forget_tiles
-
         forget_tiles(self.runner, self.T)
 
 
@@ -488,8 +484,6 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
         A target outside (0, 1) or below T's precision; and whatever
         :func:`stratified_inverse` raises (a diverging series, a bad store).
     """
-    from ..compensation._stream import as_store
-
     t0 = time.perf_counter()
     T = as_store(T, "T")
     check_target(target, T.dtype)

@@ -145,11 +145,11 @@ def _describe(store, name):
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
-    from ..compensation._stream import (as_store, cache_budget, compute_dtype,
-                                        scheduler_runner, stream_matmul)
     from ..compensation.core import (CompensationReport, choose_path, compensate_frames,
-                                     fluctuation, pixel_order_of, relative_error, scan_line,
-                                     to_frames, to_vectors)
+                                     fluctuation, relative_error, scan_line)
+    from ..schedule.stream import cache_budget, compute_dtype, scheduler_runner, stream_matmul
+    from ..storage import as_store
+    from ..storage.frames import pixel_order_of, to_frames, to_vectors
     from ..compensation.video import is_video_file
     from ..images import ImageSink, ImageSource
 
@@ -273,7 +273,7 @@ def _run_stream(args, X, Tm, choice, shape) -> int:
     :func:`bigT.compensation.realtime.run_stream`, X in memory when it fits."""
     import sys
 
-    from ..compensation._stream import cache_budget, scheduler_runner
+    from ..schedule.stream import cache_budget, scheduler_runner
     from ..compensation.realtime import Compensator, image_batches, run_stream, video_batches
     from ..compensation.video import VideoSource, is_video_file
     from ..images import ImageSource
@@ -400,7 +400,8 @@ def check_frame_shapes(files, shape) -> None:
 # --- relight ----------------------------------------------------------------------------
 
 def run_relight(args) -> int:
-    from ..compensation._stream import as_store, scheduler_runner
+    from ..schedule.stream import scheduler_runner
+    from ..storage import as_store
     from ..compensation.core import relight
     from ..images import ImageSink, ImageSource
 
@@ -432,7 +433,7 @@ def run_relight(args) -> int:
 # --- bounces ----------------------------------------------------------------------------
 
 def run_bounces(args) -> int:
-    from ..compensation._stream import as_store
+    from ..storage import as_store
     from ..compensation.core import bounce_shares, separate_bounces
     from ..figures import bounce_strip
     from ..images import read_image, write_image

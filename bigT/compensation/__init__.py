@@ -15,7 +15,7 @@ from .core import (  # noqa: F401
     scan_line,
     separate_bounces,
 )
-from ._stream import stream_matmul  # noqa: F401
+from ..schedule.stream import stream_matmul  # noqa: F401
 
 __all__ = ["compensate", "relight", "separate_bounces", "matrix_free_apply", "choose_path",
            "stream_matmul", "bounce_shares", "relative_error", "fluctuation", "scan_line",

@@ -17,60 +17,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..errors import BigTError, ImageError, InvalidMatrixError, ShapeMismatchError
-from ..storage.pixel_order import PixelOrder
-from ._pixels import frames_to_matrix, matrix_to_frames
-from ._stream import (
-    as_store,
+from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
+from ..schedule.stream import (
     cache_budget,
     compute_dtype,
     forget_tiles,
     scheduler_runner,
     stream_matmul,
 )
+from ..storage import as_store
+from ..storage.frames import (as_frames, matrix_to_frames, pixel_order_of,
+                              to_frames, to_vectors)
 
 PATHS = ("explicit", "matrix-free", "auto")
-
-
-# --- images <-> matrix vectors ------------------------------------------------------
-
-def pixel_order_of(store, image_shape=None) -> PixelOrder:
-    """The store's pixel order; a row-major order of ``image_shape`` when it records none."""
-    order = getattr(store, "pixel_order", None)
-    if order is not None:
-        return order
-    n = store.shape[1]
-    if image_shape is None or int(np.prod(image_shape)) != n:
-        raise ImageError(f"the store records no image shape and images of shape "
-                         f"{None if image_shape is None else tuple(image_shape)} do not have "
-                         f"n = {n} pixels", getattr(store, "path", None))
-    return PixelOrder(tuple(image_shape))
-
-
-def _as_frames(images, store, name="<array>"):
-    """(K, H, W) float64 frames and whether the input was one (H, W) image."""
-    images = np.asarray(images, dtype=np.float64)
-    if images.ndim not in (2, 3):
-        raise ImageError(f"images must be (H, W) or (K, H, W), got shape {images.shape}", name)
-    single = images.ndim == 2
-    frames = images[None] if single else images
-    order = pixel_order_of(store, frames.shape[1:])
-    if frames.shape[1:] != order.image_shape:
-        raise ImageError(f"image of shape {frames.shape[1:]} does not match the transport's "
-                         f"image shape {order.image_shape}", name)
-    if not np.isfinite(frames).all():
-        raise ImageError("images contain NaN or Inf", name)
-    return frames, single, order
-
-
-def to_vectors(frames: np.ndarray, order: PixelOrder, dtype) -> np.ndarray:
-    """(K, H, W) frames -> (n, K) matrix-ordered columns of ``dtype``."""
-    return frames_to_matrix(frames[None] if frames.ndim == 2 else frames, order, dtype)
-
-
-def to_frames(vectors: np.ndarray, order: PixelOrder, clip=None) -> np.ndarray:
-    """(n, K) matrix-ordered columns -> (K, H, W) float64 frames (clipped to ``clip``)."""
-    return matrix_to_frames(vectors, order, clip)[0]
 
 
 # --- matrix-free stratified inverse ---------------------------------------------------
@@ -272,7 +231,7 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
     T = None if T is None else as_store(T, "T")
     choice = choose_path(X, T, terms, path)
     store = X if choice.path == "explicit" else T
-    frames, single, _ = _as_frames(images, store)
+    frames, single, _ = as_frames(images, store)
     report = CompensationReport(choice)
     out = np.empty_like(frames)
     batch = max(1, int(batch))
@@ -306,7 +265,7 @@ def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = Fa
     ndarray, the shape of ``images``, float64
     """
     T = as_store(T, "T")
-    frames, single, order = _as_frames(images, T)
+    frames, single, order = as_frames(images, T)
     out = np.empty_like(frames)
     batch = max(1, int(batch))
     with scheduler_runner(scheduler) as runner:
@@ -366,7 +325,7 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     if tuple(T.shape) != tuple(X.shape):
         raise ShapeMismatchError(f"X is {X.shape} but T ({T.path}) is {T.shape}: not the "
                                  "inverse of this T", X.path)
-    frames, single, order_t = _as_frames(image, T)
+    frames, single, order_t = as_frames(image, T)
     order_x = pixel_order_of(X, frames.shape[1:])
     if order_x.image_shape != order_t.image_shape:
         raise ShapeMismatchError(f"X maps {order_x.image_shape} images but T ({T.path}) "

@@ -28,8 +28,9 @@ from typing import Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from .. import config
-from ._pixels import frames_to_matrix, matrix_to_frames
-from .core import CompensationReport, PathChoice, compensate_frames, pixel_order_of
+from ..storage import disk_bytes
+from ..storage.frames import frames_to_matrix, matrix_to_frames, pixel_order_of
+from .core import CompensationReport, PathChoice, compensate_frames
 from .resident import (ResidentMatrix, default_memory_limit, load_bytes_needed,
                        load_resident, resident_bytes_needed)
 
@@ -83,9 +84,7 @@ def _streamed_bytes(store) -> int:
 
 
 def _disk_bytes(store) -> int:
-    """X's files on disk (:func:`bigT.storage._format.disk_bytes`)."""
-    from ..storage._format import disk_bytes
-
+    """X's files on disk (:func:`bigT.storage.disk_bytes`)."""
     return disk_bytes(store.path)
 
 

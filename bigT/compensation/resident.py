@@ -29,10 +29,7 @@ threading layer is involved); matrices with little work use scipy and compile no
 
 from __future__ import annotations
 
-import os
-import threading
 import weakref
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +37,8 @@ import scipy.sparse as sp
 
 from .. import config
 from ..errors import BigTError, MemoryLimitError, ShapeMismatchError
+from ..kernels.threads import run_on_threads, thread_count
+from ..schedule.memory import available_memory
 
 #: Columns per panel: an index inside a panel fits uint16.
 PANEL_BITS = 16
@@ -140,21 +139,6 @@ def load_bytes_needed(X, precision: str = "float32") -> int:
         widest = max(widest, int(X.tile_nnz[lo:hi].sum()))
     per_entry = np.dtype(X.dtype).itemsize + 8
     return resident_bytes_needed(X, precision) + 2 * widest * per_entry
-
-
-def available_memory() -> int | None:
-    """MemAvailable of /proc/meminfo in bytes (None where it cannot be read)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return None
 
 
 def default_memory_limit() -> int:
@@ -281,22 +265,6 @@ def _scipy_of(R: ResidentMatrix) -> sp.csr_array:
 
 #: The scipy twin of a small matrix, made once per matrix.
 _SMALL: "weakref.WeakKeyDictionary[ResidentMatrix, sp.csr_array]" = weakref.WeakKeyDictionary()
-_POOL: ThreadPoolExecutor | None = None
-_POOL_LOCK = threading.Lock()
-
-
-def _threads(n_threads):
-    return max(1, int(n_threads or config.KERNEL_THREADS or os.cpu_count() or 1))
-
-
-def thread_pool(n: int) -> ThreadPoolExecutor:
-    """The shared pool of the resident products (and the pixel reordering), with at
-    least ``n`` threads."""
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers < n:  # noqa: SLF001 - grow, never shrink
-            _POOL = ThreadPoolExecutor(n, thread_name_prefix="bigT-resident")
-        return _POOL
 
 
 def _ranges(R: ResidentMatrix, parts: int) -> list[tuple[int, int]]:
@@ -327,7 +295,7 @@ def _matmul(R: ResidentMatrix, V, out, n_threads):
     if R.nnz * K <= config.KERNEL_NUMPY_MAX_WORK:
         out[...] = _small_csr(R) @ V2  # no kernel compiled for a small product
     else:
-        _run_kernel(R, V2, out, _threads(n_threads))
+        _run_kernel(R, V2, out, thread_count(n_threads or None))
     return out[:, 0] if vector else out
 
 
@@ -346,9 +314,4 @@ def _run_kernel(R, V, out, threads):
     lut = F16_TABLE if R.precision == "float16" else empty
     args = (R.row_ptr, R.indices, R.values, lut, scale, V, out)
     ranges = _ranges(R, threads * config.KERNEL_CHUNKS_PER_THREAD if threads > 1 else 1)
-    if len(ranges) == 1:
-        kernel(*args, 0, R.shape[0])
-        return
-    futures = [thread_pool(threads).submit(kernel, *args, a, b) for a, b in ranges]
-    for f in futures:
-        f.result()
+    run_on_threads(lambda a, b: kernel(*args, a, b), ranges, threads)

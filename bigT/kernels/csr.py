@@ -17,8 +17,8 @@ measurable there, and a float32 result is the rounded value of a float64 sum ins
 of ~400 float32 roundings. ``spmm_dense`` with k > 1 is the exception (see there).
 
 Threads: products split the rows into ranges of equal work (multiply-adds) and run the
-``nogil`` kernels on a shared ``ThreadPoolExecutor`` (one thread per core by default,
-``bigT.config.KERNEL_THREADS``). A thread pool rather than numba's ``prange``
+``nogil`` kernels on the process's shared thread pool (:mod:`bigT.kernels.threads`;
+one thread per core by default, ``bigT.config.KERNEL_THREADS``). A thread pool rather than numba's ``prange``
 because (1) each range writes its pruned rows into its own growable buffers, which
 ``prange`` cannot express without a symbolic pass; (2) the schedule layer calls these
 kernels from dask's worker threads, and numba's default ``workqueue`` threading layer
@@ -31,9 +31,7 @@ works for every kernel.
 from __future__ import annotations
 
 import contextlib
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -43,6 +41,7 @@ from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from . import _small
 from ._constants import CSR_BAD_INDPTR, CSR_INDEX_OUT_OF_RANGE, CSR_NOT_FINITE, CSR_OK, GROUP
+from .threads import run_on_threads, thread_count
 
 INT32_MAX = np.iinfo(np.int32).max
 
@@ -124,30 +123,6 @@ def _small_enough(work: int) -> bool:
     return work <= config.KERNEL_NUMPY_MAX_WORK
 
 
-_pools: dict[int, ThreadPoolExecutor] = {}
-_pools_lock = threading.Lock()
-
-
-def _n_threads(n_threads):
-    if n_threads is None:
-        n_threads = config.KERNEL_THREADS
-    if n_threads is None:
-        n_threads = os.cpu_count() or 1
-    n_threads = int(n_threads)
-    if n_threads < 1:
-        raise BigTError(f"n_threads must be >= 1, got {n_threads}")
-    return n_threads
-
-
-def _pool(n_threads):
-    with _pools_lock:
-        pool = _pools.get(n_threads)
-        if pool is None:
-            pool = ThreadPoolExecutor(n_threads, thread_name_prefix="bigT-kernel")
-            _pools[n_threads] = pool
-        return pool
-
-
 def row_work(a_indptr, a_indices, b_indptr) -> np.ndarray:
     """Multiply-adds of each row of A @ B (an upper bound on that row's nnz).
 
@@ -176,9 +151,7 @@ def _split_rows(work, n_chunks):
 def _run_ranges(func, bounds, n_threads):
     """``func(r0, r1)`` over consecutive ranges, results in range order."""
     ranges = [(int(bounds[t]), int(bounds[t + 1])) for t in range(len(bounds) - 1)]
-    if n_threads == 1 or len(ranges) <= 1:
-        return [func(r0, r1) for r0, r1 in ranges]
-    return list(_pool(n_threads).map(lambda r: func(*r), ranges))
+    return run_on_threads(func, ranges, n_threads)
 
 
 def choose_index_dtype(max_index, nnz, index_dtype=None):
@@ -427,7 +400,7 @@ def spgemm(
         out_idt = choose_index_dtype(max(m, p), int(indptr[-1]), index_dtype)
         return _csr_result((m, p), indptr, indices, data, out_idt)
     K = _numba()
-    n_threads = _n_threads(n_threads)
+    n_threads = thread_count(n_threads)
     if total_work < config.KERNEL_MIN_PARALLEL_WORK:
         n_threads = 1
     n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD
@@ -547,7 +520,7 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
         statuses = [_small.spmm_dense(indptr, indices, data, X2, target)]
     elif m and k and indices.shape[0]:
         K = _numba()
-        n_threads = _n_threads(n_threads)
+        n_threads = thread_count(n_threads)
         if indices.shape[0] * k < config.KERNEL_MIN_PARALLEL_WORK:
             n_threads = 1
         n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD

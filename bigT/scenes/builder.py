@@ -48,9 +48,8 @@ from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError, StoreError
 from ..storage import BlockCSRWriter, PixelOrder, from_scipy
 from ..storage import open as open_store
-from ..storage.block_csr import atomic_write_json, group_json
 from ..progress import progress_bar
-from ..storage.writer import check_replaceable, move_into_place, temporary_sibling
+from ..storage import check_replaceable, move_into_place, temporary_sibling, write_group
 from ..spectral import SpectralRadius, spectral_radius
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES  # noqa: F401 (re-exported)
 from . import geometry, radiosity, stored
@@ -340,7 +339,7 @@ def _write_A(root: Path, A: sp.csr_array, po, tile_size):
     made in memory; built scenes write theirs tile row by tile row)."""
     gt = root / GROUND_TRUTH
     gt.mkdir()
-    atomic_write_json(gt / "zarr.json", group_json({}))
+    write_group(gt, {})
     from_scipy(A, gt / "A", tile_size=tile_size, dtype="float64", image_shape=po.image_shape,
                pixel_order=po.order, image_tile=po.image_tile, input_order="matrix")
 
@@ -547,7 +546,7 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     gt = tmp / GROUND_TRUTH
     if not gt.exists():
         gt.mkdir()
-        atomic_write_json(gt / "zarr.json", group_json({}))
+        write_group(gt, {})
     A = stored.write_interreflection(P, albedo_vec, cut, gt / "A", po, T.tile_size,
                                      progress)
     timings["seconds_form_factors"] = time.perf_counter() - t0
@@ -658,7 +657,7 @@ def _commit(tmp: Path, path: Path, F, summary: dict, t_start: float):
     so ``bigT info`` shows it) and move the scene into place at ``path``."""
     _write_F(tmp / GROUND_TRUTH, F)
     summary["seconds"] = time.perf_counter() - t_start
-    atomic_write_json(tmp / GROUND_TRUTH / "zarr.json", group_json({SCENE_ATTR: summary}))
+    write_group(tmp / GROUND_TRUTH, {SCENE_ATTR: summary})
     open_store(tmp).update_metadata(scene=summary)
     move_into_place(tmp, path)
 

@@ -26,7 +26,7 @@ from ..schedule.cache import TileCache
 from ..schedule.memory import MemoryPlan
 from ..schedule.operators import StoreOperand
 from ..storage import BlockCSRWriter, PixelOrder
-from ..storage.block_csr import atomic_write_json
+from ..atomic import atomic_write_json
 from . import radiosity
 from .geometry import Patches
 

@@ -5,6 +5,7 @@
 * :mod:`.worker` — what runs in any process that executes tasks (open stores, the
   tile cache, memory plans, ``TaskContext``, ``run_block``);
 * :mod:`.runner` — the scheduler choice (local threads, a dask cluster);
+* :mod:`.stream` — a store streamed against dense batches (compensation, probes);
 * :mod:`.operators`, :mod:`.blocks`, :mod:`.matvec` — the row-block products and
   mat-vecs; :mod:`.memory` — the memory plan; :mod:`.cache` — the tile cache.
 

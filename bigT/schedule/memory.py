@@ -209,3 +209,18 @@ def warn_if_rows_outgrow(plan: MemoryPlan, widest_row_bytes: int, growth: float,
         "prune, a higher limit or a store with a smaller tile size keeps it",
         MemoryLimitWarning, stacklevel=5)  # the caller of stratified_inverse
     return True
+
+
+def available_memory() -> int | None:
+    """MemAvailable of /proc/meminfo in bytes (None where it cannot be read)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None

@@ -4,17 +4,25 @@ Public API: :func:`open`, :func:`as_store` (a store or its path), :func:`from_sc
 :class:`BlockCSRWriter`, :func:`set_redirect` (for versioned stores) and
 :class:`PixelOrder`; for writers in other processes: :func:`create_store`,
 :func:`write_tile_row` (idempotent), :func:`finalize_store` (from the row markers);
-the versioned inverse store: :class:`InverseStore`.
+the versioned inverse store: :class:`InverseStore`; building a store or a file tree
+aside and moving it into place: :func:`temporary_sibling`, :func:`check_replaceable`,
+:func:`move_into_place`, :func:`write_group` (:mod:`bigT.storage.replace`); a
+directory's size on disk: :func:`disk_bytes`.
 """
 
 from .attrs import StoreAttrs
-from .block_csr import BlockCSR, as_store, open, row_marker, set_redirect  # noqa: A004
+from ._format import row_marker
+from .block_csr import BlockCSR, as_store, open  # noqa: A004
 from .inverse_store import InverseRecord, InverseStore, TermRecord
 from .pixel_order import PixelOrder
+from ._format import disk_bytes
+from .replace import (check_replaceable, move_into_place, set_redirect, temporary_sibling,
+                      write_group)
 from .writer import (
     BlockCSRWriter,
     KeptTiles,
     clean_partial_rows,
+    completed_rows,
     create_store,
     finalize_store,
     from_scipy,
@@ -24,6 +32,8 @@ from .writer import (
 
 __all__ = [
     "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "PixelOrder",
-    "StoreAttrs", "TermRecord", "as_store", "clean_partial_rows", "create_store", "finalize_store",
+    "StoreAttrs", "TermRecord", "as_store", "check_replaceable", "clean_partial_rows",
+    "completed_rows", "create_store", "disk_bytes", "finalize_store", "move_into_place",
+    "temporary_sibling", "write_group",
     "from_scipy", "open", "read_store_attrs", "row_marker", "set_redirect", "write_tile_row",
 ]

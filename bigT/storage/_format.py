@@ -1,13 +1,13 @@
 """On-disk layout of a bigT block-CSR store (docs/FORMAT.md is the reference).
 
-Only this module and its two users (``block_csr.py``, ``writer.py``) know key names.
+Only this module and the storage modules that read and write stores know key names.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -183,3 +183,29 @@ def disk_bytes(path: str | os.PathLike) -> int:
             except OSError:
                 pass
     return total
+
+
+def group_json(attributes: dict) -> dict:
+    """The zarr.json of a zarr v3 group holding ``attributes``."""
+    return {"zarr_format": 3, "node_type": "group", "attributes": attributes}
+
+
+def redirect_target(target: str, root: Path) -> Path:
+    """The directory a redirect ``target`` names inside the store at ``root``;
+    StoreError for anything but a relative path that stays inside it."""
+    p = PurePosixPath(target)
+    if not target or p.is_absolute() or ".." in p.parts:
+        raise StoreError(f"invalid redirect {target!r}: must be a relative path inside the store", root)
+    return root.joinpath(*p.parts)
+
+
+def row_marker(path: Path, i: int) -> dict | None:
+    """The completion record of tile row ``i`` (``{"complete": True, "tile_columns":
+    [...], "tile_nnz": [...]}``), or None when the row is not complete."""
+    try:
+        with open(path / row_path(i) / "zarr.json", "rb") as f:
+            meta = json.load(f)
+    except (OSError, ValueError):
+        return None
+    rec = (meta.get("attributes") or {}).get(ROW_ATTRS_KEY) or {}
+    return rec if rec.get("complete") is True else None

@@ -6,11 +6,8 @@ on open and kept in memory; a tile read touches only that tile's three arrays.
 
 from __future__ import annotations
 
-import contextlib
-import io
-import json
 import os
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -18,7 +15,6 @@ import zarr
 from zarr.storage import LocalStore
 
 from .. import config
-from ..atomic import dead_writers_siblings, hidden_sibling
 from ..errors import (
     BigTError,
     CorruptStoreError,
@@ -30,78 +26,7 @@ from ..errors import (
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
 from .locks import ReaderLease
-
-
-# --- small helpers -----------------------------------------------------------------
-
-def atomic_write_json(path: Path, obj: dict) -> None:
-    """Write ``obj`` as JSON to ``path`` via a temporary file and ``os.replace``.
-
-    A reader sees the old file or the new one, never a torn one; this is what makes
-    the tile-row completion markers and metadata updates atomic.
-    """
-    text = json.dumps(obj, indent=2, allow_nan=False)
-    tmp = hidden_sibling(path, "tmp")
-    try:
-        with io.open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
-def remove_stale_temp_files(directory: Path) -> int:
-    """Delete the temporary files of :func:`atomic_write_json` (``.NAME.PID.ID.tmp``)
-    in ``directory`` whose writer process is gone (killed between writing and
-    renaming). Returns how many were deleted."""
-    gone = 0
-    for entry in dead_writers_siblings(Path(directory), "tmp"):
-        with contextlib.suppress(OSError):
-            entry.unlink()
-            gone += 1
-    return gone
-
-
-def group_json(attributes: dict) -> dict:
-    return {"zarr_format": 3, "node_type": "group", "attributes": attributes}
-
-
-def write_root_attrs(path: Path, attrs: StoreAttrs) -> None:
-    """Set ``attributes["bigT"]`` of the root ``zarr.json`` of the store at ``path`` to
-    ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`)."""
-    meta_path = Path(path) / "zarr.json"
-    meta = fmt.read_json(meta_path) if meta_path.exists() else group_json({})
-    meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = attrs.to_dict()
-    atomic_write_json(meta_path, meta)
-
-
-#: Kept for the writer and the inverse store: the raw attributes after the checks.
-_read_bigt_attrs = read_raw_attrs
-
-
-def _check_redirect(target: str, root: Path) -> Path:
-    p = PurePosixPath(target)
-    if not target or p.is_absolute() or ".." in p.parts:
-        raise StoreError(f"invalid redirect {target!r}: must be a relative path inside the store", root)
-    return root.joinpath(*p.parts)
-
-
-def row_marker(path: Path, i: int) -> dict | None:
-    """The completion record of tile row ``i`` (``{"complete": True, "tile_columns":
-    [...], "tile_nnz": [...]}``), or None when the row is not complete."""
-    try:
-        with io.open(path / fmt.row_path(i) / "zarr.json", "rb") as f:
-            meta = json.load(f)
-    except (OSError, ValueError):
-        return None
-    rec = (meta.get("attributes") or {}).get(fmt.ROW_ATTRS_KEY) or {}
-    return rec if rec.get("complete") is True else None
+from .replace import recover_interrupted_replace, write_root_attrs
 
 
 # --- the store ---------------------------------------------------------------------
@@ -150,21 +75,19 @@ def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
     """
     root = Path(os.fspath(path))
     if not root.exists():
-        from .writer import recover_interrupted_replace
-
         recover_interrupted_replace(root)  # a replace killed half way: the old store back
     for _attempt in range(_LEASE_ATTEMPTS):
         lease = ReaderLease(root)  # before reading: the store stays while it is held
-        attrs = _read_bigt_attrs(root)
+        attrs = read_raw_attrs(root)
         if "redirect" not in attrs:
             return BlockCSR(root, StoreAttrs.from_dict(attrs, root),
                             allow_incomplete=allow_incomplete, lease=lease)
         lease.release()
-        target = _check_redirect(attrs["redirect"], root)
+        target = fmt.redirect_target(attrs["redirect"], root)
         # the lease keeps the term from being deleted while this reader holds it
         lease = ReaderLease(target)
         if lease.valid:
-            attrs = _read_bigt_attrs(target)
+            attrs = read_raw_attrs(target)
             if "redirect" in attrs:
                 raise StoreError("redirect points at another redirect (one level is followed)",
                                  root)
@@ -271,7 +194,7 @@ class BlockCSR:
         n_rows = self.grid[0]
         cols, counts, lengths = [], [], []
         for i in range(n_rows):
-            rec = row_marker(self.path, i)
+            rec = fmt.row_marker(self.path, i)
             if rec is None:
                 self.missing_tile_rows.append(i)
                 c, k = [], []
@@ -537,7 +460,7 @@ class BlockCSR:
 
     def update_metadata(self, **items) -> None:
         """Merge ``items`` into the free metadata dict, atomically on disk."""
-        on_disk = StoreAttrs.from_dict(_read_bigt_attrs(self.path), self.path)
+        on_disk = StoreAttrs.from_dict(read_raw_attrs(self.path), self.path)
         attrs = on_disk.replace(metadata={**on_disk.metadata, **items})
         attrs.check_json(self.path)
         write_root_attrs(self.path, attrs)
@@ -619,7 +542,7 @@ class BlockCSR:
         return {"tiles": self.n_tiles_stored, "nnz": total}
 
     def _check_row_marker(self, i: int) -> None:
-        rec = row_marker(self.path, i)
+        rec = fmt.row_marker(self.path, i)
         if rec is None:
             raise CorruptStoreError(f"tile row {i} has no completion marker "
                                     f"({fmt.row_path(i)}/zarr.json missing or damaged)", self.path)
@@ -675,43 +598,3 @@ def _spmm_dense():
     return spmm_dense
 
 
-def set_redirect(path, target: str) -> None:
-    """Point the versioned store at ``path`` to its sub-store ``target``, atomically.
-
-    The inverse engine writes term k into e.g. ``path/terms/k`` with a
-    :class:`BlockCSRWriter`, finalizes it, then calls ``set_redirect(path, "terms/k")``:
-    a reader opening ``path`` sees the old term or the new one, never a mix.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        Root directory (created, with a group zarr.json, when missing).
-    target : str
-        Relative POSIX path of a complete bigT store inside ``path``.
-    """
-    root = Path(os.fspath(path))
-    dest = _check_redirect(target, root)
-    attrs = _read_bigt_attrs(dest)
-    if "redirect" in attrs:
-        raise StoreError(f"redirect target {target!r} is itself a redirect", root)
-    if not attrs.get("complete"):
-        raise IncompleteStoreError(f"redirect target {target!r} is not a finalized store", root)
-    root.mkdir(parents=True, exist_ok=True)
-    # Make every level between root and target an explicit zarr v3 group, so another
-    # zarr implementation can walk the hierarchy.
-    level = root
-    for part in PurePosixPath(target).parts[:-1]:
-        level = level / part
-        if not (level / "zarr.json").exists():
-            atomic_write_json(level / "zarr.json", group_json({}))
-    meta_path = root / "zarr.json"
-    meta = fmt.read_json(meta_path) if meta_path.exists() else group_json({})
-    if meta.get("node_type") != "group":
-        raise StoreError("cannot set a redirect: zarr.json is not a group", root)
-    bigt = dict((meta.get("attributes") or {}).get(fmt.ATTRS_KEY) or {})
-    if bigt and bigt.get("format") != fmt.FORMAT_NAME:
-        raise StoreError("cannot set a redirect: attrs['bigT'] belongs to another format", root)
-    bigt.update({"format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
-                 "redirect": PurePosixPath(target).as_posix()})
-    meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = bigt
-    atomic_write_json(meta_path, meta)

@@ -24,17 +24,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..atomic import hidden_sibling
+from ..atomic import atomic_write_json, hidden_sibling, remove_stale_temp_files
 from ..errors import StoreError
 from . import _format as fmt
 from .attrs import StoreAttrs
-from .block_csr import (
-    BlockCSR,
-    atomic_write_json,
-    group_json,
-    remove_stale_temp_files,
-    set_redirect,
-)
+from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .locks import (
     READER_LEASE,
@@ -49,8 +43,8 @@ from .writer import (
     create_store,
     finalize_store,
     read_store_attrs,
-    recover_interrupted_replace,
 )
+from .replace import recover_interrupted_replace, set_redirect
 
 #: Attribute of the root group holding the engine's record (beside the storage
 #: layer's ``bigT`` attribute, which holds the redirect).
@@ -238,7 +232,7 @@ class InverseStore:
 
     def save(self, record: InverseRecord) -> None:
         """Replace the record in the root's attributes (one atomic rename)."""
-        root = self._root() or group_json({})
+        root = self._root() or fmt.group_json({})
         root.setdefault("attributes", {})[INVERSE_ATTR] = record.to_dict()
         atomic_write_json(self.path / "zarr.json", root)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import json
 import os
@@ -16,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..atomic import dead_writers_siblings, hidden_sibling
+from ..atomic import atomic_write_json
 from ..errors import (
     BigTError,
     DiskFullError,
@@ -27,17 +26,12 @@ from ..errors import (
     StoreError,
 )
 from . import _format as fmt
-from .attrs import StoreAttrs
-from .block_csr import (
-    BlockCSR,
-    _read_bigt_attrs,
-    row_marker,
-    atomic_write_json,
-    group_json,
-    write_root_attrs,
-)
+from .attrs import StoreAttrs, read_raw_attrs
+from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .pixel_order import PIXEL_ORDERS, PixelOrder
+from .replace import (check_replaceable, move_into_place, remove_existing, temporary_sibling,
+                      write_root_attrs)
 
 
 def _check_dtype(dtype, where) -> np.dtype:
@@ -48,84 +42,6 @@ def _check_dtype(dtype, where) -> np.dtype:
     if dt is None or dt.name not in fmt.DTYPES:
         raise InvalidMatrixError(f"dtype must be float32 or float64, got {dtype!r}", where)
     return dt
-
-
-def _is_bigt_or_empty(path: Path) -> bool:
-    if path.is_dir() and not any(path.iterdir()):
-        return True
-    try:
-        _read_bigt_attrs(path)
-        return True
-    except StoreError:
-        return False
-
-
-def _remove_existing(path: Path, overwrite: bool) -> None:
-    """Refuse an existing path unless ``overwrite``; never delete what is not a bigT store."""
-    if path.exists():
-        check_replaceable(path, overwrite)
-        shutil.rmtree(path)
-
-
-def check_replaceable(path: Path, overwrite: bool) -> None:
-    """Refuse an existing ``path`` unless ``overwrite``, and refuse to replace anything
-    that is not a bigT store (or an empty directory) even then. Deletes nothing of
-    the user's (a replace killed half way is recovered first: the old store back)."""
-    recover_interrupted_replace(path)
-    if path.exists():
-        if not overwrite:
-            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
-        if not _is_bigt_or_empty(path):
-            raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
-
-
-def temporary_sibling(path: Path) -> Path:
-    """A fresh hidden directory name beside ``path`` to build a replacement in."""
-    return hidden_sibling(Path(path), "partial")
-
-
-def move_into_place(tmp: Path, path: Path) -> None:
-    """Replace ``path`` (absent, or a bigT store) by the complete directory ``tmp``.
-
-    Two renames on the same file system; if the second fails the old store is renamed
-    back, so ``path`` is never left missing or half replaced. A process killed between
-    the two leaves ``path`` missing and the old store in a hidden ``.old`` sibling:
-    :func:`recover_interrupted_replace` (run by every writer and by ``open``) puts it
-    back.
-    """
-    if not path.exists():
-        os.replace(tmp, path)
-        return
-    old = hidden_sibling(path, "old")
-    os.replace(path, old)
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        os.replace(old, path)
-        raise
-    # renamed again before the deletion: a ".old" is always whole (restorable), a
-    # ".trash" may be half deleted (never restored)
-    trash = old.with_name(old.name[:-len("old")] + "trash")
-    os.replace(old, trash)
-    shutil.rmtree(trash, ignore_errors=True)
-
-
-def recover_interrupted_replace(path) -> None:
-    """Undo what a writer killed during :func:`move_into_place` or while building a
-    replacement left beside ``path``: a missing ``path`` gets its old store back from
-    the ``.old`` sibling; ``.old``, ``.partial`` and ``.trash`` siblings of dead
-    writers are deleted. Siblings of writers still running are left alone."""
-    path = Path(os.fspath(path))
-    if not path.parent.is_dir():
-        return
-    old = dead_writers_siblings(path.parent, "old", path.name)
-    if old and not path.exists():
-        with contextlib.suppress(OSError):  # another process may have restored it
-            os.rename(old.pop(0), path)
-    for kind in ("partial", "trash"):
-        old += dead_writers_siblings(path.parent, kind, path.name)
-    for entry in old:
-        shutil.rmtree(entry, ignore_errors=True)
 
 
 def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
@@ -240,14 +156,14 @@ def create_store(path, attrs: StoreAttrs) -> None:
 
 def _write_header(path: Path, attrs: StoreAttrs) -> None:
     (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
-    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", group_json({}))
+    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}))
     write_root_attrs(path, attrs)
 
 
 def read_store_attrs(path) -> StoreAttrs:
     """The attributes of the (non-redirect) store at ``path``."""
     path = Path(path)
-    raw = _read_bigt_attrs(path)
+    raw = read_raw_attrs(path)
     if "redirect" in raw:
         raise StoreError("is a redirect (versioned) store root, not a store to write", path)
     return StoreAttrs.from_dict(raw, path)
@@ -297,7 +213,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     path, i = Path(path), int(i)
     if not 0 <= i < attrs.grid[0]:
         raise ShapeMismatchError(f"tile row {i} out of range [0, {attrs.grid[0]})", path)
-    if row_marker(path, i) is not None:
+    if fmt.row_marker(path, i) is not None:
         return False
     block = _validate_block(path, attrs, i, block)
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
@@ -311,7 +227,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
         if keep is not None:
             tiles.update(_link_kept_tiles(keep, attrs, i, tmp, path, set(tiles)))
         cols = sorted(tiles)
-        atomic_write_json(tmp / "zarr.json", group_json({fmt.ROW_ATTRS_KEY: {
+        atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
             "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}))
         return _move_row_into_place(tmp, path, i)
 
@@ -328,7 +244,7 @@ def _link_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, tmp: Path, path
     if layout(read_store_attrs(source)) != layout(attrs):
         raise StoreError(f"tile row {i}: kept tiles come from a store of another "
                          f"shape, tile size or dtype ({source})", path)
-    marker = row_marker(source, i)
+    marker = fmt.row_marker(source, i)
     old = {} if marker is None else dict(zip(marker["tile_columns"], marker["tile_nnz"]))
     out = {}
     for j, nnz in zip(keep.columns, keep.nnz, strict=True):
@@ -368,7 +284,7 @@ def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
         os.rename(tmp, path / fmt.row_path(i))  # replaces an empty directory only
         return True
     except OSError as exc:
-        if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or row_marker(path, i) is None:
+        if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or fmt.row_marker(path, i) is None:
             raise
     shutil.rmtree(tmp, ignore_errors=True)
     return False
@@ -378,7 +294,7 @@ def completed_rows(path, n_rows: int) -> dict[int, tuple[list[int], list[int]]]:
     """``{i: (tile_columns, tile_nnz)}`` of the tile rows marked complete on disk."""
     out = {}
     for i in range(n_rows):
-        rec = row_marker(Path(path), i)
+        rec = fmt.row_marker(Path(path), i)
         if rec is not None:
             out[i] = (list(rec["tile_columns"]), list(rec["tile_nnz"]))
     return out
@@ -396,7 +312,7 @@ def clean_partial_rows(path, n_rows: int) -> int:
     for entry in rows.iterdir():
         stale = entry.name.endswith(".partial") or (
             entry.name.isdigit() and int(entry.name) < n_rows
-            and row_marker(Path(path), int(entry.name)) is None)
+            and fmt.row_marker(Path(path), int(entry.name)) is None)
         if stale and entry.is_dir():
             shutil.rmtree(entry, ignore_errors=True)
             gone += 1
@@ -492,7 +408,7 @@ class BlockCSRWriter:
         if resume and self.path.exists() and not (self.path.is_dir() and not any(self.path.iterdir())):
             self.attrs = self._resume(attrs)
         else:
-            _remove_existing(self.path, overwrite)
+            remove_existing(self.path, overwrite)
             create_store(self.path, attrs)
             self.attrs = attrs
         self.shape, self.tile_size, self.dtype = shape, tile_size, dt
@@ -578,7 +494,7 @@ def _write_tile(tdir: Path, indptr, indices, data, level) -> None:
     (:func:`~._format.write_array_files`; zarr's own path costs ~3 ms per array)."""
     tdir.mkdir(parents=True, exist_ok=True)
     with open(tdir / "zarr.json", "w", encoding="utf-8") as f:
-        json.dump(group_json({}), f, indent=2)
+        json.dump(fmt.group_json({}), f, indent=2)
     fmt.write_array_files(tdir, "indptr", indptr, fmt.FILL_INT, level)
     fmt.write_array_files(tdir, "indices", indices, fmt.FILL_INT, level)
     # the values at their own level unless the caller chose one for every array

@@ -167,7 +167,7 @@ def test_an_interrupted_build_resumes_to_the_same_T(work, monkeypatch, capsys):
     monkeypatch.setattr(BlockCSRWriter, "write_tile_row", interrupted)
     assert _build(work, "--tile-size", "32") == 130
     assert "interrupted" in capsys.readouterr().err
-    from bigT.storage.writer import completed_rows
+    from bigT.storage import completed_rows
 
     assert sorted(completed_rows(work / "T.zarr", 6)) == sorted(calls)  # 3 of 6 kept
     resumed = []

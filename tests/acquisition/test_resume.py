@@ -31,7 +31,7 @@ from bigT.cli import main
 from bigT.errors import IncompleteStoreError, StoreError
 from bigT.storage import BlockCSRWriter
 from bigT.storage import open as open_store
-from bigT.storage.writer import completed_rows, read_store_attrs
+from bigT.storage import completed_rows, read_store_attrs
 
 # 4 KiB is under what one tile row holds, by design: each pass warns of it once
 pytestmark = pytest.mark.filterwarnings("ignore::bigT.errors.MemoryLimitWarning")

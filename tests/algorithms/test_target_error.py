@@ -14,7 +14,7 @@ import bigT
 from bigT.algorithms.target import (SAFETY, choose_method, decay_rate, first_prune,
                                     invert_to_target)
 from bigT.cli import main
-from bigT.compensation.core import to_vectors
+from bigT.storage.frames import to_vectors
 from bigT.errors import BigTError
 
 # (scene, albedo) -> rho(M) at 24x32 (exact density): 0.197, 0.52, 0.88

@@ -232,7 +232,7 @@ def test_bad_image_shape_is_image_error(small_scene, tmp_path):
 @pytest.mark.parametrize("order", ["row-major", "tile-major"])
 def test_pixel_kernels_match_pixel_order(order, limit, monkeypatch):
     from bigT import config
-    from bigT.compensation._pixels import frames_to_matrix, matrix_to_frames
+    from bigT.storage.frames import frames_to_matrix, matrix_to_frames
 
     monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", limit)
     from bigT.storage.pixel_order import PixelOrder

@@ -223,7 +223,7 @@ def test_stream_report_counts_every_frame(overlap):
 
 @pytest.mark.parametrize("clip", [(0, 1), None])
 def test_pixel_reordering_on_threads_matches_one_thread(clip):
-    from bigT.compensation._pixels import frames_to_matrix, matrix_to_frames
+    from bigT.storage.frames import frames_to_matrix, matrix_to_frames
     from bigT.storage.pixel_order import PixelOrder
 
     order = PixelOrder((96, 128), "tile-major")

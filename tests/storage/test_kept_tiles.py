@@ -15,7 +15,6 @@ from bigT.storage import (
     StoreAttrs,
     create_store,
     finalize_store,
-    open as open_store,
     write_tile_row,
 )
 

@@ -10,7 +10,8 @@ import zarr
 from bigT.errors import (BigTError, CorruptStoreError, IncompleteStoreError, InvalidMatrixError,
                          NotSquareError, ShapeMismatchError, StoreError)
 from bigT.storage import from_scipy, open as open_store
-from bigT.storage.block_csr import atomic_write_json, group_json
+from bigT.atomic import atomic_write_json
+from bigT.storage._format import group_json
 
 
 @pytest.fixture

@@ -190,7 +190,8 @@ def test_redirect_versioned_store(tmp_path):
     outer = tmp_path / "outer.zarr"
     from_scipy(A0, outer / "inner" / "s", tile_size=5)
     set_redirect(outer / "inner", "s")
-    from bigT.storage.block_csr import atomic_write_json, group_json
+    from bigT.atomic import atomic_write_json
+    from bigT.storage._format import group_json
     atomic_write_json(outer / "zarr.json", group_json(
         {"bigT": {"format": "bigT-block-csr", "version": 1, "redirect": "inner"}}))
     assert open_store(outer / "inner").nnz == sp.csr_array(A0).astype(np.float32).nnz

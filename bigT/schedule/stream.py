@@ -7,7 +7,8 @@ row ranges of the result), so they are tasks of the schedule layer's runner: a f
 local threads by default (reading and decompressing one tile row overlaps the product
 of another; both release the GIL), or the workers of a dask cluster. Decoded tiles are
 kept between passes in the process's tile cache (:mod:`bigT.schedule.cache`), the one
-the engine uses too.
+the engine uses too. Used by compensation and by the target-error probes of the
+algorithms layer.
 """
 
 from __future__ import annotations
@@ -18,14 +19,10 @@ from contextlib import contextmanager
 import numpy as np
 
 from .. import config
-from ..errors import ShapeMismatchError, StoreError
+from ..errors import ShapeMismatchError
 
-
-def as_store(A, name: str = "matrix"):
-    """A BlockCSR for ``A`` (:func:`bigT.storage.as_store`)."""
-    from ..storage import as_store as _as_store
-
-    return _as_store(A, name)
+# The runner and the passes (matvec, worker) are imported inside the functions: they
+# import dask (~0.3 s), which compensating with X held in memory never needs.
 
 
 def compute_dtype(store) -> np.dtype:
@@ -57,8 +54,8 @@ def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
     -------
     ndarray, shape (n_rows, K) or (n_rows,), dtype ``compute_dtype(A)``
     """
-    from ..schedule.matvec import matvec, matvec_spec
-    from ..schedule.runner import ThreadRunner, local_path
+    from .matvec import matvec, matvec_spec
+    from .runner import ThreadRunner, local_path
 
     n_rows, n_cols = A.shape
     dtype = compute_dtype(A)
@@ -82,7 +79,7 @@ def scheduler_runner(scheduler):
     """The runner of ``scheduler`` (:func:`bigT.schedule.runner.open_runner`) for the
     duration of the block, closed after; None (local threads) when none is given; a
     runner itself is passed through (and left open)."""
-    from ..schedule.runner import ClusterRunner, ThreadRunner, open_runner
+    from .runner import ClusterRunner, ThreadRunner, open_runner
 
     if scheduler is None or isinstance(scheduler, (ThreadRunner, ClusterRunner)):
         yield scheduler
@@ -105,7 +102,7 @@ def forget_tiles(runner, *stores) -> None:
     """Drop the cached tiles of ``stores`` in every process that ran the passes (the
     end of a compensation call: a library's caller should not keep a gigabyte of
     tiles)."""
-    from ..schedule.worker import end_pass
+    from .worker import end_pass
 
     paths = tuple(os.path.abspath(s.path) for s in stores if s is not None)
     if runner is None:

@@ -1,0 +1,55 @@
+"""The process's one pool of worker threads for nogil kernels.
+
+Every numba kernel releases the GIL, so bigT splits a product's rows over threads. All
+of them (the CSR kernels, the resident products of compensation, the pixel
+reordering) share this pool instead of each keeping its own: one set of threads per
+process for each thread count asked for (a call asking for n threads never runs more
+than n of its tasks at once, however many it submits). Tasks submitted here must not
+wait on other tasks of the pool (they are kernels, not drivers), so sharing it cannot
+deadlock. The schedule layer's runner keeps a pool per pass for a different
+reason: shutting it down is how a failed pass waits for its running tasks.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+from .. import config
+from ..errors import BigTError
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_LOCK = threading.Lock()
+
+
+def thread_count(n_threads: int | None = None) -> int:
+    """Threads a kernel call uses: ``n_threads``, else ``config.KERNEL_THREADS``, else
+    one per core. BigTError below 1."""
+    if n_threads is None:
+        n_threads = config.KERNEL_THREADS
+    if n_threads is None:
+        n_threads = os.cpu_count() or 1
+    n_threads = int(n_threads)
+    if n_threads < 1:
+        raise BigTError(f"n_threads must be >= 1, got {n_threads}")
+    return n_threads
+
+
+def thread_pool(n: int) -> ThreadPoolExecutor:
+    """The shared pool of ``n`` threads (made on first use, kept for the process)."""
+    with _LOCK:
+        pool = _POOLS.get(n)
+        if pool is None:
+            pool = _POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix="bigT-kernel")
+        return pool
+
+
+def run_on_threads(func, ranges, n_threads: int) -> list:
+    """``func(a, b)`` for each range ``(a, b)``, at most ``n_threads`` at once on the
+    shared pool (in the calling thread when one suffices); the results in range order.
+    """
+    if n_threads == 1 or len(ranges) <= 1:
+        return [func(a, b) for a, b in ranges]
+    futures = [thread_pool(n_threads).submit(func, a, b) for a, b in ranges]
+    return [f.result() for f in futures]
