@@ -66,7 +66,7 @@ def _iio_call(name, *args):
     """imageio.v3.<name>(*args), quiet about its vendored-tifffile deprecation notice."""
     import warnings
 
-    import imageio.v3 as iio
+    import imageio.v3 as iio  # imageio and its plugins: ~0.2 s, only when a file is read
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*vendored tifffile", category=DeprecationWarning)

@@ -16,6 +16,9 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+import scipy.sparse as sp
+
 DASK = str(Path(sys.executable).with_name("dask"))
 
 
@@ -68,7 +71,7 @@ class ProcessCluster:
         raise RuntimeError("dask scheduler did not start: " + self.log("scheduler"))
 
     def wait_for_workers(self, n: int, timeout: float = 90) -> None:
-        from distributed import Client
+        from distributed import Client  # distributed: ~0.5 s, only for a cluster test
 
         with Client(self.address, timeout=30) as client:
             client.wait_for_workers(n, timeout=timeout)
@@ -120,8 +123,6 @@ def clustered_spectrum(seed: int, top: float, blocks: int = 100, size: int = 20,
     N : scipy.sparse.csr_array, shape (blocks * size, blocks * size)
     rho : float, its spectral radius (max(top, the others))
     """
-    import numpy as np
-    import scipy.sparse as sp
 
     rng = np.random.default_rng(seed)
     radii = rng.uniform(low, high, blocks)

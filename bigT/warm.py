@@ -19,7 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import config
+from . import config, scenes
+from .algorithms import stratified_inverse
+from .compensation import compensate
+from .compensation.resident import load_resident
+from .storage import open as open_store
 
 
 @contextlib.contextmanager
@@ -36,11 +40,6 @@ def _numba_for_everything():
 
 def _exercise(tmp: Path, dtype: str) -> None:
     """Build, invert and compensate a 12x16 corner stored as ``dtype``."""
-    from . import scenes, stratified_inverse
-    from . import open as open_store
-    from .compensation import compensate
-    from .compensation.resident import load_resident
-
     scene = scenes.corner((12, 16), tmp / f"T-{dtype}.zarr", preview=False, progress=False,
                           dtype=dtype, tile_size=64)
     X = tmp / f"X-{dtype}.zarr"

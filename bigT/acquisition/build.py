@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
+from ..atomic import atomic_output
 from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
@@ -298,8 +299,6 @@ def _differing(old, new: dict) -> list[str]:
 def _save_correspondence(store: Path, corr: Correspondence) -> None:
     """The camera pixel -> super-pixel map, ``STORE/acquisition/correspondence.npy``
     ((Hc, Wc) int32, -1 outside every group), next to the tiles."""
-    from ..atomic import atomic_output
-
     folder = store / ACQUISITION_KEY
     folder.mkdir(exist_ok=True)
     with atomic_output(folder / CORRESPONDENCE, "the correspondence map") as tmp:

@@ -138,7 +138,8 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     -------
     CameraModel
     """
-    from ..scenes import load
+    from ..scenes import load  # scenes import the engine and dask (~0.5 s): only the
+    # simulated camera reads a scene
 
     manifest = read_manifest(patterns)
     if Path(output).resolve() == patterns_folder(patterns).resolve():

@@ -43,7 +43,8 @@ def first_bounce_diag(T) -> np.ndarray:
     for zero diagonals (a pixel whose row and column are empty is left out: 0 here;
     any other zero or negative entry is an InvalidMatrixError). Kept per store
     version: with zero diagonals it is a pass over T, not to be paid per batch."""
-    from ..algorithms.first_bounce import resolve_first_bounce
+    from ..algorithms.first_bounce import resolve_first_bounce  # the algorithms package
+    # imports the engine and dask (~0.5 s): only the matrix-free path needs F here
 
     st = os.stat(os.path.join(T.path, "zarr.json"))
     key = (os.path.abspath(T.path), st.st_ino, st.st_mtime_ns)
@@ -286,7 +287,8 @@ def first_bounce_from_inverse(X) -> np.ndarray:
     """True F of a diffuse scene from its inverse (paper eq. 33): F_ii = 1 / X_ii, (n,),
     by the algorithms layer's :func:`~bigT.algorithms.recover_first_bounce` (0 on pixels
     left out of the inverse, X_ii = 0); a negative X_ii is an InvalidMatrixError."""
-    from ..algorithms.first_bounce import recover_first_bounce
+    from ..algorithms.first_bounce import recover_first_bounce  # dask via the engine:
+    # only bounce separation needs it
 
     F = recover_first_bounce(X)
     bad = np.flatnonzero(F < 0)

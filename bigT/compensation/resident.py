@@ -306,7 +306,7 @@ def _small_csr(R):
 
 
 def _run_kernel(R, V, out, threads):
-    from ._resident_kernels import kernel_for
+    from ._resident_kernels import kernel_for  # numba: ~0.5 s, only past the scipy twin
 
     kernel = kernel_for(V.shape[1] == 1)
     empty = np.ones(0, np.float32)

@@ -28,7 +28,9 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -98,7 +100,7 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
     ImageError
         Missing, unreadable, no video stream, or colour.
     """
-    import imageio_ffmpeg
+    import imageio_ffmpeg  # locates its ffmpeg binary on import: only for video
 
     path = Path(path)
     if not path.is_file():
@@ -239,9 +241,6 @@ class VideoSink:
                 *codec, str(tmp)]
 
     def __enter__(self) -> "VideoSink":
-        import subprocess
-        import tempfile
-
         self._stack = contextlib.ExitStack()
         try:
             tmp = self._stack.enter_context(atomic_output(self.path, "the video"))

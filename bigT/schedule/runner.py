@@ -12,6 +12,7 @@ rerun by the scheduler, which is harmless because row writes are idempotent.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import re
@@ -24,14 +25,13 @@ from dask.callbacks import Callback
 
 from .. import config
 from ..errors import BigTError, SchedulerError, StoreError
+from ..progress import progress_bar
 from .memory import MemoryPlan, peak_resident_bytes, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
 
 
 def _bar(progress: bool, total: int, desc: str):
-    from ..progress import progress_bar
-
     # delay: passes shorter than a second draw no bar
     return progress_bar(progress=progress, total=total, desc=desc, unit="block", delay=1.0)
 
@@ -161,7 +161,7 @@ class ClusterRunner:
 
     def map(self, spec: PassSpec, blocks: list[RowBlock], shared: dict, *,
             progress: bool = False, desc: str = "") -> list[BlockStats]:
-        from distributed import as_completed
+        from distributed import as_completed  # distributed: ~0.5 s, only with a cluster
 
         keys = [f"{spec.op}-{spec.pass_id}-{b.index}" for b in blocks]
         futures, scattered, results = [], {}, []
@@ -201,8 +201,6 @@ class ClusterRunner:
 def _serves_dashboard(dask_scheduler=None) -> bool:
     """Whether the scheduler serves distributed's dashboard (its HTTP server runs
     without bokeh too, but shows no dashboard then)."""
-    import importlib.util
-
     return ("dashboard" in (getattr(dask_scheduler, "services", None) or {})
             and importlib.util.find_spec("bokeh") is not None)
 
@@ -270,7 +268,7 @@ def open_runner(scheduler=None, *, workers: int = 2, memory_limit: int | None = 
 def _local_cluster(n: int, memory_limit: int | None) -> ClusterRunner:
     if n < 1:
         raise SchedulerError(f"--scheduler local:{n}: need at least one worker process")
-    from distributed import Client, LocalCluster
+    from distributed import Client, LocalCluster  # ~0.5 s, only for a cluster
 
     per_worker = "auto" if memory_limit is None else max(1, int(memory_limit) // n)
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
@@ -287,7 +285,7 @@ def _dashboard() -> str:
 
 
 def _connect(address: str) -> ClusterRunner:
-    from distributed import Client
+    from distributed import Client  # ~0.5 s, only for a cluster
 
     try:
         client = Client(address, timeout=config.SCHEDULER_CONNECT_SECONDS)

@@ -164,7 +164,7 @@ def _process_limits(policy: MemoryPolicy) -> tuple[int | None, int]:
     """(memory limit, threads) of this process: a dask worker's own, capped by the
     policy's limit; else the policy's."""
     try:
-        from distributed import get_worker
+        from distributed import get_worker  # ~0.5 s: a worker process has it loaded
 
         worker = get_worker()
     except (ImportError, ValueError):

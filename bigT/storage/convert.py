@@ -8,6 +8,7 @@ read with ``scipy.io.loadmat``; v7.3/HDF5 files are not supported) and dense Num
 from __future__ import annotations
 
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -76,8 +77,6 @@ def _read(path: Path, kind: str, var: str | None):
 def _load_npz(path: Path):
     """A scipy ``save_npz`` file; an archive of other arrays (``numpy.savez``) is
     refused with the names it holds."""
-    import zipfile
-
     if not zipfile.is_zipfile(path):  # else numpy says "pickled (object) data"
         raise StoreError("cannot read as .npz (not a zip archive: truncated, or another "
                          "format)", path)
