@@ -322,7 +322,7 @@ def setup_bigT(store, job, path: str):
     (after ``stratified_inverse``: X held in memory) or the matrix-free path (T
     streamed with the default tile cache)."""
     from bigT.compensation import choose_path
-    from bigT.schedule.stream import cache_budget
+    from bigT import config
     from bigT.compensation.core import first_bounce_diag
     from bigT.compensation.realtime import Compensator
 
@@ -332,9 +332,10 @@ def setup_bigT(store, job, path: str):
         detail = f"nnz(X) = {X.nnz:,}; {comp.residency.describe(1)}"
     else:
         first_bounce_diag(store)
+        cache = config.COMPENSATE_CACHE_BYTES  # the tile cache of `bigT compensate`
         comp = Compensator(None, store, choose_path(None, store, TERMS, "matrix-free"),
-                           cache_bytes=cache_budget(None))
-        detail = f"{TERMS} passes over T, tile cache {cache_budget(None) / MIB:.0f} MiB"
+                           cache_bytes=cache)
+        detail = f"{TERMS} passes over T, tile cache {cache / MIB:.0f} MiB"
     return (lambda frames: np.asarray(comp(frames), np.float64)), detail
 
 

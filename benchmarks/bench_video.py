@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bigT  # noqa: E402
-from bigT.schedule.stream import cache_budget  # noqa: E402
+from bigT import config  # noqa: E402
 from bigT.compensation.core import choose_path  # noqa: E402
 from bigT.compensation.realtime import Compensator, run_stream, video_batches  # noqa: E402
 from bigT.compensation.video import VideoSink, VideoSource  # noqa: E402
@@ -103,8 +103,9 @@ def run_video(X, video: Path, out: Path, *, batch: int, precision: str, stream: 
     """One compensation of ``video`` through the CLI's pipeline; returns a Row."""
     load0 = _load()
     choice = choose_path(X, None, None, "explicit")
+    # the tile cache of `bigT compensate` when X is streamed
     comp = Compensator(X, None, choice, (0, 1), precision=precision, resident=not stream,
-                       cache_bytes=cache_budget(None))  # the CLI's tile cache when streamed
+                       cache_bytes=config.COMPENSATE_CACHE_BYTES)
     source = VideoSource(video, X.pixel_order.image_shape)
     errs = []
 

@@ -10,8 +10,9 @@ objects (``bigT_inverse.params.T``), ``[]`` for the objects in a list
 (``bigT_inverse.history[]``).
 
 The stores written here: a plain store (:func:`bigT.storage.from_scipy`, with every
-optional attribute), a scene (:func:`bigT.scenes.corner`) and its inverse (:func:`bigT.algorithms.stratified_inverse`,
-power form with the feed and operator thresholds, so that the fingerprint holds them).
+optional attribute), a scene (:func:`bigT.scenes.corner`) and its inverse
+(:func:`bigT.algorithms.stratified_inverse`, power form with the feed and operator
+thresholds, so that the fingerprint holds them).
 Every record found in them must have a table (or be one of :data:`FREE` or
 :data:`SAME_AS`), and every table must be a record found.
 
