@@ -185,7 +185,7 @@ def check_geometry(projector, superpixel: int) -> None:
     if superpixel < 1 or h < superpixel or w < superpixel or h % superpixel or w % superpixel:
         raise AcquisitionError(
             f"the projector's {h}x{w} pixels do not divide into {superpixel}x{superpixel} "
-            "super-pixels: choose --superpixel dividing both sides")
+            "super-pixels: choose a {option} dividing both sides", option="superpixel")
 
 
 def pattern_count(method: str, projector, superpixel: int = 1, *,
@@ -206,7 +206,8 @@ def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
         raise AcquisitionError(
             f"{method} on a {projector[0]}x{projector[1]} projector in {superpixel}x"
             f"{superpixel} super-pixels needs {count} patterns, more than bigT lists "
-            f"({MAX_PATTERNS}): choose a larger --superpixel or --method stripes")
+            f"({MAX_PATTERNS}): choose a larger superpixel or {{option}}",
+            option=("method", "stripes"))
     return count
 
 

@@ -23,6 +23,7 @@ from ..errors import (
     IncompleteStoreError,
     InvalidMatrixError,
     NotSquareError,
+    Option,
     ShapeMismatchError,
     StoreError,
 )
@@ -74,7 +75,8 @@ def check_replaceable(path: Path, overwrite: bool) -> None:
     recover_interrupted_replace(path)
     if path.exists():
         if not overwrite:
-            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
+            raise StoreError("already exists; pass {option} to replace it", path,
+                             option=("overwrite", True))
         if not _is_bigt_or_empty(path):
             raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
 
@@ -131,7 +133,8 @@ def recover_interrupted_replace(path) -> None:
 def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
     if exc.errno == errno.ENOSPC:
         return DiskFullError(f"disk full while writing {what}; tile rows completed before it "
-                             f"are kept (resume with resume=True)", path)
+                             "are kept (to resume: {option})", path,
+                             option=Option("resume", cli="rerun the same command"))
     return None
 
 
@@ -696,6 +699,6 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
             writer.finalize()
             move_into_place(tmp, path)
     except DiskFullError as exc:
-        raise DiskFullError(f"disk full while writing ({exc.problem}); nothing was changed at the "
-                            f"destination", path) from exc
+        raise DiskFullError(f"disk full while writing ({exc.template}); nothing was changed at the "
+                            f"destination", path, option=exc.option) from exc
     return open_store(path)
