@@ -40,6 +40,9 @@ _LAZY = {
     "compensate": "bigT.compensation",
     "relight": "bigT.compensation",
     "separate_bounces": "bigT.compensation",
+    "simulate": "bigT.compensation",
+    "Simulation": "bigT.compensation",
+    "SimulationReport": "bigT.compensation",
 }
 
 

@@ -3,12 +3,75 @@
 Every error bigT raises on bad input derives from :class:`BigTError`, itself a
 ``ValueError`` (as zarr-python's errors are), so callers can catch one class. Each
 message names the file (when there is one) and the problem, on one line: the CLI
-prints it to stderr as it is and exits with status 2.
+prints it to stderr and exits with status 2.
+
+An error about an argument carries it in a structured field, :class:`Option`, and its
+message names it by the placeholder ``{option}``: ``str(error)`` spells it as Python
+does (``overwrite=True``), the command line as its flag (``--overwrite``,
+:meth:`BigTError.render`), so a library message holds no command-line flag and the
+command line rewrites no library wording.
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
+from typing import Any, Callable
+
+#: :attr:`Option.value` of an option named without a value (``memory_limit``).
+UNSET: Any = type("Unset", (), {"__repr__": lambda self: "UNSET"})()
+
+
+@dataclass(frozen=True)
+class Option:
+    """The argument an error concerns, and the value that would help.
+
+    Attributes
+    ----------
+    name : str
+        The Python argument (``"overwrite"``, ``"first_bounce"``, ``"memory_limit"``).
+    value : object
+        What to pass (``True``, ``"identity"``); :data:`UNSET` names the argument alone.
+    python : str, optional
+        How a Python caller does it when ``name=value`` does not say it all
+        (``"resume=True, then finalize()"``).
+    cli : str, optional
+        What a command-line user does where the command line has no flag for it (bigT's
+        commands resume by being rerun: ``"rerun the command that wrote it"``).
+    """
+
+    name: str
+    value: Any = True
+    python: str | None = None
+    cli: str | None = None
+
+    def as_python(self) -> str:
+        """``overwrite=True``, ``first_bounce='identity'``, ``memory_limit``."""
+        if self.python is not None:
+            return self.python
+        return self.name if self.value is UNSET else f"{self.name}={self.value!r}"
+
+    def as_flag(self, flag: str | None = None) -> str:
+        """``--overwrite``, ``--first-bounce identity``, ``--memory-limit``.
+
+        Parameters
+        ----------
+        flag : str, optional
+            The command's option string for :attr:`name` (the CLI looks it up by its
+            ``dest``); default ``--`` and the name with dashes.
+        """
+        if flag is None and self.cli is not None:
+            return self.cli
+        flag = flag or "--" + self.name.replace("_", "-")
+        return flag if self.value is UNSET or self.value is True else f"{flag} {self.value}"
+
+
+def _option(option: Option | str | tuple | None) -> Option | None:
+    if option is None or isinstance(option, Option):
+        return option
+    if isinstance(option, str):
+        return Option(option, UNSET)
+    return Option(*option)
 
 
 class BigTError(ValueError):
@@ -17,15 +80,56 @@ class BigTError(ValueError):
     Parameters
     ----------
     message : str
-        What is wrong, in words a user can act on.
+        What is wrong, in words a user can act on; ``{option}`` where the option is named.
     path : str or os.PathLike, optional
         The file or store concerned; prefixed to the message.
+    option : Option, str or tuple, optional
+        The argument the error concerns: an :class:`Option`, ``(name, value)`` or a
+        name alone (``"memory_limit"``).
+
+    Attributes
+    ----------
+    path : str or None
+    option : Option or None
+    problem : str
+        The message without the path, the option spelt as Python does.
     """
 
-    def __init__(self, message: str, path: str | os.PathLike | None = None):
+    def __init__(self, message: str, path: str | os.PathLike | None = None, *,
+                 option: Option | str | tuple | None = None):
         self.path = None if path is None else os.fspath(path)
-        self.problem = message
-        super().__init__(f"{self.path}: {message}" if self.path else message)
+        self.option = _option(option)
+        self.template = message
+        self.problem = self._fill(self.option.as_python() if self.option else "")
+        super().__init__(self._prefixed(self.problem))
+
+    def _fill(self, spelt: str) -> str:
+        return self.template.replace("{option}", spelt) if self.option else self.template
+
+    def _prefixed(self, text: str) -> str:
+        return f"{self.path}: {text}" if self.path else text
+
+    def render(self, flag_of: Callable[[str], str | None] = lambda name: None) -> str:
+        """The message with the option spelt as a command-line flag.
+
+        Parameters
+        ----------
+        flag_of : callable, optional
+            ``name -> "--flag"`` of the command that ran, None where it has none.
+        """
+        if self.option is None:
+            return str(self)
+        return self._prefixed(self._fill(self.option.as_flag(flag_of(self.option.name))))
+
+    def __reduce__(self):
+        # dask sends errors between processes: keep the option, not only the text
+        return _rebuild, (type(self), self.template, self.path, self.option)
+
+
+def _rebuild(cls, message, path, option):
+    error = cls.__new__(cls)
+    BigTError.__init__(error, message, path, option=option)
+    return error
 
 
 class InvalidMatrixError(BigTError):

@@ -177,8 +177,8 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     if manifest.method == "graycode":
         raise AcquisitionError(
             "Gray-code patterns give the correspondence, not T: acquire T with "
-            "--method brute-force or stripes (add --graycode for the correspondence)",
-            Path(patterns))
+            "{option} or stripes (add Gray code for the correspondence)",
+            Path(patterns), option=("method", "brute-force"))
     if Path(captures).resolve() == patterns_folder(patterns).resolve():
         # the patterns have the captures' names: they would be read as the captures
         raise AcquisitionError(
@@ -281,7 +281,8 @@ def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings, tile_si
             if differ:
                 raise AcquisitionError(
                     f"holds an interrupted build of other captures or settings "
-                    f"({', '.join(differ)} differ); pass --overwrite to start again", path)
+                    f"({', '.join(differ)} differ); pass {{option}} to start again", path,
+                    option=("overwrite", True))
             return BlockCSRWriter(path, shape, tile_size=old.tile_size, pixel_order=order,
                                   metadata=meta, resume=True)
     return BlockCSRWriter(path, shape, tile_size=tile_size, pixel_order=order, metadata=meta,

@@ -150,7 +150,8 @@ class Manifest:
             # counted first: a huge projector is refused at once, not listed to compare
             count = checked_pattern_count(method, projector, superpixel, graycode=graycode)
         except AcquisitionError as exc:  # super-pixels not dividing it, too many patterns
-            raise bad(exc.problem) from None
+            raise AcquisitionError(f"not a valid bigT pattern manifest: {exc.template}", path,
+                                   option=exc.option) from None
         if count != len(patterns):
             raise bad(f"the pattern list is not the one bigT writes for its method and size "
                       f"({len(patterns)} patterns listed, {count} expected)")
@@ -185,7 +186,7 @@ def check_geometry(projector, superpixel: int) -> None:
     if superpixel < 1 or h < superpixel or w < superpixel or h % superpixel or w % superpixel:
         raise AcquisitionError(
             f"the projector's {h}x{w} pixels do not divide into {superpixel}x{superpixel} "
-            "super-pixels: choose --superpixel dividing both sides")
+            "super-pixels: choose a {option} dividing both sides", option="superpixel")
 
 
 def pattern_count(method: str, projector, superpixel: int = 1, *,
@@ -206,7 +207,8 @@ def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
         raise AcquisitionError(
             f"{method} on a {projector[0]}x{projector[1]} projector in {superpixel}x"
             f"{superpixel} super-pixels needs {count} patterns, more than bigT lists "
-            f"({MAX_PATTERNS}): choose a larger --superpixel or --method stripes")
+            f"({MAX_PATTERNS}): choose a larger {{option}} or the stripes method",
+            option="superpixel")
     return count
 
 

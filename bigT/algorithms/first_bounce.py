@@ -72,7 +72,8 @@ def _refuse_nonpositive(f: np.ndarray, active: np.ndarray, what: str, path) -> N
                      f"zero (first at index {zero[0]})")
     raise InvalidMatrixError(
         f"{what} has " + " and ".join(parts) + "; F = diag(T) needs a positive "
-        "diagonal: fix the measurement, or pass first_bounce='identity' or a vector", path)
+        "diagonal: fix the measurement, or pass {option} or a vector", path,
+        option=("first_bounce", "identity"))
 
 
 def load_first_bounce(path) -> np.ndarray:

@@ -558,8 +558,8 @@ class _Engine:
                 f"the spectral radius of M = I - T F^-1 is {rho.describe()}, so it may be "
                 f">= 1 (first bounce {self.fb.kind}): the series diverges. Try the "
                 "diagonal first bounce, a higher threshold on T's small entries (or "
-                "denoising it), fixing negative or zero diagonal entries, or force=True "
-                "(bigT invert --force) to run anyway", self.T.path)
+                "denoising it), fixing negative or zero diagonal entries, or {option} "
+                "to run anyway", self.T.path, option=("force", True))
         return rho
 
     def _extend(self, resumed_from) -> str:
@@ -749,7 +749,7 @@ class _Engine:
                 f"the residual grew from {before:.3e} at term {h[-1].term} to {residual:.3e} "
                 f"at term {k}: the series diverges (spectral radius estimate "
                 f"{self.record.spectral_radius}). The inverse keeps term {h[-1].term}; "
-                "force=True (bigT invert --force) goes on anyway", self.store.path)
+                "{option} goes on anyway", self.store.path, option=("force", True))
 
     # --- mat-vecs -------------------------------------------------------------------
 

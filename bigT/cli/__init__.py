@@ -6,7 +6,8 @@ arguments and returning an exit status.
 
 :func:`main` is the one boundary between the library's exceptions and the user: a bad
 option (argparse, checked by the types of :mod:`bigT.cli._argtypes` before anything is
-read), an error of the :class:`bigT.BigTError` hierarchy, and an ``OSError`` (full disk,
+read), an error of the :class:`bigT.BigTError` hierarchy (the option it concerns, a
+structured field, spelt as the command's flag: :func:`flag_of`), and an ``OSError`` (full disk,
 read-only file system, no permission, a file where a folder is needed, ...) each become
 one line on stderr, ``bigT CMD: error: [FILE: ]what happened``, and exit status 2, with
 no traceback. Anything else is a bug and keeps its traceback.
@@ -24,24 +25,6 @@ import sys
 
 from ..errors import BigTError
 
-#: Library wording in error messages -> the command line's (errors are raised by the
-#: library, which names its Python arguments; the CLI user knows the flags).
-CLI_WORDING = (
-    ("pass overwrite=True (--overwrite)", "pass --overwrite"),
-    ("overwrite=True", "--overwrite"),
-    ("force=True (bigT invert --force)", "--force"),
-    ("force=True", "--force"),
-    ("first_bounce='diag'", "--first-bounce diag"),
-    ("first_bounce='identity'", "--first-bounce identity"),
-    ("first_bounce=", "--first-bounce "),
-    ("resume writing with resume=True and finalize()", "rerun the command that wrote it"),
-    ("resume writing with resume=True", "rerun the command that wrote it"),
-    ("resume with resume=True", "rerun the same command to resume"),
-    ("memory_limit", "--memory-limit"),
-    ("dtype='float64'", "--dtype float64"),
-)
-
-
 #: A hidden sibling that a writer builds in and renames into place (bigT.storage's
 #: ``.T.zarr.<pid>.<hex>.partial`` and ``.old``, ``.zarr.json.<pid>.<hex>.tmp``,
 #: bigT.atomic's ``.out.<pid>.<hex>.tmp.npz``, a row's ``.3.<hex>.partial``): the user
@@ -51,10 +34,8 @@ _TEMPORARY = re.compile(r"(?<![^\s/(])\.(?P<name>[^\s/]+?)(?:\.\d+)?\.[0-9a-f]{6
 
 
 def cli_message(message: str) -> str:
-    """``message`` on one line, in the command line's words (:data:`CLI_WORDING`), with
-    each hidden temporary sibling replaced by the path it stands for."""
-    for python, flag in CLI_WORDING:
-        message = message.replace(python, flag)
+    """``message`` on one line, each hidden temporary sibling replaced by the path it
+    stands for."""
     message = _TEMPORARY.sub(lambda m: m["name"] + (m["suffix"] or ""), message)
     return message.replace("\n", " ")
 
@@ -145,7 +126,28 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("-q", "--quiet", action="store_true",
                              help="print nothing but errors and warnings: no progress "
                              "bars, no summary (the outputs are written as usual)")
+    for command in _leaf_parsers(parser):
+        command.set_defaults(_parser=command)
     return parser
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser):
+    """The parsers that run a command (``acquire build``, not ``acquire``)."""
+    groups = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not groups:
+        yield parser
+    for group in groups:
+        for child in dict.fromkeys(group.choices.values()):  # aliases listed once
+            yield from _leaf_parsers(child)
+
+
+def flag_of(parser: argparse.ArgumentParser | None, name: str) -> str | None:
+    """The option string of ``parser`` that sets the library argument ``name`` (its
+    ``dest``; a deprecated hidden alias is never named), None where it has none."""
+    for action in getattr(parser, "_actions", ()):
+        if action.dest == name and action.option_strings and action.help != argparse.SUPPRESS:
+            return max(action.option_strings, key=len)
+    return None
 
 
 @contextlib.contextmanager
@@ -156,8 +158,6 @@ def _quieted(args):
     if not getattr(args, "quiet", False):
         yield
         return
-    if hasattr(args, "no_progress"):
-        args.no_progress = True
     if hasattr(args, "progress"):
         args.progress = False
     with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink):
@@ -193,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         with _quieted(args):
             return int(args.func(args) or 0)
     except BigTError as exc:
-        return _error(args, str(exc))
+        parser_of_command = getattr(args, "_parser", None)
+        return _error(args, exc.render(lambda name: flag_of(parser_of_command, name)))
     except BrokenPipeError:
         # the reader went away (`bigT info X.zarr | head`): not an error of ours; point
         # stdout at /dev/null so the interpreter's final flush does not complain

@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 from ..sizes import parse_size
 
-__all__ = ["integer", "number", "memory_size", "image_size", "scheduler_address",
+__all__ = ["integer", "number", "memory_size", "size_or_zero", "image_size", "scheduler_address",
            "clip_range", "density"]
 
 
@@ -105,6 +105,22 @@ def memory_size(text: str) -> int:
 
 
 memory_size.__name__ = "memory size"
+
+
+def size_or_zero(text: str) -> int:
+    """An argparse type: :func:`memory_size`, or 0 (``0``, ``0MiB``: none at all)."""
+    try:
+        if float(text.strip().rstrip("kKmMgGtTpPiIbB") or "nan") == 0:
+            return 0
+    except ValueError:
+        pass
+    try:
+        return parse_size(text)
+    except ValueError:
+        raise _fail(f"must be a memory size such as 1GiB or 500MB, or 0, got {text!r}") from None
+
+
+size_or_zero.__name__ = "size"
 
 
 def image_size(text: str) -> tuple[int, int]:

@@ -8,7 +8,9 @@ import json
 import sys
 import warnings
 
-from ._argtypes import image_size, integer, memory_size, number
+from .. import config
+from ._argtypes import image_size, integer, number
+from ._options import add_json, add_memory_limit, add_progress
 
 
 def register(subparsers) -> None:
@@ -25,7 +27,7 @@ def register(subparsers) -> None:
 
 
 def _common(p) -> None:
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_progress(p)
     p.add_argument("-q", "--quiet", action="store_true",
                    help="print nothing but errors and warnings")
 
@@ -73,14 +75,14 @@ def _register_build(sub) -> None:
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
                    help="undo a camera gamma: linear = stored ** gamma (default 1: linear)")
     p.add_argument("--tile-size", type=integer(1), default=None,
-                   help="rows/cols of one matrix tile of T (default 8192)")
-    p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
-                   help="memory for the entries gathered in one pass over the captures "
-                        "(default 1GiB); more passes when T's entries do not fit")
+                   help=f"rows/cols of one matrix tile of T (default {config.DEFAULT_TILE_SIZE})")
+    add_memory_limit(p, default=config.ACQUIRE_MEMORY_BYTES,
+                     bounds="memory the build may hold of T's entries gathered in one pass "
+                     "over the captures; more passes when they do not fit")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
     p.add_argument("--no-figures", action="store_true",
                    help="do not write the correspondence and validation PNGs")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_json(p)
     _common(p)
     p.set_defaults(func=build_cmd, command="acquire build")
 
@@ -113,7 +115,7 @@ def _register_simulate(sub) -> None:
 
 
 def _progress(args):
-    return False if args.no_progress else None
+    return None if args.progress else False
 
 
 def patterns_cmd(args) -> int:

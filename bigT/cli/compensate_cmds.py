@@ -9,6 +9,7 @@ from disk tile row by tile row otherwise (:mod:`bigT.compensation.realtime`).
 
 from __future__ import annotations
 
+import argparse
 import time
 from pathlib import Path
 
@@ -16,7 +17,9 @@ import numpy as np
 
 from .. import config
 from ..errors import ImageError
-from ._argtypes import clip_range, integer, memory_size, number, scheduler_address
+from ..sizes import format_size
+from ._argtypes import clip_range, integer, memory_size, number
+from ._options import add_progress, add_scheduler, add_size, deprecated
 
 #: Largest K of ``bigT bounces``. Each bounce costs one streamed pass over X, one
 #: (H, W) float64 image held in memory and one file; the remainder T l - sum b_k holds
@@ -30,7 +33,7 @@ def register(sub) -> None:
     p = sub.add_parser(
         "compensate", help="projector inputs that make the camera see the desired images",
         description="l_in = clip(X l_desired) (paper eqs. 44-45) for an image, a folder of "
-        "frames or a video, batch by batch: X held in memory when it fits --memory-limit, "
+        "frames or a video, batch by batch: X held in memory when it fits --resident-limit, "
         "else streamed from disk one tile row at a time against each batch; or the same "
         "polynomial applied matrix-free with T (--path matrix-free / auto). Reports "
         "frames/s and the latency per frame.")
@@ -58,19 +61,19 @@ def register(sub) -> None:
                    f"{config.DEFAULT_COMPENSATION_TERMS})")
     p.add_argument("--bits", type=int, choices=(8, 16), default=None,
                    help="PNG bit depth of the outputs (default: that of each input PNG)")
-    p.add_argument("--cache-mb", dest="cache_mb", type=integer(0), default=None,
-                   help="MiB of decoded matrix tiles kept between batches (default "
-                   f"{config.COMPENSATE_CACHE_BYTES >> 20}; 0: re-read every pass)")
-    p.add_argument("--scheduler", type=scheduler_address, default=None,
-                   metavar="ADDRESS|local:N",
-                   help="run the passes on a dask cluster: a scheduler address, or local:N "
-                   "for N worker processes started for this command (default: local threads)")
-    p.add_argument("--memory-limit", dest="memory_limit", type=memory_size, default=None,
+    add_size(p, "--cache-size", dest="cache_bytes", default=config.COMPENSATE_CACHE_BYTES,
+             help="decoded matrix tiles kept between batches", zero="re-read every pass")
+    p.add_argument("--cache-mb", dest="cache_bytes", type=integer(0), help=argparse.SUPPRESS,
+                   action=deprecated("--cache-size", lambda mib: mib << 20, format_size))
+    add_scheduler(p)
+    p.add_argument("--resident-limit", dest="memory_limit", type=memory_size, default=None,
                    metavar="SIZE", help="hold X in memory when it needs at most SIZE (e.g. "
-                   "2GiB; default "
-                   f"{100 * config.COMPENSATE_RESIDENT_FRACTION:.0f}%% of the available memory), "
-                   "else "
-                   "stream it from disk tile row by tile row")
+                   "2GiB), else stream it from disk tile row by tile row (default "
+                   f"{100 * config.COMPENSATE_RESIDENT_FRACTION:.0f}%% of the memory available "
+                   "when the command starts)")
+    p.add_argument("--memory-limit", dest="memory_limit", type=memory_size,
+                   help=argparse.SUPPRESS, action=deprecated("--resident-limit",
+                                                             show=format_size))
     p.add_argument("--stream", action="store_true",
                    help="stream X from disk tile row by tile row even when it fits in memory")
     p.add_argument("--precision", choices=("float32", "float16"), default="float32",
@@ -83,8 +86,7 @@ def register(sub) -> None:
     p.add_argument("--fps", type=number(0, lo_open=True), default=None,
                    help="frames per second of a video written from a folder of frames "
                    "(default 30; a video input keeps its own)")
-    p.add_argument("--no-progress", dest="progress", action="store_false",
-                   help="no progress bars")
+    add_progress(p)
     p.set_defaults(func=run_compensate)
 
     p = sub.add_parser("relight", help="what the camera sees for projector images: T l",
@@ -96,19 +98,18 @@ def register(sub) -> None:
                    help=f"frames per pass over T (default {config.DEFAULT_BATCH})")
     p.add_argument("--bits", type=int, choices=(8, 16), default=None,
                    help="PNG bit depth of the outputs (default: that of each input PNG)")
-    p.add_argument("--scheduler", type=scheduler_address, default=None,
-                   metavar="ADDRESS|local:N",
-                   help="run the passes on a dask cluster: a scheduler address, or local:N "
-                   "for N worker processes started for this command (default: local threads)")
-    p.add_argument("--no-progress", dest="progress", action="store_false",
-                   help="no progress bars")
+    add_scheduler(p)
+    add_progress(p)
     p.set_defaults(func=run_relight)
 
     p = sub.add_parser("bounces", help="split the camera image T l into light bounces",
                        description="Seitz-style bounce separation: F_ii = 1/X_ii (paper eq. "
-                       "33), A = I - F X, b_k = A^k F l, plus the remainder T l - sum b_k. "
+                       "33), A = I - F X, b_k = A^k F l for k = 0 (direct light) to K, plus "
+                       "the remainder T l - sum b_k: the light of bounces beyond K, less what "
+                       "X lacks of the exact inverse (its truncated series and pruned "
+                       "entries), so it can be negative when X is inexact. "
                        "Each part's share is its sum over the pixels divided by the sum of T l "
-                       "(the share of the total light; the shares add up to 100%), as "
+                       "(the share of the total light; the shares add up to 100%%), as "
                        "`bigT scene` reports the bounces of a white image.")
     p.add_argument("T", help="transport store (T.zarr)")
     p.add_argument("X", help="inverse store (X.zarr), as exact as possible")
@@ -118,8 +119,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--format", choices=("tif", "npy", "png"), default="tif",
                    help="image format of the parts (tif/npy keep floats; default tif)")
-    p.add_argument("--no-progress", dest="progress", action="store_false",
-                   help="no progress bars")
+    add_progress(p)
     p.set_defaults(func=run_bounces)
 
 
@@ -145,15 +145,10 @@ def _describe(store, name):
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
-    from ..compensation.core import (CompensationReport, choose_path, compensate_frames,
-                                     fluctuation, relative_error, scan_line)
-    from ..schedule.stream import cache_budget, compute_dtype, scheduler_runner, stream_matmul
-    from ..storage import as_store
-    from ..storage.frames import pixel_order_of, to_frames, to_vectors
+    from ..compensation import choose_path
     from ..compensation.video import is_video_file
-    from ..images import ImageSink, ImageSource
+    from ..storage import as_store
 
-    clip = args.clip
     X = None if args.X == "-" else as_store(args.X, "X")
     S = None if args.simulate is None else as_store(args.simulate, "T")
     Tm = as_store(args.matrix_free, "T") if args.matrix_free else S
@@ -170,11 +165,20 @@ def run_compensate(args) -> int:
     if is_video_file(args.desired):
         raise ImageError("--simulate takes an image or a folder of frames, not a video",
                          args.desired)
+    return _run_simulate(args, X, S, Tm, choice, shape)
+
+
+def _run_simulate(args, X, S, Tm, choice, shape) -> int:
+    """compensate --simulate: :func:`bigT.compensation.simulate_batches` over the frames,
+    its report and figures printed."""
+    from ..compensation import simulate_batches, simulation_figures
+    from ..images import ImageSink, ImageSource
+    from ..progress import progress_bar
+
     source = ImageSource(args.desired, shape)
     out_path = Path(args.output)
     sink = ImageSink(out_path, source, bits=args.bits)
-    seen_sink = ImageSink(_sibling(out_path, "seen"), source, bits=args.bits) if S else None
-
+    seen_sink = ImageSink(_sibling(out_path, "seen"), source, bits=args.bits)
     print(f"bigT compensate: {len(source)} frame(s) from {args.desired}"
           + (f", image {shape[0]}x{shape[1]}" if shape else ""))
     shown = []
@@ -182,90 +186,39 @@ def run_compensate(args) -> int:
         if st is not None and all(st is not o for o in shown):
             print("  " + _describe(st, name))
             shown.append(st)
-    print(f"  path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
-                                      else "") + f" -- {choice.reason}")
+    _print_path(choice)
 
-    report = CompensationReport(choice)
-    cache_bytes = cache_budget(None if args.cache_mb is None else args.cache_mb << 20)
-    sums = dict(err=0.0, err0=0.0, ref=0.0)
-    flat = []  # (image fl. without, with, scan line without, with) for constant targets
-    first = None
-    from ..progress import progress_bar
-
-    t_comp = 0.0
     t0 = time.perf_counter()
     with progress_bar(progress=args.progress, total=len(source), desc="compensate",
-                      unit="frame", leave=True) as bar, \
-            scheduler_runner(args.scheduler) as runner:
-        if runner is not None:
-            print(f"  running on {runner.describe()}")
-        for files, frames in source.batches(args.batch):
-            t1 = time.perf_counter()
-            l_in = compensate_frames(frames, X=X, T=Tm, choice=choice, clip=clip,
-                                        report=report, progress=args.progress,
-                                        cache_bytes=cache_bytes, runner=runner)
-            t_comp += time.perf_counter() - t1
-            report.frames += len(frames)
-            sink.write(files, l_in)
-            if S is not None:
-                order = pixel_order_of(S, frames.shape[1:])
-                both = np.concatenate([l_in, frames])  # one pass over T for both
-                seen_all = to_frames(stream_matmul(S, to_vectors(both, order, compute_dtype(S)),
-                                                   progress=args.progress, desc="T pass",
-                                                   cache_bytes=cache_bytes, runner=runner),
-                                     order)
-                seen, seen0 = seen_all[:len(frames)], seen_all[len(frames):]
-                seen_sink.write(files, seen)
-                sums["err"] += float(np.sum((seen - frames) ** 2))
-                sums["err0"] += float(np.sum((seen0 - frames) ** 2))
-                sums["ref"] += float(np.sum(frames ** 2))
-                for d, a, b in zip(frames, seen0, seen):
-                    if np.ptp(d) == 0 and d.flat[0] > 0:
-                        flat.append((fluctuation(a), fluctuation(b), fluctuation(scan_line(a)),
-                                     fluctuation(scan_line(b))))
-                if first is None:
-                    first = (files[0], frames[0], seen0[0], l_in[0], seen[0])
-            bar.update(len(frames))
+                      unit="frame", leave=True) as bar:
+        def write(files, projector, seen):
+            sink.write(files, projector)
+            seen_sink.write(files, seen)
+            bar.update(len(files))
+
+        report = simulate_batches(
+            source.batches(args.batch), X, S, clip=args.clip, path=choice.path,
+            matrix_free=Tm, terms=choice.terms, cache_bytes=args.cache_bytes,
+            scheduler=args.scheduler, progress=args.progress, on_batch=write)
     elapsed = time.perf_counter() - t0
-    report.seconds = t_comp
 
-    print(f"  {report.frames} frame(s) in {t_comp:.2f} s of products "
-          f"({report.frames_per_second:.1f} frames/s, batch {args.batch}); {elapsed:.2f} s in all")
-    if clip is not None:
-        _print_clipped(report, clip)
+    print(f"  {report.frames} frame(s) in {report.seconds:.2f} s of products "
+          f"({report.frames_per_second:.1f} frames/s, batch {args.batch}); {elapsed:.2f} s "
+          "in all (the simulation's passes over T included)")
     print(f"  wrote projector input -> {sink.path}")
-    if S is not None:
-        ref = np.sqrt(sums["ref"])
-        print(f"  simulated camera (T l_in) -> {seen_sink.path}")
-        print(f"  relative error ||T l_in - l_desired|| / ||l_desired||: "
-              f"{np.sqrt(sums['err']) / ref:.4f} compensated, {np.sqrt(sums['err0']) / ref:.4f} "
-              "uncompensated (T l_desired)")
-        if flat:
-            f = np.mean(np.array(flat), axis=0)
-            print(f"  constant target ({len(flat)} frame(s)), fluctuation (max-min)/mean: "
-                  f"image {f[0]:.3f} -> {f[1]:.3f}, centre scan line {f[2]:.3f} -> {f[3]:.3f} "
-                  "(uncompensated -> compensated)")
-        else:
-            print("  fluctuation: n/a (no constant target frame)")
-        name, desired, seen0, l_in, seen = first
-        from ..figures import scan_lines, side_by_side
-
-        tag = "" if not source.is_folder else f" (frame {name.name})"
-        pic = side_by_side(
-            _sibling(out_path, "compare", ".png"), [desired, seen0, l_in, seen],
-            ["desired", "seen without compensation", "projector input", "seen with compensation"],
-            suptitle=f"compensation, {choice.path} path{tag}; error "
-            f"{relative_error(seen, desired):.3f} vs {relative_error(seen0, desired):.3f}")
-        lines = {"without compensation": scan_line(seen0), "with compensation": scan_line(seen),
-                 "projector input": scan_line(l_in)}
-        const = float(desired.flat[0]) if np.ptp(desired) == 0 else None
-        if const is None:
-            lines["desired"] = scan_line(desired)
-        plot = scan_lines(_sibling(out_path, "scanline", ".png"), lines,
-                          title=f"centre scan line (row {desired.shape[0] // 2}){tag}",
-                          target=const)
-        print(f"  figures -> {pic}, {plot}")
+    print(f"  simulated camera (T l_in) -> {seen_sink.path}")
+    for line in report.describe().splitlines():
+        print("  " + line)
+    tag = f" (frame {report.first.name})" if source.is_folder else ""
+    pic, plot = simulation_figures(report, _sibling(out_path, "compare", ".png"),
+                                   _sibling(out_path, "scanline", ".png"), tag=tag)
+    print(f"  figures -> {pic}, {plot}")
     return 0
+
+
+def _print_path(choice) -> None:
+    print(f"  path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
+                                      else "") + f" -- {choice.reason}")
 
 
 def _run_stream(args, X, Tm, choice, shape) -> int:
@@ -273,8 +226,9 @@ def _run_stream(args, X, Tm, choice, shape) -> int:
     :func:`bigT.compensation.realtime.run_stream`, X in memory when it fits."""
     import sys
 
-    from ..schedule.stream import cache_budget, scheduler_runner
+    from ..schedule.stream import scheduler_runner
     from ..compensation.realtime import Compensator, image_batches, run_stream, video_batches
+    from ..compensation.simulate import clipped_summary
     from ..compensation.video import VideoSource, is_video_file
     from ..images import ImageSource
     from ..progress import progress_bar
@@ -294,17 +248,16 @@ def _run_stream(args, X, Tm, choice, shape) -> int:
     for st, name in ((X, "X"), (Tm if choice.path == "matrix-free" else None, "T")):
         if st is not None:
             print("  " + _describe(st, name))
-    print(f"  path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
-                                      else "") + f" -- {choice.reason}")
+    _print_path(choice)
     output = _Output(args, source, out_path, video_in, video_out)  # checked before X is read
-    cache_bytes = cache_budget(None if args.cache_mb is None else args.cache_mb << 20)
     with scheduler_runner(args.scheduler) as runner:
         if runner is not None:
             print(f"  running on {runner.describe()}")
         comp = Compensator(X, Tm, choice, args.clip, memory_limit=args.memory_limit,
                            precision=args.precision,
                            resident=not args.stream and args.scheduler is None,
-                           cache_bytes=cache_bytes, runner=runner)
+                           cache_bytes=(config.COMPENSATE_CACHE_BYTES if args.cache_bytes is None
+                                        else args.cache_bytes), runner=runner)
         if not args.quiet:
             per_pass = min(args.batch, frames_total or args.batch)
             print(f"bigT compensate: {comp.residency.describe(per_pass)}", file=sys.stderr)
@@ -321,7 +274,8 @@ def _run_stream(args, X, Tm, choice, shape) -> int:
           f"{args.batch}); {stream.seconds:.2f} s in all")
     print("  " + stream.summary(comp.residency))
     if args.clip is not None:
-        _print_clipped(report, args.clip)
+        print("  " + clipped_summary(report.clipped_low, report.clipped_high, report.pixels,
+                                     args.clip))
     print(f"  wrote projector input -> {out_path if video_out else _sink_path(out_path, source)}")
     return 0
 
@@ -400,9 +354,9 @@ def check_frame_shapes(files, shape) -> None:
 # --- relight ----------------------------------------------------------------------------
 
 def run_relight(args) -> int:
+    from ..compensation import relight
     from ..schedule.stream import scheduler_runner
     from ..storage import as_store
-    from ..compensation.core import relight
     from ..images import ImageSink, ImageSource
 
     T = as_store(args.T, "T")
@@ -433,10 +387,10 @@ def run_relight(args) -> int:
 # --- bounces ----------------------------------------------------------------------------
 
 def run_bounces(args) -> int:
-    from ..storage import as_store
-    from ..compensation.core import bounce_shares, separate_bounces
+    from ..compensation import bounce_shares, separate_bounces
     from ..figures import bounce_strip
     from ..images import read_image, write_image
+    from ..storage import as_store
 
     T = as_store(args.T, "T")
     X = as_store(args.X, "X")
@@ -456,22 +410,23 @@ def run_bounces(args) -> int:
     shares = bounce_shares(parts)
     out.mkdir(parents=True, exist_ok=True)
     names = [f"bounce_{k}" for k in range(args.bounces + 1)] + ["remainder"]
-    print(f"  {args.bounces + 1} bounce(s) + remainder in {dt:.2f} s; share of the total T l "
-          f"(sum {parts.sum():.4g}):")
+    K = args.bounces
+    print(f"  {K + 2} parts in {dt:.2f} s: bounces 0 (direct light) to {K}, and the "
+          f"remainder T l - (b_0 + ... + b_{K}) (the light of bounces after {K}, less what "
+          f"X lacks of the exact inverse); share of the total T l (sum {parts.sum():.4g}):")
     for name, part, share in zip(names, parts, shares):
         write_image(out / f"{name}.{args.format}", part, bits=16)
         label = "direct" if name == "bounce_0" else name.replace("_", " ")
         print(f"    {label:>10}: {100 * share:7.3f} %")
+    if shares[-1] < 0:
+        print("  note: the remainder is negative: X is not the exact inverse (its series is "
+              "truncated after its terms and its small entries pruned), so the separated "
+              "bounces add up to more than T l; an X with more terms or a lower prune "
+              "(bigT invert --terms, --prune) brings it towards the light beyond bounce "
+              f"{K}")
     write_image(out / f"total.{args.format}", parts.sum(axis=0), bits=16)
     strip = bounce_strip(out / "bounces.png", parts, shares)
     if args.format == "png":
         print("  note: PNG clips to [0, 1] (a negative remainder is lost); use tif/npy for exact parts")
     print(f"  wrote {len(names) + 1} images and {strip.name} -> {out}")
     return 0
-
-
-def _print_clipped(report, clip) -> None:
-    """The share of projector pixels clipped, below and above (both paths' summary)."""
-    print(f"  clipped projector pixels: {100 * report.clipped_fraction:.2f} % "
-          f"(below {clip[0]}: {100 * report.clipped_low / max(report.pixels, 1):.2f} %, "
-          f"above {clip[1]}: {100 * report.clipped_high / max(report.pixels, 1):.2f} %)")

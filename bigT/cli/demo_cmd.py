@@ -21,6 +21,7 @@ import numpy as np
 
 from ..atomic import atomic_output
 from ._argtypes import image_size, integer, number
+from ._options import add_progress
 
 #: Defaults of the demo: a scene that builds, inverts and compensates in about a minute
 #: on a 2-core machine.
@@ -48,7 +49,7 @@ def register(subparsers) -> None:
                    help="series terms n of the inverse T_n^-1 (default %(default)s)")
     p.add_argument("--prune", type=number(0), default=None,
                    help="prune threshold of the inverse (default: bigT invert's)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_progress(p)
     p.set_defaults(func=demo_cmd)
 
 
@@ -159,7 +160,7 @@ def _run_demo(args) -> int:
     H, W = args.size
     out = Path(args.dir)
     _clear_previous_demo(out)
-    quiet = ["--no-progress"] if args.no_progress else []
+    quiet = [] if args.progress else ["--no-progress"]
     log: list = []
     t_start = time.perf_counter()
 

@@ -5,18 +5,25 @@ from __future__ import annotations
 import json
 import os
 
-from .. import config
-from ._argtypes import integer, memory_size, number, scheduler_address
+import sys
+
+from ._argtypes import integer, number
+from ._options import (add_memory_limit, add_progress, add_scheduler, add_threads,
+                       library_default)
 
 TERMS_HELP = (
-    "series terms n: the store holds T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k (paper eq. "
+    "series terms n: the store holds T_n^-1 = F^-1 sum_{{k=0..n}} (I - T F^-1)^k (paper eq. "
     "13), so --terms 0 is F^-1 alone and each term costs one sparse product (power form). "
     "The paper also counts bounces from 1 (§5.1 calls T_4^-1 the five-bounce inverse); "
-    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1 (default 4)")
+    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1 (default {terms})")
 
 
 def register(subparsers) -> None:
+    from ..algorithms import stratified_inverse
     from ..algorithms.methods import METHODS
+
+    default = {name: library_default(stratified_inverse, name)
+               for name in ("terms", "prune", "method", "first_bounce", "workers")}
 
     p = subparsers.add_parser(
         "invert", help="stratified inverse of a stored T, out of core, term by term",
@@ -28,12 +35,13 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="X.zarr",
                    help="the inverse store (created, or resumed when it holds the same "
                         "T and parameters)")
-    # --terms, --prune and --method default to None so that --target-error can tell
-    # what was given explicitly; invert_cmd fills in the defaults
-    p.add_argument("--terms", type=integer(0), default=None, help=TERMS_HELP)
+    # an option not given is not passed: the library's default applies (shown here, read
+    # from its signature), and --target-error can tell what was given explicitly
+    p.add_argument("--terms", type=integer(0), default=None,
+                   help=TERMS_HELP.format(terms=default["terms"]))
     p.add_argument("--prune", type=number(0), default=None,
                    help="drop entries below this (absolute, on the dimensionless terms "
-                        f"M^k) inside each product (default {config.DEFAULT_PRUNE:g}; with "
+                        f"M^k) inside each product (default {default['prune']:g}; with "
                         "--target-error, the first prune tried)")
     p.add_argument("--prune-feed", dest="prune_feed", type=number(0), default=None,
                    help="power form: prune P_k, the factor of the next product, at this "
@@ -49,7 +57,7 @@ def register(subparsers) -> None:
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
     p.add_argument("--method", choices=tuple(METHODS), default=None,
                    help="; ".join(f"{m.name}: {m.help}" for m in METHODS.values())
-                   + " (default power; with --target-error, fixes the method instead of "
+                   + f" (default {default['method']}; with --target-error, fixes the method instead of "
                      "choosing it)")
     p.add_argument("--target-error", type=number(0, 1, lo_open=True, hi_open=True),
                    default=None, metavar="E",
@@ -58,32 +66,31 @@ def register(subparsers) -> None:
                         "0.0039 = 1/255 for an 8-bit display) at the least cost, and "
                         "stop there; exit 1 when it stops short (best effort). Refuses "
                         "--terms, --tol, --prune-feed, --prune-operator and --force")
-    p.add_argument("--first-bounce", default="diag", metavar="diag|identity|FILE.npy",
-                   help="F: diag(T) (default), identity (the naive choice), or a .npy vector "
-                        "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii)")
-    p.add_argument("--scheduler", type=scheduler_address, default=None,
-                   metavar="ADDRESS|local:N",
-                   help="run the tasks on a dask cluster: a scheduler address "
-                        "(tcp://HOST:PORT; T and the output must be at the same paths on "
-                        "every worker), or local:N to start N worker processes for this "
-                        "run (default: local threads)")
-    p.add_argument("--workers", type=integer(1), default=2,
-                   help="threads of the local scheduler (default %(default)s)")
-    p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
-                   help="bound the resident memory of the process running the tasks, e.g. "
-                        "2GiB (with local:N, of the N workers together; a cluster's workers "
-                        "also keep their own limits): what a process already holds is "
-                        "measured and the rest shared out (tile cache, a shared right "
-                        "factor, per-task batches); a limit too small is refused with the "
-                        "sizes")
-    p.add_argument("--json", default=None, metavar="FILE",
-                   help="also write the report as JSON")
+    p.add_argument("--first-bounce", default=default["first_bounce"],
+                   metavar="diag|identity|FILE.npy",
+                   help="F: diag(T), identity (the naive choice), or a .npy vector "
+                        "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii); default "
+                        "%(default)s")
+    add_scheduler(p, "tasks", "; T and the output must be at the same paths on every "
+                  "worker")
+    add_threads(p, default["workers"])
+    add_memory_limit(
+        p, default=None,
+        bounds="bound the resident memory of the process running the tasks, e.g. 2GiB "
+        "(with local:N, of the N workers together; a cluster's workers also keep their own "
+        "limits): what a process already holds is measured and the rest shared out (tile "
+        "cache, a shared right factor, per-task batches); a limit too small is refused "
+        "with the sizes")
+    p.add_argument("--json", nargs="?", const="-", default=None, metavar="FILE",
+                   help="print the report as one JSON object on stdout instead of the "
+                        "table (as every command's --json does); --json FILE, the older "
+                        "form, writes it to FILE beside the table")
     p.add_argument("--force", action="store_true",
                    help="run even when the estimated spectral radius of M is >= 1")
     p.add_argument("--overwrite", action="store_true",
                    help="delete the inverse the output holds (whatever its parameters) and "
                         "start anew; never deletes anything that is not a bigT inverse")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_progress(p)
     p.set_defaults(func=invert_cmd)
 
 
@@ -96,20 +103,21 @@ def invert_cmd(args) -> int:
     if fb not in ("diag", "identity") and not os.path.exists(fb):
         raise BigTError("--first-bounce is neither diag, identity nor an existing .npy file",
                         fb)
-    if args.json and os.path.isdir(args.json):  # refused now, not after the whole run
+    if args.json not in (None, "-") and os.path.isdir(args.json):  # refused now, not after the run
         raise BigTError("is a folder; the --json report is a file: choose a file name",
                         args.json)
     if args.target_error is not None:
         return _invert_to_target(args, fb)
+    given = {name: getattr(args, name) for name in ("terms", "prune", "method")
+             if getattr(args, name) is not None}
     report = stratified_inverse(
-        args.T, args.output, terms=4 if args.terms is None else args.terms,
-        prune=config.DEFAULT_PRUNE if args.prune is None else args.prune, tol=args.tol,
-        prune_feed=args.prune_feed, prune_operator=args.prune_operator,
-        first_bounce=fb, method=args.method or "power", scheduler=args.scheduler,
-        memory_limit=args.memory_limit, progress=not args.no_progress, force=args.force,
-        workers=args.workers, overwrite=args.overwrite)
-    print(report.table())
-    print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
+        args.T, args.output, tol=args.tol, prune_feed=args.prune_feed,
+        prune_operator=args.prune_operator, first_bounce=fb, scheduler=args.scheduler,
+        memory_limit=args.memory_limit, progress=args.progress, force=args.force,
+        workers=args.workers, overwrite=args.overwrite, **given)
+    if args.json != "-":
+        print(report.table())
+        print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
     _write_json(args.json, report.to_dict())
     return 0
 
@@ -131,15 +139,20 @@ def _invert_to_target(args, fb) -> int:
     report = invert_to_target(
         args.T, args.output, args.target_error, method=args.method, prune=args.prune,
         first_bounce=fb, memory_limit=args.memory_limit, scheduler=args.scheduler,
-        workers=args.workers, progress=not args.no_progress, overwrite=args.overwrite)
-    print(report.summary())
-    print(f"-> {args.output}")
+        workers=args.workers, progress=args.progress, overwrite=args.overwrite)
+    if args.json != "-":
+        print(report.summary())
+        print(f"-> {args.output}")
     _write_json(args.json, report.to_dict())
     return 0 if report.met else 1
 
 
 def _write_json(path, data: dict) -> None:
-    if path:
+    """``--json``: ``data`` on stdout ("-"), or into the file ``path``."""
+    if path == "-":
+        json.dump(data, sys.stdout, indent=1, default=str)
+        print()
+    elif path:
         from ..atomic import atomic_output
 
         with atomic_output(path, "the JSON report") as tmp:

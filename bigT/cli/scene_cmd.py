@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 
 from .. import config
-from ._argtypes import density, image_size, integer, memory_size, number
+from ._argtypes import density, image_size, integer, number
+from ._options import add_json, add_memory_limit, add_progress
 
 
 def register(subparsers) -> None:
@@ -47,14 +48,13 @@ def register(subparsers) -> None:
                    help="pixel order of the store (default %(default)s)")
     p.add_argument("--dtype", choices=("float32", "float64"), default=None,
                    help="dtype of T's values (default float32; dihedral4 float64)")
-    p.add_argument("--memory-limit", type=memory_size, default=None, metavar="SIZE",
-                   help="memory the build may hold of A and T (e.g. 4GiB; default "
-                        f"{config.SCENE_IN_MEMORY_BYTES >> 30}GiB): a matrix within it is "
-                        "read whole once, a larger one tile row by tile row")
+    add_memory_limit(p, default=config.SCENE_IN_MEMORY_BYTES,
+                     bounds="memory the build may hold of A and T, e.g. 4GiB: a matrix "
+                     "within it is read whole once, a larger one tile row by tile row")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bigT store")
     p.add_argument("--no-preview", action="store_true", help="do not write the preview PNG")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_progress(p)
+    add_json(p)
     p.set_defaults(func=scene_cmd)
 
 
@@ -69,7 +69,7 @@ def scene_cmd(args) -> int:
                       threshold=args.threshold, noise=args.noise, noise_floor=args.noise_floor,
                       blur=args.blur, seed=args.seed, tile_size=args.tile_size,
                       pixel_order=args.pixel_order, memory_limit=args.memory_limit,
-                      progress=False if args.no_progress else None)
+                      progress=None if args.progress else False)
     scene = make(args.name, args.size, args.output, **kwargs)
     if args.json:
         print(json.dumps(scene.summary, indent=1))

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
 from .. import config
+from ..sizes import format_size
 from ._argtypes import image_size, integer, number
+from ._options import add_json, add_size, deprecated
 
 
 def register(subparsers) -> None:
@@ -42,16 +45,18 @@ def register(subparsers) -> None:
     p.add_argument("--order", choices=("row-major", "matrix"), default="row-major",
                    help="row-major image order (default; undoes a tile-major pixel order) or "
                         "the stored matrix order")
-    p.add_argument("--max-gb", type=number(0, lo_open=True), default=None,
-                   help="refuse beyond this many GB of CSR arrays (default "
-                        f"{config.TO_SCIPY_MAX_BYTES / 1e9:g})")
+    add_size(p, "--max-size", dest="max_bytes", default=config.TO_SCIPY_MAX_BYTES,
+             help="refuse a matrix whose CSR arrays would exceed this in memory")
+    p.add_argument("--max-gb", dest="max_bytes", type=number(0, lo_open=True),
+                   help=argparse.SUPPRESS,
+                   action=deprecated("--max-size", lambda gb: int(gb * 1e9), format_size))
     p.set_defaults(func=export_cmd)
 
     p = subparsers.add_parser("info", help="summarise a bigT store",
                               description="Shape, nnz, tile fill, diagonal, size and metadata "
                                           "of a bigT store; checks that every chunk file exists.")
     p.add_argument("store", metavar="STORE")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(p, "the summary")
     p.set_defaults(func=info_cmd)
 
 
@@ -76,8 +81,7 @@ def export_cmd(args) -> int:
     from ..storage.convert import save_matrix
 
     S = open_store(args.store)
-    max_bytes = None if args.max_gb is None else int(args.max_gb * 1e9)
-    A = S.to_scipy(max_bytes=max_bytes, output_order=args.order)
+    A = S.to_scipy(max_bytes=args.max_bytes, output_order=args.order)
     out = save_matrix(A, args.output)
     print(f"wrote {out}: {A.shape[0]} x {A.shape[1]}, nnz {A.nnz}")
     return 0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ._options import add_progress
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -12,7 +14,7 @@ def register(subparsers) -> None:
                     "status 0 when all is well, 2 (with the first problem found) when not. "
                     "`bigT info` only checks that the chunk files exist.")
     p.add_argument("store", metavar="STORE")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(p)
     p.set_defaults(func=verify_cmd)
 
 
@@ -23,7 +25,7 @@ def verify_cmd(args) -> int:
 
     t0 = time.perf_counter()
     S = open_store(args.store)
-    checked = S.verify(progress=not args.no_progress)
+    checked = S.verify(progress=args.progress)
     via = f" (term {S.metadata['inverse'].get('term')} of {S.redirected_from})" \
         if S.redirected_from is not None and "inverse" in S.metadata else ""
     tiles = f"{checked['tiles']} tile" + ("s" if checked["tiles"] != 1 else "")

@@ -16,7 +16,18 @@ from .core import (  # noqa: F401
     separate_bounces,
 )
 from ..schedule.stream import stream_matmul  # noqa: F401
+from .simulate import (  # noqa: F401
+    Flatness,
+    SimulatedFrame,
+    Simulation,
+    SimulationReport,
+    simulate,
+    simulate_batches,
+    simulation_figures,
+)
 
 __all__ = ["compensate", "relight", "separate_bounces", "matrix_free_apply", "choose_path",
            "stream_matmul", "bounce_shares", "relative_error", "fluctuation", "scan_line",
-           "first_bounce_from_inverse", "PathChoice", "CompensationReport"]
+           "first_bounce_from_inverse", "PathChoice", "CompensationReport",
+           "simulate", "simulate_batches", "simulation_figures", "Simulation",
+           "SimulationReport", "Flatness", "SimulatedFrame"]

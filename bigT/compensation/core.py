@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
+from ..errors import UNSET, BigTError, InvalidMatrixError, Option, ShapeMismatchError
 from ..schedule.stream import (
     cache_budget,
     compute_dtype,
@@ -30,6 +30,9 @@ from ..storage.frames import (as_frames, matrix_to_frames, pixel_order_of,
                               to_frames, to_vectors)
 
 PATHS = ("explicit", "matrix-free", "auto")
+#: The transport of the matrix-free path, as errors name it (the command line takes it
+#: with --matrix-free).
+_MATRIX_FREE_T = Option("T", UNSET, cli="--matrix-free T.zarr")
 
 
 # --- matrix-free stratified inverse ---------------------------------------------------
@@ -121,7 +124,7 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
     terms = int(config.DEFAULT_COMPENSATION_TERMS if terms is None else terms)
     if X is None and T is None:
         raise BigTError("compensation needs the inverse X (explicit path) or the transport T "
-                        "(matrix-free path, --matrix-free T.zarr)")
+                        "(matrix-free path, {option})", option=_MATRIX_FREE_T)
     c_x = None if X is None else int(X.nnz)
     c_t = None if T is None else int(terms * T.nnz)
     if path == "explicit" or (path == "auto" and T is None):
@@ -132,7 +135,8 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
                           None, c_x, c_t)
     if path == "matrix-free" or X is None:
         if T is None:
-            raise BigTError("the matrix-free path needs the transport T (--matrix-free T.zarr)")
+            raise BigTError("the matrix-free path needs the transport T ({option})",
+                            option=_MATRIX_FREE_T)
         why = "asked for" if path == "matrix-free" else "no inverse X given"
         return PathChoice("matrix-free", f"{why}: {terms} passes over T, {terms} x nnz(T) = "
                           f"{c_t:,} per frame", terms, c_x, c_t)

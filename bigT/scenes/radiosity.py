@@ -116,8 +116,8 @@ def check_all_pairs(n: int, cut: float) -> None:
     if cut == 0 and n * n > config.SCENE_MAX_ALL_PAIRS:
         raise MemoryLimitError(
             f"cut = 0 tests all {n}^2 pairs, more than config.SCENE_MAX_ALL_PAIRS = "
-            f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. --ff-cut 1e-6) "
-            "or a density preset")
+            f"{config.SCENE_MAX_ALL_PAIRS}; give a form-factor cut (e.g. {{option}}) "
+            "or a density preset", option=("ff_cut", 1e-6))
 
 
 def form_factor_rows(P: Patches, cut: float = 0.0, *, rows=None, chunk: int | None = None,

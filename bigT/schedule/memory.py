@@ -168,14 +168,14 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     if rest < minimum:
         need = baseline + headroom + workers * (fixed + config.MEMORY_MIN_WORK_BYTES)
         raise MemoryLimitError(
-            f"memory_limit {human_bytes(limit)} is too small for this run: the process "
+            f"{{option}} {human_bytes(limit)} is too small for this run: the process "
             f"already holds {human_bytes(baseline)} (interpreter and libraries), and each "
             f"of {workers} tasks needs {human_bytes(fixed)} that no plan can shrink (one "
             f"tile row of M, {max_tile_row_nnz} entries, and the product's accumulators "
             f"for {n_cols} columns) plus at least "
             f"{human_bytes(config.MEMORY_MIN_WORK_BYTES)} to work in; "
             f"give at least {human_bytes(need)}, fewer workers, or a store with a smaller "
-            "tile size")
+            "tile size", option="memory_limit")
     # The cache of M's tile rows saves rebuilding them from T at every term and
     # mat-vec; a shared right factor saves re-reading its tile rows per output chunk.
     cache = int(config.MEMORY_CACHE_SHARE * rest)

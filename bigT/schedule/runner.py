@@ -267,7 +267,8 @@ def open_runner(scheduler=None, *, workers: int = 2, memory_limit: int | None = 
 
 def _local_cluster(n: int, memory_limit: int | None) -> ClusterRunner:
     if n < 1:
-        raise SchedulerError(f"--scheduler local:{n}: need at least one worker process")
+        raise SchedulerError("{option}: need at least one worker process",
+                             option=("scheduler", f"local:{n}"))
     from distributed import Client, LocalCluster  # ~0.5 s, only for a cluster
 
     per_worker = "auto" if memory_limit is None else max(1, int(memory_limit) // n)

@@ -404,8 +404,8 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
                         f"failed: {type(exc).__name__}: {exc}", spec.T) from None
     except MemoryError:
         raise TaskError(f"{spec.op} (term {spec.term}, rows {block.start}:{block.stop}) ran "
-                        "out of memory: give the workers more memory or a --memory-limit "
-                        "the plan can keep", spec.T) from None
+                        "out of memory: give the workers more memory or a {option} "
+                        "the plan can keep", spec.T, option="memory_limit") from None
     except Exception as exc:
         raise TaskError(f"{spec.op} (term {spec.term}, rows {block.start}:{block.stop}) "
                         f"failed: {type(exc).__name__}: {exc}", spec.T) from None

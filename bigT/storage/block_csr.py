@@ -20,6 +20,7 @@ from ..errors import (
     CorruptStoreError,
     IncompleteStoreError,
     MemoryLimitError,
+    Option,
     ShapeMismatchError,
     StoreError,
 )
@@ -208,11 +209,13 @@ class BlockCSR:
             if missing:
                 first = ", ".join(str(i) for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
                 msg = (f"incomplete store: {len(missing)} of {n_rows} tile rows are missing "
-                       f"(rows {first}); resume writing with resume=True")
+                       f"(rows {first}); to resume writing: {{option}}")
             else:
                 msg = "incomplete store: all tile rows written but the writer never finalized; " \
-                      "resume writing with resume=True and finalize()"
-            raise IncompleteStoreError(msg, self.path)
+                      "to finish it: {option}"
+            raise IncompleteStoreError(msg, self.path, option=Option(
+                "resume", python="resume=True, then finalize()",
+                cli="rerun the command that wrote it"))
         self.tile_indptr = np.concatenate([[0], np.cumsum(lengths, dtype=np.int64)]).astype(np.int64)
         self.tile_indices = np.asarray(cols, dtype=np.int64)
         self.tile_nnz = np.asarray(counts, dtype=np.int64)

@@ -115,7 +115,7 @@ def check_values(A, path, dtype=None) -> None:
         np.float64 if A.dtype == np.float64 else np.float32)
     info = np.finfo(dt)
     data = _values(A)
-    remedy = (": store float64 (dtype='float64') or scale the matrix (its inverse scales "
+    remedy = (": store float64 ({option}) or scale the matrix (its inverse scales "
               "exactly)" if dt != np.float64 else ": scale the matrix (its inverse scales "
               "exactly)")
     checks = (
@@ -130,7 +130,8 @@ def check_values(A, path, dtype=None) -> None:
         with np.errstate(invalid="ignore"):
             if test(data).any():
                 count, row = _count_and_first_row(A, test)
-                raise InvalidMatrixError(f"{count} {what} (first in row {row}){advice}", path)
+                raise InvalidMatrixError(f"{count} {what} (first in row {row}){advice}", path,
+                                         option=("dtype", "float64") if "{option}" in advice else None)
 
 
 def _values(A) -> np.ndarray:
@@ -165,7 +166,8 @@ def _load_mat(path: Path, var: str | None):
     if not candidates:
         raise StoreError(f"no sparse or 2-D numeric variable (variables: "
                          f"{', '.join(sorted(arrays)) or 'none'})", path)
-    raise StoreError(f"several matrix variables, choose one with --var: {', '.join(sorted(candidates))}", path)
+    raise StoreError(f"several matrix variables, choose one with {{option}}: {', '.join(sorted(candidates))}", path,
+                     option="var")
 
 
 def save_matrix(A, path) -> Path:

@@ -277,8 +277,8 @@ class InverseStore:
             held = ", ".join(f"{k}={record.params.get(k)}" for k in diff)
             raise StoreError("holds an inverse with different " + ", ".join(diff) + " than "
                              f"asked (it holds {held}); rerun with the same parameters to "
-                             "resume, pass overwrite=True to start anew, or choose another "
-                             "path", self.path)
+                             "resume, pass {option} to start anew, or choose another "
+                             "path", self.path, option=("overwrite", True))
         self._check_term_held(record)
         record = self.reconcile(record)
         if record.dir is not None:  # made before leases existed, or by a crash after

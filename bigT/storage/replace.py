@@ -46,7 +46,8 @@ def check_replaceable(path: Path, overwrite: bool) -> None:
     recover_interrupted_replace(path)
     if path.exists():
         if not overwrite:
-            raise StoreError("already exists; pass overwrite=True (--overwrite) to replace it", path)
+            raise StoreError("already exists; pass {option} to replace it", path,
+                             option=("overwrite", True))
         if not is_bigt_or_empty(path):
             raise StoreError("exists and is not a bigT store; refusing to overwrite it", path)
 

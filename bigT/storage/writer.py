@@ -22,6 +22,7 @@ from ..errors import (
     IncompleteStoreError,
     InvalidMatrixError,
     NotSquareError,
+    Option,
     ShapeMismatchError,
     StoreError,
 )
@@ -47,7 +48,8 @@ def _check_dtype(dtype, where) -> np.dtype:
 def _wrap_oserror(exc: OSError, path: Path, what: str) -> BigTError | None:
     if exc.errno == errno.ENOSPC:
         return DiskFullError(f"disk full while writing {what}; tile rows completed before it "
-                             f"are kept (resume with resume=True)", path)
+                             "are kept (to resume: {option})", path,
+                             option=Option("resume", cli="rerun the same command"))
     return None
 
 
@@ -612,6 +614,6 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
             writer.finalize()
             move_into_place(tmp, path)
     except DiskFullError as exc:
-        raise DiskFullError(f"disk full while writing ({exc.problem}); nothing was changed at the "
-                            f"destination", path) from exc
+        raise DiskFullError(f"disk full while writing ({exc.template}); nothing was changed at the "
+                            f"destination", path, option=exc.option) from exc
     return open_store(path)

@@ -1,0 +1,293 @@
+"""Compensating files: an image, a folder of frames or a video in, the projector's
+frames out, streamed through X (held in memory when it fits).
+
+What ``bigT compensate X in.mp4 -o out.mp4`` does, as a library call, in two steps so
+that a caller can say what is about to happen before the long part starts::
+
+    with FileCompensation(X, "in.mp4", "out.mp4") as job:   # inputs checked, X loaded
+        print(job.describe())
+        report = job.run()
+    print(report.describe())
+
+Nothing is written before every input check has passed; a video output is written
+whole or not at all (:class:`~bigT.compensation.video.VideoSink`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .. import config
+from ..errors import ImageError
+from ..images import ImageSink, ImageSource, is_image_file, read_image
+from ..schedule.stream import scheduler_runner
+from ..storage import as_store
+from .core import CompensationReport, choose_path
+from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
+                       video_batches)
+from .simulate import clipped_summary
+from .video import DEFAULT_FPS, VideoSink, VideoSource, is_video_file
+
+
+@dataclass(frozen=True)
+class FileCompensationReport:
+    """What :meth:`FileCompensation.run` did.
+
+    Attributes
+    ----------
+    output : Path, the video, image or folder written
+    batch : int, frames per pass
+    stream : StreamReport, frames, seconds and latency of the run
+    residency : Residency, whether X was held in memory, and why
+    compensation : CompensationReport, the path taken and the clipped pixels
+    clip : (lo, hi) or None
+    """
+
+    output: Path
+    batch: int
+    stream: StreamReport
+    residency: Residency
+    compensation: CompensationReport
+    clip: tuple | None
+
+    def describe(self) -> str:
+        s = self.stream
+        lines = [f"{s.frames} frame(s) in {s.compute_seconds:.2f} s of products "
+                 f"({s.frames / max(s.compute_seconds, 1e-9):.1f} frames/s, batch "
+                 f"{self.batch}); {s.seconds:.2f} s in all",
+                 s.summary(self.residency)]
+        if self.clip is not None:
+            c = self.compensation
+            lines.append(clipped_summary(c.clipped_low, c.clipped_high, c.pixels, self.clip))
+        lines.append(f"wrote projector input -> {self.output}")
+        return "\n".join(lines)
+
+
+class FileCompensation:
+    """One compensation of files, checked and set up on entry, run by :meth:`run`.
+
+    Parameters
+    ----------
+    X : BlockCSR, path, or None
+        The inverse (None with ``path="matrix-free"``).
+    desired : path
+        An image (.png, .tif, .npy), a folder of them, or a video.
+    output : path
+        An image or folder of the same kind, or a video (a video input always gives a
+        video; a folder may give one).
+    T : BlockCSR or path, optional
+        The transport, for the matrix-free path.
+    path : {"auto", "explicit", "matrix-free"}
+    terms : int, optional, of the matrix-free path (default X's).
+    clip : (lo, hi) or None
+    batch : int, frames per pass over X.
+    bits : int, optional, of the images or video written (default the input's, else 8).
+    fps : float, optional, of a video made from a folder (default 30).
+    resident : bool
+        Hold X in memory when it fits ``memory_limit`` (never on a cluster).
+    memory_limit : int, optional
+        Bytes X may take in memory (default: a share of the available memory).
+    precision : {"float32", "float16"}, of X held in memory.
+    cache_bytes : int, optional
+        Tile cache of a streamed X (default ``config.COMPENSATE_CACHE_BYTES``).
+    scheduler : as :func:`bigT.schedule.runner.open_runner`, optional.
+    """
+
+    def __init__(self, X, desired, output, *, T=None, path: str = "auto",
+                 terms: int | None = None, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
+                 bits: int | None = None, fps: float | None = None, resident: bool = True,
+                 memory_limit: int | None = None, precision: str = "float32",
+                 cache_bytes: int | None = None, scheduler=None):
+        self.X = None if X is None else as_store(X, "X")
+        self.T = None if T is None else as_store(T, "T")
+        self.choice = choose_path(self.X, self.T if path != "explicit" else None, terms, path)
+        store = self.X if self.choice.path == "explicit" else self.T
+        self.shape = image_shape_of(store)
+        check_same_images(self.shape, (self.X, "X"), (self.T, "T"))
+        self.clip, self.batch = clip, int(batch)
+        self.video_in = is_video_file(desired)
+        self.source = (VideoSource(desired, self.shape) if self.video_in
+                       else ImageSource(desired, self.shape))
+        if not self.video_in and self.source.is_folder:
+            check_frame_shapes(self.source.files, self.shape)  # before anything is written
+        self.output = Path(output)
+        self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps)
+        self._options = dict(memory_limit=memory_limit, precision=precision,
+                             resident=resident and scheduler is None,
+                             cache_bytes=(config.COMPENSATE_CACHE_BYTES if cache_bytes is None
+                                          else cache_bytes))
+        self._scheduler = scheduler
+        self._stack: contextlib.ExitStack | None = None
+        self.runner = None
+        self.compensator: Compensator | None = None
+
+    def __enter__(self) -> "FileCompensation":
+        with contextlib.ExitStack() as stack:
+            self.runner = stack.enter_context(scheduler_runner(self._scheduler))
+            self.compensator = Compensator(self.X, self.T, self.choice, self.clip,
+                                           runner=self.runner, **self._options)
+            self._stack = stack.pop_all()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        if self._stack is not None:
+            self._stack.close()
+        return False
+
+    @property
+    def frames(self) -> int | None:
+        """Frames to compensate (a video's is its header's estimate; None if unknown)."""
+        return len(self.source) or None
+
+    @property
+    def residency(self) -> Residency:
+        return self._entered().residency
+
+    def describe(self) -> str:
+        """What is about to run: the input, the stores, the path (before entering: X
+        is not read yet)."""
+        src = self.source
+        count = self.frames
+        head = (f"{'~' if self.video_in else ''}{count if count else 'the'} frame(s) from "
+                f"{src.path}" + (f", image {self.shape[0]}x{self.shape[1]}" if self.shape else "")
+                + (f", video {src.info.codec} {src.info.pix_fmt} at {src.info.fps:g} frames/s"
+                   if self.video_in else ""))
+        lines = [head]
+        for st, name in ((self.X, "X"), (self.T if self.choice.path == "matrix-free" else None,
+                                         "T")):
+            if st is not None:
+                lines.append(describe_store(st, name))
+        lines.append(describe_path(self.choice))
+        return "\n".join(lines)
+
+    def describe_residency(self) -> str:
+        """Where X is held for the run, and why (in memory, or streamed from disk)."""
+        count = self.frames
+        return self.residency.describe(min(self.batch, count or self.batch))
+
+    def run(self, *, overlap: bool = True,
+            on_batch: Callable[[int], None] | None = None) -> FileCompensationReport:
+        """Compensate every frame and write the output.
+
+        Parameters
+        ----------
+        overlap : bool
+            Read the next batch and write the last one while this one is computed.
+        on_batch : callable, optional
+            Called with the number of frames of each batch done (a progress bar).
+        """
+        comp = self._entered()
+        batches = (video_batches(self.source, self.batch) if self.video_in
+                   else image_batches(self.source, self.batch))
+        with self._sink as write:
+            stream = run_stream(batches, comp, write, batch=self.batch, overlap=overlap,
+                                on_batch=on_batch)
+        return FileCompensationReport(self._sink.path, self.batch, stream, comp.residency,
+                                      comp.report, self.clip)
+
+    def _entered(self) -> Compensator:
+        if self.compensator is None:
+            raise RuntimeError("use FileCompensation as a context manager: "
+                               "`with FileCompensation(...) as job: job.run()`")
+        return self.compensator
+
+
+def compensate_files(X, desired, output, **options) -> FileCompensationReport:
+    """Compensate an image, a folder of frames or a video in one call
+    (:class:`FileCompensation`, its options, entered and run)."""
+    with FileCompensation(X, desired, output, **options) as job:
+        return job.run()
+
+
+def image_shape_of(store) -> tuple[int, int] | None:
+    """The (H, W) of the images a store maps (None when it records no pixel order)."""
+    order = getattr(store, "pixel_order", None)
+    return None if order is None else order.image_shape
+
+
+def check_same_images(shape, *stores) -> None:
+    """ImageError unless every ``(store, name)`` given maps images of ``shape`` (or
+    records none)."""
+    for store, name in stores:
+        if store is not None and shape is not None and image_shape_of(store) not in (None, shape):
+            raise ImageError(f"{name} maps images of shape {image_shape_of(store)} but the "
+                             f"compensation store maps {shape}", store.path)
+
+
+def describe_store(store, name: str) -> str:
+    """``X /path: 12,288 x 12,288, nnz 1,234 (100/row), 2 tile rows``."""
+    return (f"{name} {store.path}: {store.shape[0]:,} x {store.shape[1]:,}, nnz {store.nnz:,} "
+            f"({store.nnz / max(store.shape[0], 1):.0f}/row), {store.grid[0]} tile rows")
+
+
+def describe_path(choice) -> str:
+    """``path: explicit -- why``, with the terms of the matrix-free path."""
+    return (f"path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
+                                      else "") + f" -- {choice.reason}")
+
+
+def check_frame_shapes(files, shape) -> None:
+    """Every frame of a folder has the transport's (H, W): read from the headers, so a
+    folder with one bad frame is refused before anything is written."""
+    if shape is None:
+        return
+    import imageio.v3 as iio  # ~0.2 s: only a folder of frames needs it
+
+    for f in files:
+        try:
+            found = (np.load(f, mmap_mode="r", allow_pickle=False).shape
+                     if f.suffix.lower() == ".npy" else iio.improps(f).shape)
+        except Exception:  # unreadable: read_image says why, naming the file
+            found = None
+        if (found is None or len(found) not in (2, 3) or tuple(found[:2]) != tuple(shape)
+                or found[2:] not in ((), (1,))):
+            read_image(f, shape)  # raises the one-line ImageError naming the file
+
+
+class _Sink:
+    """``write(names, frames)`` into a video (whole or nothing) or images
+    (:class:`ImageSink`); checked when made, opened only by ``with``."""
+
+    def __init__(self, source, out_path: Path, video: VideoSink | None, bits):
+        self.source, self.out_path, self.bits, self._video = source, out_path, bits, video
+        single_into_folder = video is None and not source.is_folder and out_path.is_dir()
+        #: what is written: the video, the folder, or the one image
+        self.path = out_path / source.path.name if single_into_folder else out_path
+
+    def __enter__(self):
+        if self._video is not None:
+            video = self._video.__enter__()
+            return lambda names, frames: video.write(frames)
+        return ImageSink(self.out_path, self.source, bits=self.bits).write
+
+    def __exit__(self, *exc):
+        if self._video is not None:
+            return self._video.__exit__(*exc)
+        return False
+
+
+def _sink_for(source, out_path: Path, video_in: bool, bits, fps) -> _Sink:
+    """The output of a compensation, its kind and format checked before X is read."""
+    if video_in or (source.is_folder and is_video_file(out_path)):
+        fps = source.info.fps if video_in else (fps or DEFAULT_FPS)
+        bits = bits or (source.info.bits if video_in else 8)
+        shape = source.info.shape if video_in else _frame_shape(source)
+        return _Sink(source, out_path, VideoSink(out_path, shape, fps, bits), bits)
+    if source.is_folder:
+        if out_path.exists() and not out_path.is_dir():
+            raise ImageError("the input is a folder, so the output must be a folder (or "
+                             "a video) too", out_path)
+    elif not out_path.is_dir() and not is_image_file(out_path):
+        raise ImageError(f"unknown output format {out_path.suffix!r} (an image: .png, "
+                         ".tif, .tiff, .npy)", out_path)
+    return _Sink(source, out_path, None, bits)
+
+
+def _frame_shape(source):
+    """(H, W) of a folder's frames: the store's, else the first frame's."""
+    return source.shape or read_image(source.files[0]).shape
