@@ -132,36 +132,24 @@ def _sibling(path: Path, tag: str, suffix: str | None = None) -> Path:
     return path.with_name(f"{path.name}_{tag}{suffix or ''}")
 
 
-def _image_shape(store):
-    order = getattr(store, "pixel_order", None)
-    return None if order is None else order.image_shape
-
-
-def _describe(store, name):
-    return (f"{name} {store.path}: {store.shape[0]:,} x {store.shape[1]:,}, nnz {store.nnz:,} "
-            f"({store.nnz / max(store.shape[0], 1):.0f}/row), {store.grid[0]} tile rows")
-
-
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
+    # the compensation layer's imports (~0.5 s) are paid by these commands only, not by
+    # every command whose parser this module adds
     from ..compensation import choose_path
+    from ..compensation.files import check_same_images, image_shape_of
     from ..compensation.video import is_video_file
     from ..storage import as_store
 
     X = None if args.X == "-" else as_store(args.X, "X")
     S = None if args.simulate is None else as_store(args.simulate, "T")
     Tm = as_store(args.matrix_free, "T") if args.matrix_free else S
-    choice = choose_path(X, Tm if args.path != "explicit" else None, args.terms, args.path)
-    store = X if choice.path == "explicit" else Tm
-    shape = _image_shape(store)
-    for other, name in ((X, "X"), (Tm, "T"), (S, "T (--simulate)")):
-        if other is not None and shape is not None and _image_shape(other) not in (None, shape):
-            raise ImageError(f"{name} maps images of shape {_image_shape(other)} but the "
-                             f"compensation store maps {shape}", other.path)
-
     if args.simulate is None:
-        return _run_stream(args, X, Tm, choice, shape)
+        return _run_stream(args, X, Tm)
+    choice = choose_path(X, Tm if args.path != "explicit" else None, args.terms, args.path)
+    shape = image_shape_of(X if choice.path == "explicit" else Tm)
+    check_same_images(shape, (X, "X"), (Tm, "T"), (S, "T (--simulate)"))
     if is_video_file(args.desired):
         raise ImageError("--simulate takes an image or a folder of frames, not a video",
                          args.desired)
@@ -172,6 +160,7 @@ def _run_simulate(args, X, S, Tm, choice, shape) -> int:
     """compensate --simulate: :func:`bigT.compensation.simulate_batches` over the frames,
     its report and figures printed."""
     from ..compensation import simulate_batches, simulation_figures
+    from ..compensation.files import describe_path, describe_store
     from ..images import ImageSink, ImageSource
     from ..progress import progress_bar
 
@@ -184,9 +173,9 @@ def _run_simulate(args, X, S, Tm, choice, shape) -> int:
     shown = []
     for st, name in ((X, "X"), (Tm if choice.path == "matrix-free" else None, "T"), (S, "T")):
         if st is not None and all(st is not o for o in shown):
-            print("  " + _describe(st, name))
+            print("  " + describe_store(st, name))
             shown.append(st)
-    _print_path(choice)
+    print("  " + describe_path(choice))
 
     t0 = time.perf_counter()
     with progress_bar(progress=args.progress, total=len(source), desc="compensate",
@@ -216,154 +205,50 @@ def _run_simulate(args, X, S, Tm, choice, shape) -> int:
     return 0
 
 
-def _print_path(choice) -> None:
-    print(f"  path: {choice.path}" + (f" ({choice.terms} terms)" if choice.terms is not None
-                                      else "") + f" -- {choice.reason}")
-
-
-def _run_stream(args, X, Tm, choice, shape) -> int:
-    """compensate without --simulate: frames streamed through
-    :func:`bigT.compensation.realtime.run_stream`, X in memory when it fits."""
+def _run_stream(args, X, Tm) -> int:
+    """compensate without --simulate: :class:`bigT.compensation.FileCompensation` set up
+    (inputs checked, X loaded), described, run, its report printed."""
     import sys
 
-    from ..schedule.stream import scheduler_runner
-    from ..compensation.realtime import Compensator, image_batches, run_stream, video_batches
-    from ..compensation.simulate import clipped_summary
-    from ..compensation.video import VideoSource, is_video_file
-    from ..images import ImageSource
+    from ..compensation import FileCompensation
     from ..progress import progress_bar
 
-    video_in = is_video_file(args.desired)
-    source = VideoSource(args.desired, shape) if video_in else ImageSource(args.desired, shape)
-    if not video_in and source.is_folder:
-        check_frame_shapes(source.files, shape)  # a bad frame is found before writing any
-    out_path = Path(args.output)
-    video_out = video_in or (source.is_folder and is_video_file(out_path))
-    frames_total = len(source) or None
-    count = (f"~{frames_total}" if video_in else frames_total) if frames_total else "the"
-    print(f"bigT compensate: {count} frame(s) from {args.desired}"
-          + (f", image {shape[0]}x{shape[1]}" if shape else "")
-          + (f", video {source.info.codec} {source.info.pix_fmt} at {source.info.fps:g} "
-             "frames/s" if video_in else ""))
-    for st, name in ((X, "X"), (Tm if choice.path == "matrix-free" else None, "T")):
-        if st is not None:
-            print("  " + _describe(st, name))
-    _print_path(choice)
-    output = _Output(args, source, out_path, video_in, video_out)  # checked before X is read
-    with scheduler_runner(args.scheduler) as runner:
-        if runner is not None:
-            print(f"  running on {runner.describe()}")
-        comp = Compensator(X, Tm, choice, args.clip, memory_limit=args.memory_limit,
-                           precision=args.precision,
-                           resident=not args.stream and args.scheduler is None,
-                           cache_bytes=(config.COMPENSATE_CACHE_BYTES if args.cache_bytes is None
-                                        else args.cache_bytes), runner=runner)
+    job = FileCompensation(
+        X, args.desired, args.output, T=Tm, path=args.path, terms=args.terms, clip=args.clip,
+        batch=args.batch, bits=args.bits, fps=args.fps, resident=not args.stream,
+        memory_limit=args.memory_limit, precision=args.precision,
+        cache_bytes=args.cache_bytes, scheduler=args.scheduler)
+    head, *rest = job.describe().splitlines()
+    print(f"bigT compensate: {head}")
+    for line in rest:
+        print("  " + line)
+    with job:  # X read (into memory when it fits), the scheduler's runner opened
+        if job.runner is not None:
+            print(f"  running on {job.runner.describe()}")
         if not args.quiet:
-            per_pass = min(args.batch, frames_total or args.batch)
-            print(f"bigT compensate: {comp.residency.describe(per_pass)}", file=sys.stderr)
-        batches = (video_batches(source, args.batch) if video_in
-                   else image_batches(source, args.batch))
-        with progress_bar(progress=args.progress, total=frames_total, desc="compensate",
-                          unit="frame", leave=True) as bar, \
-                output as write:
-            stream = run_stream(batches, comp, write, batch=args.batch,
-                                overlap=not args.serial, on_batch=bar.update)
-    report = comp.report
-    print(f"  {stream.frames} frame(s) in {stream.compute_seconds:.2f} s of products "
-          f"({stream.frames / max(stream.compute_seconds, 1e-9):.1f} frames/s, batch "
-          f"{args.batch}); {stream.seconds:.2f} s in all")
-    print("  " + stream.summary(comp.residency))
-    if args.clip is not None:
-        print("  " + clipped_summary(report.clipped_low, report.clipped_high, report.pixels,
-                                     args.clip))
-    print(f"  wrote projector input -> {out_path if video_out else _sink_path(out_path, source)}")
+            print(f"bigT compensate: {job.describe_residency()}", file=sys.stderr)
+        with progress_bar(progress=args.progress, total=job.frames, desc="compensate",
+                          unit="frame", leave=True) as bar:
+            report = job.run(overlap=not args.serial, on_batch=bar.update)
+    for line in report.describe().splitlines():
+        print("  " + line)
     return 0
-
-
-def _sink_path(out_path: Path, source) -> Path:
-    if not source.is_folder and out_path.is_dir():
-        return out_path / source.path.name
-    return out_path
-
-
-class _Output:
-    """The writer of ``_run_stream``: ``write(names, frames)`` into a video (whole or
-    nothing) or images (ImageSink). Checked when made (before X is loaded), opened
-    only after every input check passed."""
-
-    def __init__(self, args, source, out_path, video_in, video_out):
-        from ..compensation.video import DEFAULT_FPS, VideoSink
-        from ..images import is_image_file
-
-        self.args, self.source, self.out_path = args, source, out_path
-        self._video = None
-        if video_out:
-            fps = source.info.fps if video_in else (args.fps or DEFAULT_FPS)
-            bits = args.bits or (source.info.bits if video_in else 8)
-            shape = source.info.shape if video_in else _frame_shape(source)
-            self._video = VideoSink(out_path, shape, fps, bits)
-        elif source.is_folder:
-            if out_path.exists() and not out_path.is_dir():
-                raise ImageError("the input is a folder, so the output must be a folder (or "
-                                 "a video) too", out_path)
-        elif not out_path.is_dir() and not is_image_file(out_path):
-            raise ImageError(f"unknown output format {out_path.suffix!r} (an image: .png, "
-                             ".tif, .tiff, .npy)", out_path)
-
-    def __enter__(self):
-        from ..images import ImageSink
-
-        if self._video is not None:
-            video = self._video.__enter__()
-            return lambda names, frames: video.write(frames)
-        return ImageSink(self.out_path, self.source, bits=self.args.bits).write
-
-    def __exit__(self, *exc):
-        if self._video is not None:
-            return self._video.__exit__(*exc)
-        return False
-
-
-def _frame_shape(source):
-    """(H, W) of a folder's frames: the store's, else the first frame's."""
-    from ..images import read_image
-
-    return source.shape or read_image(source.files[0]).shape
-
-
-def check_frame_shapes(files, shape) -> None:
-    """Every frame of a folder has the transport's (H, W): read from the headers, so a
-    folder with one bad frame is refused before anything is written."""
-    if shape is None:
-        return
-    import imageio.v3 as iio
-
-    from ..images import read_image
-
-    for f in files:
-        try:
-            found = (np.load(f, mmap_mode="r", allow_pickle=False).shape
-                     if f.suffix.lower() == ".npy" else iio.improps(f).shape)
-        except Exception:  # unreadable: read_image says why, naming the file
-            found = None
-        if (found is None or len(found) not in (2, 3) or tuple(found[:2]) != tuple(shape)
-                or found[2:] not in ((), (1,))):
-            read_image(f, shape)  # raises the one-line ImageError naming the file
 
 
 # --- relight ----------------------------------------------------------------------------
 
 def run_relight(args) -> int:
     from ..compensation import relight
+    from ..compensation.files import describe_store, image_shape_of
     from ..schedule.stream import scheduler_runner
     from ..storage import as_store
     from ..images import ImageSink, ImageSource
 
     T = as_store(args.T, "T")
-    source = ImageSource(args.input, _image_shape(T))
+    source = ImageSource(args.input, image_shape_of(T))
     sink = ImageSink(args.output, source, bits=args.bits)
     print(f"bigT relight: {len(source)} frame(s) from {args.input}")
-    print("  " + _describe(T, "T"))
+    print("  " + describe_store(T, "T"))
     above = pixels = 0
     t0 = time.perf_counter()
     with scheduler_runner(args.scheduler) as runner:
@@ -388,6 +273,7 @@ def run_relight(args) -> int:
 
 def run_bounces(args) -> int:
     from ..compensation import bounce_shares, separate_bounces
+    from ..compensation.files import describe_store, image_shape_of
     from ..figures import bounce_strip
     from ..images import read_image, write_image
     from ..storage import as_store
@@ -400,10 +286,10 @@ def run_bounces(args) -> int:
     if out.exists() and not out.is_dir():  # refused now, not after the passes
         raise ImageError("is a file; bounces writes a folder of images: choose a folder",
                          out)
-    image = read_image(args.input, _image_shape(T))
+    image = read_image(args.input, image_shape_of(T))
     print(f"bigT bounces: {args.input}, K = {args.bounces}")
-    print("  " + _describe(T, "T"))
-    print("  " + _describe(X, "X"))
+    print("  " + describe_store(T, "T"))
+    print("  " + describe_store(X, "X"))
     t0 = time.perf_counter()
     parts = separate_bounces(T, X, image, args.bounces, progress=args.progress)
     dt = time.perf_counter() - t0

@@ -1,5 +1,6 @@
 """Compensation, relighting and bounce separation: the stored matrices streamed against
-images (paper §6, eqs. 44-45; Seitz et al. 2005 for the bounces)."""
+images (paper §6, eqs. 44-45; Seitz et al. 2005 for the bounces); files, folders of
+frames and videos compensated in one call (:mod:`.files`)."""
 
 from .core import (  # noqa: F401
     CompensationReport,
@@ -16,6 +17,7 @@ from .core import (  # noqa: F401
     separate_bounces,
 )
 from ..schedule.stream import stream_matmul  # noqa: F401
+from .files import FileCompensation, FileCompensationReport, compensate_files  # noqa: F401
 from .simulate import (  # noqa: F401
     Flatness,
     SimulatedFrame,
@@ -30,4 +32,5 @@ __all__ = ["compensate", "relight", "separate_bounces", "matrix_free_apply", "ch
            "stream_matmul", "bounce_shares", "relative_error", "fluctuation", "scan_line",
            "first_bounce_from_inverse", "PathChoice", "CompensationReport",
            "simulate", "simulate_batches", "simulation_figures", "Simulation",
-           "SimulationReport", "Flatness", "SimulatedFrame"]
+           "SimulationReport", "Flatness", "SimulatedFrame", "FileCompensation",
+           "FileCompensationReport", "compensate_files"]
