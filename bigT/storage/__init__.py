@@ -9,7 +9,7 @@ the versioned inverse store: :class:`InverseStore`.
 
 from .attrs import StoreAttrs
 from .block_csr import BlockCSR, as_store, open, row_marker, set_redirect  # noqa: A004
-from .inverse_store import InverseRecord, InverseStore, TermRecord
+from .inverse_store import InverseRecord, InverseStore, TermEntry
 from .pixel_order import PixelOrder
 from .writer import (
     BlockCSRWriter,
@@ -24,6 +24,6 @@ from .writer import (
 
 __all__ = [
     "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "PixelOrder",
-    "StoreAttrs", "TermRecord", "as_store", "clean_partial_rows", "create_store", "finalize_store",
+    "StoreAttrs", "TermEntry", "as_store", "clean_partial_rows", "create_store", "finalize_store",
     "from_scipy", "open", "read_store_attrs", "row_marker", "set_redirect", "write_tile_row",
 ]
