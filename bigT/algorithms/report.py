@@ -102,12 +102,12 @@ class InverseReport:
         new = [r for r in self.history if not self.earlier(r)]
         rho = (f"{self.seconds_spectral_radius:.2f} s on the spectral radius"
                if self.spectral_computed else "the spectral radius read from the store")
-        terms = (f"{sum(r.seconds for r in new):.2f} s on terms {new[0].term}-{new[-1].term}"
-                 if new else "no term computed")
+        terms = (f"{sum(r.seconds for r in new):.2f} s on {_terms(new)}" if new
+                 else "no term computed")
         line = f"this run: {self.seconds:.2f} s in all ({rho}, {terms}, the rest set-up)"
         old = [r for r in self.history if self.earlier(r)]
         if old:
-            line += (f"; the earlier run's terms {old[0].term}-{old[-1].term} took "
+            line += (f"; the earlier run's {_terms(old)} took "
                      f"{sum(r.seconds for r in old):.2f} s")
         return line
 
@@ -123,6 +123,12 @@ class InverseReport:
 
     def _thresholds(self) -> str:
         return Thresholds(self.prune, self.prune_feed, self.prune_operator).describe()
+
+
+def _terms(records: list[TermRecord]) -> str:
+    """``term 3`` or ``terms 0-2``."""
+    first, last = records[0].term, records[-1].term
+    return f"term {first}" if first == last else f"terms {first}-{last}"
 
 
 def _count(n: int) -> str:
