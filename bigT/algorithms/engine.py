@@ -8,6 +8,18 @@ recorded in X's metadata, the root's redirect flips to it, the record follows, a
 previous term is deleted. A crash leaves the previous term readable; the same call
 resumes at the first incomplete row block of the next term. The order of these writes
 is what the crash harness (tests/reliability) checks.
+
+Divergence is refused twice: before term 0, rho(M) is estimated
+(:func:`bigT.spectral.spectral_radius`: a Collatz-Wielandt bracket where M = -|M|, as
+for any transport without negative entries; else Arnoldi) and the run refused unless
+rho + uncertainty < 1; after every term, a residual that grew and exceeds the smallest
+so far ``config.RESIDUAL_GROWTH`` times is not published (not any growth: with a
+non-normal M, or at the pruning floor, a convergent series may grow for a term).
+``force`` skips both.
+
+The tasks run on :mod:`bigT.schedule.runner` (local threads, or a dask cluster's
+workers); the term stores take T's tile size, halved until every thread has work
+(:func:`choose_tile_size`), recorded and kept on resume.
 """
 
 from __future__ import annotations
