@@ -258,14 +258,14 @@ def on_each_term(callback):
     """While inside, ``callback(k)`` runs each time the engine has published term k:
     after the term's record (its time) is taken, before the next term's clock starts.
 
-    It wraps the engine's private ``_Engine._finish_term`` (benchmark only): extending
+    It wraps the engine's private ``InverseEngine._finish_term`` (benchmark only): extending
     the output call by call instead (``terms=1``, then ``terms=2``, ...) would start
     every term with an empty cache of T's rows, which a single call keeps from term to
     term (measured: 40 % more time on the 192x256 dense corner).
     """
-    from bigT.algorithms import stratified
+    from bigT.algorithms.engine import InverseEngine
 
-    engine = stratified._Engine
+    engine = InverseEngine
     original = engine._finish_term
 
     @functools.wraps(original)

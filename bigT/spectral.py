@@ -90,6 +90,32 @@ class SpectralRadius:
         return (f"{self.value:.4f} +- {self.uncertainty:.1e} "
                 f"({self.method}, {self.products} products)")
 
+    def meaning(self) -> str:
+        """What ``value +- uncertainty`` is, in words: an eigenvalue computed to
+        convergence (dense, ARPACK) and a Collatz-Wielandt bracket are not the same
+        kind of number, and the two may differ by the bracket's half-width."""
+        return spectral_meaning(self.method, self.value, self.uncertainty)
+
+
+def spectral_meaning(method: str | None, value: float | None,
+                     uncertainty: float | None) -> str:
+    """:meth:`SpectralRadius.meaning` from the recorded ``method``, ``value`` and
+    ``uncertainty`` (a store's record, a scene's summary; None when not recorded)."""
+    if uncertainty is not None and not math.isfinite(uncertainty):
+        return "undetermined: ARPACK did not converge"
+    if method == "collatz-wielandt" and value is not None and uncertainty is not None:
+        return (f"a rigorous Collatz-Wielandt bracket [{value - uncertainty:.4f}, "
+                f"{value + uncertainty:.4f}] on rho, enough to tell that the series "
+                "converges, not rho to these digits")
+    if method == "arnoldi":
+        return ("the largest eigenvalue modulus, computed by ARPACK to convergence "
+                "(+- its Ritz residual)")
+    if method == "dense":
+        return "the largest eigenvalue modulus, every eigenvalue computed (+- rounding)"
+    if method == "zero":
+        return "no pixels"
+    return "an estimate recorded without its method (by an older bigT)"
+
 
 def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = None,
                     rtol: float | None = None, max_products: int | None = None,
@@ -207,6 +233,8 @@ def _subinvariant_bound(apply_nonneg: BlockProduct, v: np.ndarray) -> float:
 
 def _arnoldi(apply_active: BlockProduct, m: int, rtol: float, max_products: int,
              seed: int) -> SpectralRadius:
+    # scipy.sparse.linalg (ARPACK): ~0.17 s, only when the dense and bracket paths
+    # cannot decide
     from scipy.sparse.linalg import ArpackError, ArpackNoConvergence, LinearOperator, eigs
 
     v0 = np.random.default_rng(seed).standard_normal(m)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..figures import pyplot, save_figure
-from ..scenes.builder import distinct_rows
+from ..scenes.preview import distinct_rows
 from ..storage import open as open_store
 from .build import ACQUISITION_KEY, load_correspondence
 from .captures import Captures

@@ -11,6 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InvalidMatrixError, ShapeMismatchError, short_reason
+from ..storage import as_store
 
 
 @dataclass(frozen=True)
@@ -207,9 +208,7 @@ def recover_first_bounce(X) -> np.ndarray:
         ``.npy`` file holding it) as ``first_bounce=`` of a second run.
     """
     if isinstance(X, (str, os.PathLike)):
-        from ..schedule._backend import open_store
-
-        X = open_store(X)
+        X = as_store(X, "X")
     if isinstance(X, np.ndarray):
         d = np.diagonal(X)
     elif sp.issparse(X):

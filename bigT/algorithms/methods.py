@@ -1,7 +1,7 @@
 """The series methods of the stratified inverse, each one object: its next-term rule,
 the passes of a term (which task runs, which term stores it reads and writes) and its
 exhaustion test. The block tasks (one row block of one pass) live here too, beside the
-method that uses them; the engine (:mod:`.stratified`) knows none of their details.
+method that uses them; the engine (:mod:`.engine`) knows none of their details.
 
 All work in the dimensionless variables of paper eq. 13: P_k = M^k, S_n = sum_{k<=n}
 M^k, and X = F^-1 S is stored. Adding a method is one class here and one entry in
@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..schedule import blocks
-from ..schedule._backend import prune, scale_rows, spmm_dense
+from ..kernels import prune, scale_rows, spmm_dense
 from ..schedule.worker import TaskContext
 
 
@@ -79,7 +79,7 @@ def power_task(ctx: TaskContext):
     Why two thresholds: an entry dropped from Q_k only stays in X, so its error
     reaches the residual through M times it (the next terms miss M D_k, M^2 D_k, ...),
     not as D_k itself: P_k, which sets the next product's cost, may be pruned harder
-    for the same error (:mod:`.stratified`, "Carrying"). Likewise the entries of M
+    for the same error (docs/DESIGN.md, "Carrying"). Likewise the entries of M
     below the spec's ``operator_threshold`` are left out of the product M P_{k-1}
     (k >= 2): what they would add is one bounce further down, D P_{k-1}, not D."""
     M = ctx.M.rows(ctx.start, ctx.stop)
@@ -212,7 +212,7 @@ class Power(SeriesMethod):
 
 class Horner(SeriesMethod):
     """S_n = I + M S_{n-1}: one product with the ever-growing S per term; corrects
-    earlier pruning (module docstring of :mod:`.stratified`)."""
+    earlier pruning (docs/DESIGN.md, "Power against Horner")."""
 
     name = "horner"
     help = "X_n = F^-1 + (I - F^-1 T) X_{n-1}"

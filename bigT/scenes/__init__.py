@@ -2,10 +2,13 @@
 
 ``bigT.scenes.<name>(size=(H, W), path=..., ...)`` builds a scene and returns a
 :class:`Scene`; names: ``dihedral4`` (paper eq. 34), ``corner``, ``convex``, ``flat``,
-``cornell``, ``hemispheres``. :func:`load` reopens one. See :mod:`bigT.scenes.builder`.
+``cornell``, ``hemispheres``. :func:`load` reopens one.
 
-The builder is imported on first use of one of its names, so that listing the scenes
-(:mod:`bigT.scenes.catalog`) stays cheap.
+Modules: :mod:`.builder` (the resumable build), :mod:`.scene` (the reader),
+:mod:`.ground_truth` (its layout on disk), :mod:`.preview`, :mod:`.paper_example`
+(the paper's 4x4 dihedral); :mod:`.geometry`, :mod:`.radiosity` and :mod:`.stored` compute.
+Each is imported on first use of one of its names, so that listing the scenes
+(:mod:`bigT.scenes.catalog`) stays cheap (no scipy.spatial, no zarr).
 """
 
 from __future__ import annotations
@@ -14,20 +17,24 @@ import importlib
 
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES  # noqa: F401
 
-_FROM_BUILDER = ("Scene", "build", "convex", "corner", "cornell", "dihedral4",
-                 "exact_inverse_rows", "flat", "hemispheres", "load", "make")
-_SUBMODULES = ("builder", "catalog", "geometry", "radiosity")
+#: Public name -> the module defining it, imported on first use.
+_LAZY = {"Scene": "scene", "load": "scene", "exact_inverse_rows": "scene",
+         "dihedral4": "paper_example",
+         **{name: "builder" for name in ("build", "convex", "corner", "cornell", "flat",
+                                          "hemispheres", "make")}}
+_SUBMODULES = ("builder", "catalog", "geometry", "ground_truth", "paper_example", "preview",
+               "radiosity", "scene", "stored")
 
-__all__ = ["DEFAULT_SIZES", "DENSITIES", "SCENE_NAMES", *_FROM_BUILDER]
+__all__ = ["DEFAULT_SIZES", "DENSITIES", "SCENE_NAMES", *_LAZY]
 
 
 def __getattr__(name: str):
-    if name in _FROM_BUILDER:
-        return getattr(importlib.import_module(".builder", __name__), name)
+    if name in _LAZY:
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
     if name in _SUBMODULES:
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'bigT.scenes' has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(list(globals()) + list(_FROM_BUILDER) + list(_SUBMODULES))
+    return sorted(list(globals()) + list(_LAZY) + list(_SUBMODULES))

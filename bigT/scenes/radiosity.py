@@ -25,6 +25,8 @@ from scipy.spatial import cKDTree
 
 from .. import config
 from ..errors import BigTError, DivergenceError, MemoryLimitError
+from ..kernels import spgemm
+from ..progress import progress_bar
 from .geometry import Patches
 
 
@@ -186,8 +188,6 @@ def form_factors(P: Patches, cut: float = 0.0, *, chunk: int | None = None,
         Refuse (MemoryLimitError) beyond this many stored entries
         (default ``config.SCENE_MAX_A_NNZ``).
     """
-    from ..progress import progress_bar
-
     n = P.n
     max_nnz = config.SCENE_MAX_A_NNZ if max_nnz is None else int(max_nnz)
     check_all_pairs(n, cut)
@@ -248,8 +248,6 @@ def gaussian_blur_matrix(size, sigma: float, order: np.ndarray) -> sp.csr_array:
 
 def in_memory_product(A: sp.csr_array):
     """``times_A(R, threshold)``: R @ A pruned at ``threshold``, for an A in memory."""
-    from ..kernels import spgemm
-
     def times_A(R, threshold):
         return spgemm(R, A, threshold=threshold)
 

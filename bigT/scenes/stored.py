@@ -25,6 +25,7 @@ from ..progress import progress_bar
 from ..schedule.cache import TileCache
 from ..schedule.memory import MemoryPlan
 from ..schedule.operators import StoreOperand
+from ..schedule.worker import product_with_stored
 from ..storage import BlockCSRWriter, PixelOrder
 from ..atomic import atomic_write_json
 from . import radiosity
@@ -39,7 +40,7 @@ class StoredProduct:
 
     A is read whole (once) when it fits half of ``memory_limit``; else the tile rows a
     product needs are read in batches (the engine's out-of-core product,
-    :func:`bigT.schedule.worker.row_product`) through a tile cache of the other half.
+    :func:`bigT.schedule.worker.product_with_stored`) through a tile cache of the other half.
 
     Attributes
     ----------
@@ -54,10 +55,8 @@ class StoredProduct:
         self._plan = MemoryPlan(int(memory_limit), 0, 0, half, half, half, 1)
 
     def __call__(self, R: sp.csr_array, threshold: float) -> sp.csr_array:
-        from ..schedule.worker import row_product
-
-        out, _, _ = row_product(R, self.operand, threshold, self._plan,
-                                self._plan.whole_bytes, config.KERNEL_THREADS)
+        out, _, _ = product_with_stored(R, self.operand, threshold, self._plan,
+                                        self._plan.whole_bytes, config.KERNEL_THREADS)
         return out
 
     def release(self) -> None:

@@ -266,10 +266,11 @@ class TaskContext:
 
     def product(self, left: sp.csr_array, right_name: str, threshold: float):
         """(left @ right pruned, tile products done, pairs skipped): see
-        :func:`row_product`."""
+        :func:`product_with_stored`."""
         right = self.operand(right_name)
-        return row_product(left, right, threshold, self.plan, _whole_limit(self.plan, right),
-                           self.spec.kernel_threads, self.tally)
+        return product_with_stored(left, right, threshold, self.plan,
+                                   _whole_limit(self.plan, right),
+                                   self.spec.kernel_threads, self.tally)
 
     def minus_finv_v(self, V) -> np.ndarray:
         """-F^-1 V, computed once per pass in this process."""
@@ -317,11 +318,12 @@ def _cache_budget(plan: MemoryPlan, right: StoreOperand | None) -> int:
     return plan.cache_bytes - borrowed
 
 
-def row_product(left: sp.csr_array, right: StoreOperand, threshold: float,
-                plan: MemoryPlan, whole_limit: int, kernel_threads: int = 1,
-                tally: blocks.KernelTally | None = None):
-    """``left @ right`` pruned at ``threshold``; only tile pairs with both factors
-    nonzero count (and are read).
+def product_with_stored(left: sp.csr_array, right: StoreOperand, threshold: float,
+                        plan: MemoryPlan, whole_limit: int, kernel_threads: int = 1,
+                        tally: blocks.KernelTally | None = None):
+    """``left @ right`` pruned at ``threshold``, ``right`` a stored operand (read whole
+    or in batches of its tile rows); only tile pairs with both factors nonzero count
+    (and are read).
 
     The right factor is read whole, once per pass and shared by the process's tasks,
     when it fits ``whole_limit``; else the tile rows this product needs, in batches of

@@ -13,7 +13,7 @@ directory's size on disk: :func:`disk_bytes`.
 from .attrs import StoreAttrs
 from ._format import row_marker
 from .block_csr import BlockCSR, as_store, open  # noqa: A004
-from .inverse_store import InverseRecord, InverseStore, TermRecord
+from .inverse_store import InverseRecord, InverseStore, TermEntry
 from .pixel_order import PixelOrder
 from ._format import disk_bytes
 from .replace import (check_replaceable, move_into_place, set_redirect, temporary_sibling,
@@ -32,7 +32,7 @@ from .writer import (
 
 __all__ = [
     "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "PixelOrder",
-    "StoreAttrs", "TermRecord", "as_store", "check_replaceable", "clean_partial_rows",
+    "StoreAttrs", "TermEntry", "as_store", "check_replaceable", "clean_partial_rows",
     "completed_rows", "create_store", "disk_bytes", "finalize_store", "move_into_place",
     "temporary_sibling", "write_group",
     "from_scipy", "open", "read_store_attrs", "row_marker", "set_redirect", "write_tile_row",

@@ -3,7 +3,12 @@ one subgroup per term (``tKKKK/X``, ``tKKKK/P``, ...), and a redirect to the cur
 X (docs/FORMAT.md, "The inverse store").
 
 :class:`InverseStore` is the only code that writes the root's ``zarr.json``; the
-engine hands it frozen records (:class:`InverseRecord`, :class:`TermRecord`).
+engine hands it frozen records (:class:`InverseRecord`, :class:`TermEntry`). Storage
+knows what it needs to publish and resume (the term held, its directory, the tile size,
+one entry per term); what the algorithm records beside that (residuals, the spectral
+radius, multiply-adds) is an opaque ``details`` mapping in the same JSON objects, typed
+by :mod:`bigT.algorithms.records`.
+
 Publishing a term is: the X store records its own term, the root's redirect flips to
 it (one atomic rename), then the root's record is replaced (another). A crash between
 the two renames is repaired on the next open (:meth:`InverseStore.reconcile`).
@@ -66,115 +71,92 @@ def jsonable(obj):
 
 
 @dataclass(frozen=True)
-class TermRecord:
-    """One row of the report: the state after term ``term``.
-
-    ``seconds`` is the term's wall time, its residual estimate's ``residual_seconds``
-    included; ``multiply_adds`` counts its sparse products' multiply-adds and
-    ``kernel_seconds`` the time its tasks spent inside the product kernel (summed over
-    tasks: thread-seconds). Records written before these were counted read 0.
-    """
+class TermEntry:
+    """One published term as the store keeps it: its number, and what the algorithm
+    recorded of it (opaque to storage: JSON kept beside ``term`` in the same object,
+    filled and read back by :mod:`bigT.algorithms.records`)."""
 
     term: int
-    seconds: float
-    nnz_P: int
-    nnz_X: int
-    tiles_computed: int
-    tiles_skipped: int
-    rows_skipped: int
-    residual: float | None
-    residual_abs: float | None
-    multiply_adds: int = 0
-    kernel_seconds: float = 0.0
-    residual_seconds: float = 0.0
+    details: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     @classmethod
-    def from_dict(cls, d: Mapping) -> "TermRecord":
-        """Raises TypeError/ValueError on fields of the wrong type or sign (a damaged
-        record: :meth:`InverseRecord.from_dict` names the store)."""
-        values = {}
-        for f in dataclasses.fields(cls):
-            v = d.get(f.name, None if f.default is dataclasses.MISSING else f.default)
-            if f.name in ("residual", "residual_abs"):
-                values[f.name] = None if v is None else float(v)
-            elif f.type in ("float", float):  # a string under future annotations
-                values[f.name] = float(v or 0.0)
-            else:
-                values[f.name] = _count(v, f.name)
-        return cls(**values)
+    def from_dict(cls, d: Mapping) -> "TermEntry":
+        """Raises TypeError/ValueError on a damaged entry (not a mapping, or its
+        ``term`` not a count): :meth:`InverseRecord.from_dict` names the store."""
+        if not isinstance(d, Mapping):
+            raise TypeError(f"a history entry is {type(d).__name__}, not a mapping")
+        return cls(as_count(d.get("term"), "a term"),
+                   {str(k): v for k, v in d.items() if k != "term"})
 
     def to_dict(self) -> dict:
-        return jsonable(dataclasses.asdict(self))
+        return jsonable({"term": self.term, **self.details})
 
 
 @dataclass(frozen=True)
 class InverseRecord:
-    """The root's ``bigT_inverse`` attribute.
+    """The root's ``bigT_inverse`` attribute: what storage needs to publish, resume and
+    repair a versioned inverse.
 
     Attributes
     ----------
     params : mapping
-        What the inverse depends on (T's identity, prune, method, first bounce); a
-        run with other parameters is refused.
+        What the inverse depends on (its writer's fingerprint); a run with other
+        parameters is refused.
     term : int or None
         T_term^-1 is held (None before term 0 is complete).
     dir : int or None
-        Term directory the redirect points at (``term`` once the series is exhausted
-        may be beyond it: every later term equals it).
-    history : tuple of TermRecord
-    spectral_radius : float or None
-        The estimate of rho(M) made before term 0 (:mod:`bigT.spectral`).
-    spectral_uncertainty : float or None
-        Its Ritz residual: rho is believed within ``spectral_radius`` +- this.
-    spectral_products : int or None
-        Products with M the estimate took.
-    exhausted_at : int or None
+        Term directory the redirect points at (``term`` may be beyond it once the
+        writer says every later term equals it).
+    history : tuple of TermEntry
+        One per published term.
     tile_size : int or None
-        Tile size of the term stores (T's, or a divisor of it for more tasks).
-    excluded_pixels : int or None
-    residual : float or None, the last term's relative residual estimate
+        Tile size of the term stores.
+    details : mapping
+        What the algorithm records beside these (opaque JSON, kept in the same object:
+        the algorithms layer's :class:`bigT.algorithms.records.SeriesRecord` fills it
+        and reads it back).
     """
 
     params: Mapping[str, Any]
     term: int | None = None
     dir: int | None = None
-    history: tuple[TermRecord, ...] = ()
-    spectral_radius: float | None = None
-    exhausted_at: int | None = None
+    history: tuple[TermEntry, ...] = ()
     tile_size: int | None = None
-    excluded_pixels: int | None = None
-    residual: float | None = None
-    spectral_uncertainty: float | None = None
-    spectral_products: int | None = None
+    details: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     def replace(self, **changes) -> "InverseRecord":
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
-        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        d["history"] = [h.to_dict() for h in self.history]
-        return jsonable(d)
+        return jsonable({"params": self.params, "term": self.term, "dir": self.dir,
+                         "history": [h.to_dict() for h in self.history],
+                         "tile_size": self.tile_size, **self.details})
 
     @classmethod
     def from_dict(cls, d: Mapping, path) -> "InverseRecord":
         try:
             if not isinstance(d.get("params"), Mapping):
                 raise TypeError("no params")
-            history = tuple(TermRecord.from_dict(h) for h in d.get("history") or ())
-            opt_int = (lambda v: None if v is None else _count(v, "a term"))
-            opt_float = (lambda v: None if v is None else float(v))
+            history = tuple(TermEntry.from_dict(h) for h in d.get("history") or ())
+            opt_int = (lambda v: None if v is None else as_count(v, "a term"))
+            details = {k: v for k, v in d.items() if k not in _RECORD_KEYS}
             return cls(dict(d["params"]), opt_int(d.get("term")), opt_int(d.get("dir")),
-                       history, opt_float(d.get("spectral_radius")),
-                       opt_int(d.get("exhausted_at")), opt_int(d.get("tile_size")),
-                       opt_int(d.get("excluded_pixels")), opt_float(d.get("residual")),
-                       opt_float(d.get("spectral_uncertainty")),
-                       opt_int(d.get("spectral_products")))
+                       history, opt_int(d.get("tile_size")), details)
         except (TypeError, ValueError, AttributeError) as exc:
-            raise StoreError(f"damaged inverse record ({exc}); delete the store to start "
-                             "over", path) from None
+            raise damaged_record(exc, path) from None
 
 
-def _count(value, name: str) -> int:
+#: The keys of the record storage reads itself; the others are the writer's details.
+_RECORD_KEYS = frozenset(f.name for f in dataclasses.fields(InverseRecord)) - {"details"}
+
+
+def damaged_record(exc: Exception, path) -> StoreError:
+    """The error for a record that does not parse (its reason, the store named)."""
+    return StoreError(f"damaged inverse record ({exc}); delete the store to start over",
+                      path)
+
+
+def as_count(value, name: str) -> int:
     """``value`` as a count (an int >= 0); ValueError/TypeError when it is not one."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
         raise TypeError(f"{name} is {value!r}, not a whole number")
@@ -270,7 +252,7 @@ class InverseStore:
             self.save(record)
             return record
         if record.params != params:
-            # over both key sets: a parameter recorded only when set (prune_feed) may be
+            # over both key sets: a parameter its writer records only when set may be
             # the one missing from either side
             keys = list(params) + [k for k in record.params if k not in params]
             diff = [k for k in keys if record.params.get(k) != params.get(k)]
@@ -330,8 +312,11 @@ class InverseStore:
             return record
         history = record.history
         if meta.get("record"):
-            history = history + (TermRecord.from_dict(meta["record"]),)
-        record = record.replace(term=d, dir=d, residual=meta.get("residual"), history=history)
+            history = history + (TermEntry.from_dict(meta["record"]),)
+        # X's metadata is newer than the record: a detail both state (the residual of
+        # the term held) is taken from it
+        details = {**record.details, **{k: meta[k] for k in record.details if k in meta}}
+        record = record.replace(term=d, dir=d, history=history, details=details)
         self.save(record)
         return record
 

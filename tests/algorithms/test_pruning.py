@@ -1,4 +1,4 @@
-"""Pruning error within the bound derived in bigT.algorithms.stratified's docstring:
+"""Pruning error within the bound derived in docs/DESIGN.md ("Pruning"):
 ||X_n - T_n^-1||_inf <= ||F^-1||_inf prune sum_{k=1..n} sum_{l=1..k} ||M||_inf^(k-l) r_l,
 with r_l <= n_cols entries dropped per row at term l."""
 

@@ -132,3 +132,46 @@ def test_converged_block_rows_are_skipped(tmp_path, make_store):
         # M's rows 2, 3 are zero (F = diag T): no tile pair there, none to skip
         assert h.tiles_skipped == 0
         assert h.rows_skipped == 2    # rows 2, 3: no product at all
+
+
+#: The keys of the root record and of its history entries as bigT wrote them before the
+#: record was split into storage's generic part and the engine's details (commit 60b422a).
+OLD_RECORD_KEYS = ("params", "term", "dir", "history", "spectral_radius", "exhausted_at",
+                   "tile_size", "excluded_pixels", "residual", "spectral_uncertainty",
+                   "spectral_products")
+OLD_TERM_KEYS = ("term", "seconds", "nnz_P", "nnz_X", "tiles_computed", "tiles_skipped",
+                 "rows_skipped", "residual", "residual_abs", "multiply_adds",
+                 "kernel_seconds", "residual_seconds")
+
+
+def test_a_store_in_the_older_record_layout_opens_and_resumes(tmp_path, make_store):
+    """A root record holding exactly the older layout's keys (no ``spectral_method``)
+    resumes: the terms held read back as they were written, are marked as an earlier
+    run's in the table, and the series goes on to the same inverse as one run."""
+    import json
+
+    A = random_dominant(48, seed=17)
+    T = make_store(A)
+    out = tmp_path / "X.zarr"
+    bigT.stratified_inverse(T, out, terms=1, prune=0.0, progress=False)
+    root = out / "zarr.json"
+    j = json.loads(root.read_text())
+    new = j["attributes"]["bigT_inverse"]
+    assert set(OLD_RECORD_KEYS) <= set(new) and set(new) - set(OLD_RECORD_KEYS) == {
+        "spectral_method"}
+    assert all(set(h) == set(OLD_TERM_KEYS) for h in new["history"])
+    old = {k: new[k] for k in OLD_RECORD_KEYS}
+    old["history"] = [{**h, "seconds": 10.0 + h["term"]} for h in new["history"]]
+    j["attributes"]["bigT_inverse"] = old
+    root.write_text(json.dumps(j))
+
+    rep = bigT.stratified_inverse(T, out, terms=3, prune=0.0, progress=False)
+    assert rep.resumed_from == 1 and rep.terms == 3
+    assert [h.seconds for h in rep.history[:2]] == [10.0, 11.0]
+    assert rep.history[1].residual == old["residual"]
+    np.testing.assert_allclose(dense(out), dense_stratified(A, 3), atol=1e-12)
+    rows = rep.table().splitlines()
+    assert rows[2].startswith("   0*") and rows[3].startswith("   1*")
+    assert rows[4].startswith("   2 ") and "earlier run" in rows[6]
+    assert "earlier run's terms 0-1 took 21.00 s" in rows[7]
+    assert "read from the store" in rows[7] and "terms 2-3" in rows[7]

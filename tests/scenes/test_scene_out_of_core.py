@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 from bigT import scenes
 from bigT.scenes import geometry, radiosity, stored
-from bigT.scenes.builder import GROUND_TRUTH
+from bigT.scenes.ground_truth import GROUND_TRUTH
 from bigT.storage import PixelOrder
 
 SIZE = (24, 32)

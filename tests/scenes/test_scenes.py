@@ -260,7 +260,7 @@ def test_albedo_texture(tmp_path):
 def test_preview_scan_lines_differ():
     """The preview's three scan lines are rows whose profiles differ: a scene symmetric
     top to bottom would otherwise draw one on top of another."""
-    from bigT.scenes.builder import distinct_rows
+    from bigT.scenes.preview import distinct_rows
 
     H, W = 12, 16
     y = np.abs(np.arange(H) - (H - 1) / 2)[:, None]  # symmetric top to bottom

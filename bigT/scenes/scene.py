@@ -1,0 +1,231 @@
+"""A scene on disk and its ground truth: :class:`Scene` (what :func:`load` and the
+builders return), the exact inverse F^-1 (I - A) tile row by tile row, and the error of
+an inverse against it.
+
+For a noise-free scene without truncation (``threshold=0``) and without blur, the
+exact inverse is F^-1 (I - A); :func:`exact_inverse_rows` gives it tile row by tile
+row, so the error of an inverse can be measured at full scale without any dense
+inversion (or on a sample of rows: :meth:`Scene.inverse_error`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import zarr
+
+from ..errors import BigTError, ShapeMismatchError, StoreError
+from ..spectral import spectral_meaning
+from ..storage import PixelOrder
+from ..storage import open as open_store
+from .ground_truth import GROUND_TRUTH, SCENE_ATTR
+
+
+@dataclass
+class Scene:
+    """A scene on disk and its ground truth.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The T store; the ground truth is in ``path / "ground_truth"``.
+    T, A : BlockCSR, shape (n, n)
+        Light transport and interreflection (matrix order, ``pixel_order``).
+    F : ndarray, (n,) float64
+        True first bounce (diagonal of F), matrix order.
+    pixel_order : PixelOrder
+    summary : dict
+        Name, parameters, nnz, spectral radii, bounce shares, timings (JSON).
+    """
+
+    path: Path
+    T: object
+    A: object
+    F: np.ndarray
+    pixel_order: PixelOrder
+    summary: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.summary.get("name", "")
+
+    @property
+    def spectral_radius(self) -> float:
+        """Spectral radius of M = I - T F^-1 with F = diag(T), the first bounce
+        ``bigT invert`` uses by default: all eigenvalues for up to
+        ``config.SPECTRAL_RADIUS_DENSE_MAX`` pixels, else ARPACK to a relative
+        ``config.SCENE_SPECTRAL_RTOL`` (the Ritz residual is in
+        ``summary["spectral_radius_uncertainty"]``)."""
+        return self.summary.get("spectral_radius")
+
+    @property
+    def bounce_shares(self) -> list[float]:
+        """Each bounce's share of the light of a white projector image: sum(A^k F G 1) /
+        sum_j sum(A^j F G 1) for k = 0, 1, ... (G = I without blur), adding up to 1; the
+        bounces are listed until one carries less than ``config.SCENE_SHARE_TOL`` of
+        the first."""
+        return self.summary.get("bounce_shares", [])
+
+    @property
+    def exact(self) -> bool:
+        """True when F^-1 (I - A) is the exact inverse of T (no truncation, noise, blur)."""
+        return bool(self.summary.get("exact"))
+
+    @property
+    def preview(self) -> Path | None:
+        p = self.summary.get("preview")
+        return None if p is None else Path(p)
+
+    def exact_inverse_rows(self, i: int) -> sp.csr_array:
+        """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64."""
+        return exact_inverse_rows(self.A, self.F, i)
+
+    def inverse_error(self, X, sample: int | None = None, seed: int = 0) -> float:
+        """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row, over
+        all rows or a random sample of them.
+
+        Parameters
+        ----------
+        X : BlockCSR of T's shape and pixel order (any tile size), or (n,) ndarray
+            An inverse on disk, or the diagonal of a diagonal one (e.g. 1 / diag(T)).
+        sample : int, optional
+            Measure on this many rows drawn uniformly without replacement (seeded by
+            ``seed``) instead of all n: the error of a full-HD inverse in one read of
+            the tile rows, with no row of the exact inverse formed beyond the sample.
+
+        Returns
+        -------
+        float
+            The relative error against the exact inverse of the scene, without any dense
+            matrix. F^-1 (I - A) inverts the noise-free, untruncated scene without blur
+            (:attr:`exact`); otherwise this is the distance to that scene's inverse.
+        """
+        T = self.T
+        n = T.shape[0]
+        rows = _inverse_rows(X, T)
+        chosen = None
+        if sample is not None and sample < n:
+            chosen = np.sort(np.random.default_rng(seed).choice(n, int(sample), replace=False))
+        num = den = 0.0
+        for i in range(T.grid[0]):
+            r0, r1 = T.tile_row_range(i)
+            keep = None if chosen is None else chosen[(chosen >= r0) & (chosen < r1)] - r0
+            if keep is not None and not len(keep):
+                continue
+            ref, got = self.exact_inverse_rows(i), rows(i)
+            if keep is not None:
+                ref, got = ref[keep], got[keep]
+            diff = sp.csr_array(got - ref)
+            num += float(np.sum(diff.data ** 2))
+            den += float(np.sum(ref.data ** 2))
+        return math.sqrt(num / den) if den else 0.0
+
+    def describe(self) -> str:
+        s = self.summary
+        H, W = s["image_shape"]
+        lines = [
+            f"scene {s['name']} {H}x{W} (n = {s['n']}), albedo {s['albedo']}, "
+            f"form-factor cut {s['ff_cut']:g}, threshold {s['threshold']:g}, "
+            f"noise {s['noise']:g}, blur {s['blur']:g}",
+            f"  T: {s['nnz_T']} nonzeros ({s['nnz_T'] / s['n']:.1f} per row), "
+            f"A: {s['nnz_A']} ({s['nnz_A'] / s['n']:.1f} per row), up to {s['bounces']} "
+            f"bounces per row",
+            "  spectral radius of M = I - T diag(T)^-1 (ground truth): "
+            + _radius_text(s, "spectral_radius"),
+            "  spectral radius of A (ground truth): " + _radius_text(s, "spectral_radius_A"),
+            "  bounce shares of the light of a white image (adding up to 100%): "
+            + ", ".join(f"{100 * v:.3g}%" for v in s["bounce_shares"]),
+            f"  built in {s['seconds']:.1f} s"
+            + (f"; preview {s['preview']}" if s.get("preview") else ""),
+            "  exact inverse F^-1 (I - A) " + ("holds" if s["exact"] else
+                                               "holds up to truncation/noise/blur"),
+        ]
+        return "\n".join(lines)
+
+
+def _inverse_rows(X, T):
+    """``rows(i)``: tile row ``i`` of T's grid of the inverse ``X`` (a store, or the
+    (n,) diagonal of a diagonal inverse), float64 CSR."""
+    if isinstance(X, np.ndarray):
+        if X.shape != (T.shape[0],):
+            raise ShapeMismatchError(f"a diagonal X needs {T.shape[0]} entries, got {X.shape}")
+        diag = np.asarray(X, np.float64)
+
+        def rows(i):
+            r0, r1 = T.tile_row_range(i)
+            return sp.csr_array((diag[r0:r1], np.arange(r0, r1), np.arange(r1 - r0 + 1)),
+                                shape=(r1 - r0, T.shape[1]))
+        return rows
+    where = getattr(X, "path", None)
+    if X.shape != T.shape:
+        raise ShapeMismatchError(f"X is {X.shape}, the scene is {T.shape}", where)
+    if X.pixel_order is not None and X.pixel_order != T.pixel_order:
+        raise ShapeMismatchError(f"X's pixel order {X.pixel_order} is not the scene's "
+                                 f"{T.pixel_order}", where)
+
+    def rows(i):
+        return sp.csr_array(X.get_rows(*T.tile_row_range(i)), dtype=np.float64)
+    return rows
+
+
+def exact_inverse_rows(A, F, i: int) -> sp.csr_array:
+    """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64.
+
+    A : BlockCSR (n, n), the scene's interreflection; F : (n,) first bounce, both in
+    matrix order."""
+    n = A.shape[0]
+    r0, r1 = A.tile_row_range(i)
+    Arows = sp.csr_array(A.get_tile_row(i), dtype=np.float64)
+    eye = sp.csr_array((np.ones(r1 - r0), np.arange(r0, r1), np.arange(r1 - r0 + 1)),
+                       shape=(r1 - r0, n))
+    return sp.csr_array(sp.diags_array(1.0 / np.asarray(F[r0:r1], np.float64)) @ (eye - Arows))
+
+
+# --- building ----------------------------------------------------------------------------
+
+
+def load(path) -> Scene:
+    """Reopen a scene written by :func:`build` (its T store and ground truth).
+
+    Raises StoreError (naming the path) when the store holds no readable ground truth.
+    """
+    path = Path(os.fspath(path))
+    T = open_store(path)
+    gt = path / GROUND_TRUTH
+    try:
+        summary = zarr.open_group(str(gt), mode="r").attrs.asdict()[SCENE_ATTR]
+        A = open_store(gt / "A")
+        F = np.asarray(zarr.open_array(str(gt / "F"), mode="r")[:], np.float64)
+    except BigTError:
+        raise
+    except (OSError, KeyError, ValueError, zarr.errors.BaseZarrError) as exc:
+        raise StoreError(f"no readable scene ground truth ({exc.__class__.__name__}: {exc}); "
+                         "was it written by bigT scene?", gt) from None
+    if F.shape != (T.shape[0],) or not np.isfinite(F).all():
+        raise StoreError("ground-truth F is damaged (wrong length or missing chunks)", gt / "F")
+    return Scene(path, T, A, F, T.pixel_order, summary)
+
+
+
+def format_radius(value) -> str:
+    return "undetermined" if value is None else f"{value:.4f}"
+
+
+def _radius_text(summary: dict, key: str) -> str:
+    """``0.2444 +- 3.4e-11, the largest eigenvalue modulus, computed by ARPACK ...``:
+    the summary's radius ``key``, its uncertainty (older scenes have none) and what the
+    number is. A scene's radii are eigenvalues computed to convergence (dense or
+    ARPACK), never the engine's cheaper bracket, so the two may differ by its width."""
+    value, uncertainty = summary.get(key), summary.get(f"{key}_uncertainty")
+    if value is None:
+        return format_radius(value)
+    text = format_radius(value) + ("" if uncertainty is None else f" +- {uncertainty:.1e}")
+    method = summary.get(f"{key}_method")
+    if method is None:  # a scene written before the method was recorded
+        return text + ", the largest eigenvalue modulus, computed to convergence"
+    return text + ", " + spectral_meaning(method, value, uncertainty)
