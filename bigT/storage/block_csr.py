@@ -33,6 +33,7 @@ from ..errors import (
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
 from .locks import ReaderLease
+from .pixel_order import PixelOrder
 from .replace import recover_interrupted_replace, write_root_attrs
 
 
@@ -464,7 +465,7 @@ class BlockCSR:
         out.has_sorted_indices = True
         return out
 
-    def _reordering(self, order: str, name: str):
+    def _reordering(self, order: str, name: str) -> PixelOrder | None:
         """The store's PixelOrder when vectors in ``order`` must be permuted to or from
         the stored order, else None (matrix order asked, no pixel order recorded, or a
         row-major store: no permutation to pay).
