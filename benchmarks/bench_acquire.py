@@ -74,11 +74,11 @@ def measure(scene, workdir: Path, method: str, noise: float, camera, memory) -> 
         cmd.append(str(memory))
     res = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
     scale = model.expected_scale(scene.pixel_order)
-    E = scene.T.to_scipy().multiply(scale[:, None]).tocsr()
+    E = scene.T.to_scipy(output_order="matrix").multiply(scale[:, None]).tocsr()
     E = E[:, scale > 0] if False else E
     E = E.toarray()
     E[:, scale == 0] = 0
-    T = open_store(out).to_scipy().toarray()
+    T = open_store(out).to_scipy(output_order="matrix").toarray()
     off = ~np.eye(len(T), dtype=bool)
     res.update(method=method, noise=noise, simulate_seconds=t_sim,
                captures=len(list(captures.glob("*.png"))),

@@ -202,7 +202,7 @@ def desired_frames(scene) -> tuple[np.ndarray, float, float]:
     patterns = np.stack([test_pattern(size, k) for k in range(FRAMES)])
     order = scene.T.pixel_order
     B = to_vectors(patterns, order, np.float64)
-    exact = (B - np.asarray(scene.A @ B, np.float64)) / scene.F[:, None]  # F^-1 (I - A) d
+    exact = (B - scene.A.matmul(B, order="matrix")) / scene.F[:, None]  # F^-1 (I - A) d
     gain = min(1.0, 0.95 / float(exact.max()))
     return patterns * gain, gain, float(np.mean(exact < 0))
 
@@ -212,7 +212,7 @@ def desired_frames(scene) -> tuple[np.ndarray, float, float]:
 def _load_T(store):
     """T from its store into memory: (scipy csr float64, seconds)."""
     t0 = time.perf_counter()
-    Ts = store.to_scipy().astype(np.float64).tocsr()
+    Ts = store.to_scipy(output_order="matrix").astype(np.float64).tocsr()
     Ts.sort_indices()
     return Ts, time.perf_counter() - t0
 

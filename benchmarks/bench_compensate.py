@@ -225,7 +225,7 @@ def _splu_child(path, frames, q):
     try:
         T = bigT.open(path)
         t0 = time.perf_counter()
-        Ts = sp.csc_matrix(T.to_scipy(), dtype=np.float64)
+        Ts = sp.csc_matrix(T.to_scipy(output_order="matrix"), dtype=np.float64)
         load = time.perf_counter() - t0
         t0 = time.perf_counter()
         lu = splu(Ts)

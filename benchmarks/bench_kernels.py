@@ -32,7 +32,7 @@ def corner_M(H, W, ff_cut, threshold):
     with tempfile.TemporaryDirectory(prefix="bigT-bench-") as tmp:
         scene = corner(size=(H, W), path=f"{tmp}/corner.zarr", ff_cut=ff_cut,
                        threshold=threshold, preview=False, progress=False)
-        T = sp.csr_array(scene.T.to_scipy(), dtype=np.float32)
+        T = sp.csr_array(scene.T.to_scipy(output_order="matrix"), dtype=np.float32)
     d = T.diagonal().astype(np.float32)
     M = sp.csr_array(sp.eye_array(T.shape[0], dtype=np.float32, format="csr")
                      - T @ sp.diags_array(1.0 / d))

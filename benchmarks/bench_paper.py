@@ -174,7 +174,7 @@ def pyplot():
 
 def dense_T(store) -> sp.csr_array:
     """A store as a float64 csr_array in its matrix order (T^-1, X and pinv all use it)."""
-    return sp.csr_array(store.to_scipy().astype(np.float64))
+    return sp.csr_array(store.to_scipy(output_order="matrix").astype(np.float64))
 
 
 def engine_terms(T, out: Path, terms: int, **kwargs) -> Iterator[tuple[int, object, object]]:
@@ -608,7 +608,7 @@ def corner_terms(scene, P: np.ndarray, desired: np.ndarray, work: Path) -> list[
     """
     out, norm_P = [], np.linalg.norm(P)
     for n, X, _ in engine_terms(scene.T, work / "corner-X.zarr", CORNER_TERMS):
-        D = X.to_scipy().toarray() - P
+        D = X.to_scipy(output_order="matrix").toarray() - P
         seen = relight(scene.T, compensate(X, desired))
         out.append(CornerTerm(f"{n + 1} bounce{'s' if n else ''} (T_{n}^-1)",
                               float(np.sqrt(np.mean(D ** 2))),
@@ -643,7 +643,7 @@ def corner_run(plan: Plan, work: Path) -> CornerRun:
     H, W = plan.corner_size
     scene = bigT.scenes.corner(size=(H, W), path=work / "corner.zarr", density="exact",
                                preview=False, progress=False)
-    Td = scene.T.to_scipy().toarray().astype(np.float64)
+    Td = scene.T.to_scipy(output_order="matrix").toarray().astype(np.float64)
     t0 = time.perf_counter()
     P = np.linalg.pinv(Td)
     t_pinv = time.perf_counter() - t0

@@ -158,7 +158,7 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     if fmt not in FORMATS:
         raise AcquisitionError(f"unknown capture format {fmt!r} (one of {', '.join(FORMATS)})")
     model = CameraModel(tuple(camera), manifest.grid, noise=noise, black=black, gamma=gamma)
-    white = scene.T.matmul(np.ones(order.n))
+    white = scene.T.matmul(np.ones(order.n), order="matrix")
     peak = (model.gain() * np.where(model.superpixel_of() >= 0,
                                     order.to_images(white).ravel()[np.maximum(model.superpixel_of(), 0)],
                                     0)).max()
@@ -169,7 +169,8 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     folder, suffix = Path(patterns), FORMATS[fmt]
     batches = [manifest.patterns[k:k + BATCH] for k in range(0, len(manifest.patterns), BATCH)]
     for batch in progress_bar(batches, progress=progress, desc="captures", unit="batch"):
-        light = order.to_images(scene.T.matmul(_pattern_vectors(manifest, folder, batch, order)))
+        light = order.to_images(scene.T.matmul(_pattern_vectors(manifest, folder, batch, order),
+                                                order="matrix"))
         light = light.reshape(len(batch), *manifest.grid)
         for p, image in zip(batch, model.render(light, rng)):
             write_image(out / (p.stem + suffix), image, bits=8 if fmt == "png8" else 16)

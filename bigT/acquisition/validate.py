@@ -51,7 +51,7 @@ def check_white(store) -> WhiteCheck:
     order = T.pixel_order
     means = corr.reducer(order)
     w = means(cap.signal(manifest.single("white")))
-    t1 = T.matmul(np.ones(T.shape[1])) * means.seen
+    t1 = T.matmul(np.ones(T.shape[1]), order="matrix") * means.seen
     err = float(np.linalg.norm(t1 - w) / max(np.linalg.norm(w), 1e-300))
     captured, predicted = order.to_images(w), order.to_images(t1)
     return WhiteCheck(err, predicted, captured, distinct_rows(captured, 3))

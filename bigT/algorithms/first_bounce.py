@@ -145,7 +145,7 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
         A vector of the wrong length.
     """
     n = T.shape[0]
-    d = np.asarray(T.diagonal(), dtype=np.float64)
+    d = np.asarray(T.diagonal(output_order="matrix"), dtype=np.float64)
     source = None  # the --first-bounce file, named in the errors about its vector
     if isinstance(spec, (str, os.PathLike)) and str(spec) not in ("diag", "identity"):
         source = os.fspath(spec)
@@ -214,7 +214,7 @@ def recover_first_bounce(X) -> np.ndarray:
     elif sp.issparse(X):
         d = X.diagonal()
     else:
-        d = X.diagonal()
+        d = X.diagonal(output_order="matrix")
     d = np.asarray(d, dtype=np.float64)
     out = np.zeros_like(d)
     nz = d != 0

@@ -177,7 +177,7 @@ def _run_demo(args) -> int:
     scene = load(T_path)
     X = open_store(X_path)
     err = scene.inverse_error(X)
-    err0 = scene.inverse_error(1.0 / np.asarray(scene.T.diagonal(), np.float64))
+    err0 = scene.inverse_error(1.0 / scene.T.diagonal(output_order="matrix").astype(np.float64))
     line = (f"error of X against the exact inverse F^-1 (I - A): {err:.3e} (relative "
             f"Frobenius; F^-1 alone: {err0:.3e})")
     print(f"\n== {line}")

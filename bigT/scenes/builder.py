@@ -376,7 +376,7 @@ def _ground_truth_stats(T, A, f, G, memory_limit: int) -> _GroundTruthStats:
     """Spectral radii, bounce shares and T 1 from the stored T and A, one matrix at a
     time held within ``memory_limit`` (streamed from disk beyond it)."""
     n = T.shape[0]
-    d = np.asarray(T.diagonal(), np.float64)
+    d = np.asarray(T.diagonal(output_order="matrix"), np.float64)
     times_T = stored.stored_apply(T, memory_limit)
     rho_M = _spectral_radius_T(times_T, d)
     T1 = times_T(np.ones(n))

@@ -2,6 +2,13 @@
 
 The tile index (which tiles of which tile row are stored, and their nnz) is read once
 on open and kept in memory; a tile read touches only that tile's three arrays.
+
+Pixel-indexed vectors and matrices the public methods take or return (``A @ x``,
+:meth:`BlockCSR.matmul`, :meth:`BlockCSR.to_scipy`, :meth:`BlockCSR.diagonal`) are in
+row-major image order (``image.ravel()``, what ``bigT export`` writes) by default. The
+store's own order (tile-major for scenes, :mod:`bigT.storage.pixel_order`) is the
+engine's: ``order="matrix"`` / ``output_order="matrix"`` asks for it explicitly, and
+the tile methods (``get_tile``, ``get_tile_row``, ``get_rows``) speak only it.
 """
 
 from __future__ import annotations
@@ -27,10 +34,17 @@ from ..errors import (
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
 from .locks import ReaderLease
+from .pixel_order import PixelOrder
 from .replace import recover_interrupted_replace, write_root_attrs
 
 
 # --- the store ---------------------------------------------------------------------
+
+#: Orders a pixel-indexed vector or matrix is given in or asked for: "row-major", the
+#: order of ``image.ravel()`` (the public default), or "matrix", the store's own pixel
+#: order (the engine's, free of any permutation). A store that records no pixel order
+#: maps no image: both then name its one order.
+VECTOR_ORDERS = ("row-major", "matrix")
 
 #: Times ``open`` follows a redirect that moved on while it took the term's lease.
 _LEASE_ATTEMPTS = 5
@@ -117,6 +131,9 @@ class BlockCSR:
     grid : (int, int)
         (n_tile_rows, n_tile_cols); the last tile row/column may be ragged.
     pixel_order : PixelOrder or None
+        How image pixels are numbered in the stored matrix. Vectors of ``A @ x``,
+        ``matmul``, ``to_scipy`` and ``diagonal`` are row-major image vectors unless
+        asked for in ``"matrix"`` order; tiles and rows are always in matrix order.
     metadata : dict
         Free JSON metadata (the inverse engine records term, prune, residual there).
     tile_indptr : (n_tile_rows + 1,) int64
@@ -330,8 +347,9 @@ class BlockCSR:
                 yield j, self._read_tile(i, j, int(k))
 
     def get_tile_row(self, i: int, columns=None) -> sp.csr_array:
-        """Tile row ``i`` as a csr_array of shape (rows_i, n_cols), global columns;
-        only the tiles in ``columns`` (tile columns) when given, the others empty."""
+        """Tile row ``i`` as a csr_array of shape (rows_i, n_cols), global columns in
+        matrix order; only the tiles in ``columns`` (tile columns) when given, the
+        others empty."""
         r0, r1 = self.tile_row_range(i)
         rows = r1 - r0
         from ..kernels.csr import ColumnTiles, join_column_tiles  # numba: big rows only
@@ -356,8 +374,9 @@ class BlockCSR:
         return out
 
     def get_rows(self, start: int, stop: int) -> sp.csr_array:
-        """Rows ``start:stop`` as a csr_array of shape (stop - start, n_cols), global
-        columns; the range may lie inside one tile row or span several."""
+        """Matrix rows ``start:stop`` as a csr_array of shape (stop - start, n_cols),
+        global columns, in matrix order; the range may lie inside one tile row or span
+        several."""
         start, stop = int(start), int(stop)
         if not 0 <= start <= stop <= self.shape[0]:
             raise ShapeMismatchError(f"rows {start}:{stop} out of range [0, {self.shape[0]}]",
@@ -378,8 +397,24 @@ class BlockCSR:
         out.has_sorted_indices = True
         return out
 
-    def diagonal(self) -> np.ndarray:
-        """(min(shape),) array of dtype: the main diagonal, reading diagonal tiles only."""
+    def diagonal(self, output_order: str = "row-major") -> np.ndarray:
+        """The main diagonal, reading diagonal tiles only.
+
+        Parameters
+        ----------
+        output_order : {"row-major", "matrix"}
+            "row-major" (default): entry p is pixel p of ``image.ravel()``, the same as
+            ``to_scipy().diagonal()``. "matrix": as stored (the engine's order).
+
+        Returns
+        -------
+        ndarray, shape (min(shape),), of the store's dtype
+        """
+        order = self._reordering(output_order, "output_order")
+        diag = self._matrix_diagonal()
+        return diag if order is None else diag[order.inverse_permutation]
+
+    def _matrix_diagonal(self) -> np.ndarray:
         n = min(self.shape)
         out = np.zeros(n, dtype=self.dtype)
         for i in range(min(self.grid)):
@@ -395,7 +430,8 @@ class BlockCSR:
         """Bytes of the CSR arrays of the whole matrix in memory (int64 index)."""
         return self.nnz * (self.dtype.itemsize + 8) + (self.shape[0] + 1) * 8
 
-    def to_scipy(self, max_bytes: int | None = None, output_order: str = "matrix") -> sp.csr_array:
+    def to_scipy(self, max_bytes: int | None = None,
+                 output_order: str = "row-major") -> sp.csr_array:
         """The whole matrix in memory as a csr_array.
 
         Parameters
@@ -403,12 +439,17 @@ class BlockCSR:
         max_bytes : int, optional
             Refuse (MemoryLimitError) beyond this many bytes of CSR arrays; default
             ``config.TO_SCIPY_MAX_BYTES``.
-        output_order : {"matrix", "row-major"}
-            "matrix": as stored. "row-major": rows and columns permuted back to
-            row-major image order (needs a pixel order; the same as "matrix" without).
+        output_order : {"row-major", "matrix"}
+            "row-major" (default): rows and columns in row-major image order, so that
+            ``to_scipy() @ image.ravel()`` is ``A @ image.ravel()``; the matrix ``bigT
+            export`` writes. "matrix": as stored (the engine's order, no permutation).
+            The two are the same for a store that records no pixel order.
+
+        Returns
+        -------
+        scipy.sparse.csr_array, shape ``shape``, sorted indices
         """
-        if output_order not in ("matrix", "row-major"):
-            raise ValueError(f"output_order must be 'matrix' or 'row-major', got {output_order!r}")
+        order = self._reordering(output_order, "output_order")
         limit = config.TO_SCIPY_MAX_BYTES if max_bytes is None else int(max_bytes)
         need = self.csr_bytes()
         if need > limit:
@@ -420,28 +461,67 @@ class BlockCSR:
         else:
             out = sp.vstack([self.get_tile_row(i) for i in range(self.grid[0])], format="csr")
             out = sp.csr_array(out)
-        if output_order == "row-major" and self.pixel_order is not None:
-            inv = self.pixel_order.inverse_permutation
+        if order is not None:
+            inv = order.inverse_permutation
             out = sp.csr_array(out[inv][:, inv])
             out.sort_indices()
         out.has_sorted_indices = True
         return out
 
+    def _reordering(self, order: str, name: str) -> PixelOrder | None:
+        """The store's PixelOrder when vectors in ``order`` must be permuted to or from
+        the stored order, else None (matrix order asked, no pixel order recorded, or a
+        row-major store: no permutation to pay).
+
+        Raises
+        ------
+        ValueError
+            ``order`` is not one of VECTOR_ORDERS (the message names ``name``).
+        """
+        if order not in VECTOR_ORDERS:
+            raise ValueError(f"{name} must be one of {VECTOR_ORDERS}, got {order!r}")
+        stored = self.pixel_order
+        if order == "matrix" or stored is None or stored.order == "row-major":
+            return None
+        return stored
+
     # --- products ------------------------------------------------------------------
 
-    def matmul(self, x: np.ndarray) -> np.ndarray:
+    def matmul(self, x: np.ndarray, *, order: str = "row-major") -> np.ndarray:
         """``A @ x`` for dense x of shape (n_cols,) or (n_cols, k), streaming tile rows.
 
-        Returns an array of shape (n_rows,) or (n_rows, k) and the promoted float dtype.
+        Parameters
+        ----------
+        x : ndarray, shape (n_cols,) or (n_cols, k)
+        order : {"row-major", "matrix"}
+            The order of the pixels of ``x`` and of the result. "row-major" (default):
+            ``image.ravel()`` vectors, ``A @ image.ravel()`` equals ``A.to_scipy() @
+            image.ravel()`` and ``bigT.relight(A, image).ravel()``; x and the result are
+            permuted to and from the stored order. "matrix": the store's own order, no
+            permutation (the engine's). The same for a store without a pixel order.
+
+        Returns
+        -------
+        ndarray, shape (n_rows,) or (n_rows, k), of the promoted float dtype
         """
+        reorder = self._reordering(order, "order")
         x = np.asarray(x)
         if x.ndim not in (1, 2) or x.shape[0] != self.shape[1]:
             raise ShapeMismatchError(f"cannot multiply a {self.shape} matrix by an array of shape "
                                      f"{x.shape}: need ({self.shape[1]},) or ({self.shape[1]}, k)",
                                      self.path)
         dtype = np.result_type(self.dtype, x.dtype, np.float32)
-        X = np.ascontiguousarray(x.reshape(self.shape[1], -1), dtype=dtype)
-        Y = np.zeros((self.shape[0], X.shape[1]), dtype=dtype)
+        X = x.reshape(self.shape[1], -1)
+        if reorder is not None:
+            X = X[reorder.permutation]  # row-major pixels to matrix indices (a copy)
+        Y = self._matmul_stored(np.ascontiguousarray(X, dtype=dtype))
+        if reorder is not None:
+            Y = Y[reorder.inverse_permutation]  # matrix indices back to row-major pixels
+        return Y[:, 0] if x.ndim == 1 else Y
+
+    def _matmul_stored(self, X: np.ndarray) -> np.ndarray:
+        """(n_rows, k) product of the stored matrix with C-contiguous X (n_cols, k)."""
+        Y = np.zeros((self.shape[0], X.shape[1]), dtype=X.dtype)
         spmm = _spmm_dense()
         for i in range(self.grid[0]):
             r0, r1 = self.tile_row_range(i)
@@ -452,9 +532,10 @@ class BlockCSR:
                     Y[r0:r1] += tile @ xs
                 else:
                     spmm(tile, xs, out=Y[r0:r1])
-        return Y[:, 0] if x.ndim == 1 else Y
+        return Y
 
     def __matmul__(self, x):
+        """``A @ x``: :meth:`matmul` of row-major image vectors (scipy's convention)."""
         if sp.issparse(x):
             return NotImplemented
         return self.matmul(x)
@@ -557,7 +638,7 @@ class BlockCSR:
 
     def info(self) -> dict:
         """Summary: shape, nnz, density, tile fill, diagonal statistics, bytes on disk."""
-        diag = self.diagonal()
+        diag = self.diagonal(output_order="matrix")  # statistics only: no permutation
         n_total = self.grid[0] * self.grid[1]
         n, m = self.shape
         return {

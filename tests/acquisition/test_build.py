@@ -53,13 +53,14 @@ def _expected(scene, model: CameraModel) -> np.ndarray:
     """exposure x mean camera gain of each row's group x T_scene, unseen rows and
     columns empty (dense, matrix order)."""
     scale = model.expected_scale(scene.pixel_order)
-    E = scale[:, None] * scene.T.to_scipy().toarray()
+    E = scale[:, None] * scene.T.to_scipy(output_order="matrix").toarray()
     E[:, scale == 0] = 0
     return E
 
 
 def _built(path) -> np.ndarray:
-    return open_store(path).to_scipy().toarray()
+    """The acquired T, dense, in matrix order (as ``_expected``)."""
+    return open_store(path).to_scipy(output_order="matrix").toarray()
 
 
 def test_gray_code_recovers_the_correspondence_exactly_without_noise(scene, pattern_sets,

@@ -38,8 +38,8 @@ def _fresh_error(T, X, seed) -> float:
     img = gaussian_filter(np.random.default_rng(seed).standard_normal((H, W)), 2.5)
     img = 0.2 + 0.6 * (img - img.min()) / np.ptp(img)
     d = to_vectors(img[None], T.pixel_order, np.float64)[:, 0]
-    Td = T.to_scipy().toarray().astype(np.float64)
-    Xd = X.to_scipy().toarray().astype(np.float64)
+    Td = T.to_scipy(output_order="matrix").toarray().astype(np.float64)  # d's order
+    Xd = X.to_scipy(output_order="matrix").toarray().astype(np.float64)
     d = d / max(1.0, float(np.linalg.solve(Td, d).max()))
     seen = Td @ np.clip(Xd @ d, 0, 1)
     return float(np.linalg.norm(seen - d) / np.linalg.norm(d))

@@ -24,7 +24,8 @@ def build(path, **kwargs):
 
 
 def exact(store) -> sp.csr_array:
-    return sp.csr_array(store.to_scipy(), dtype=np.float64)
+    """The store in its matrix order, the order of the permuted geometry here."""
+    return sp.csr_array(store.to_scipy(output_order="matrix"), dtype=np.float64)
 
 
 def test_stored_A_equals_the_in_memory_form_factors(tmp_path):

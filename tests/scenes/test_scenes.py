@@ -23,7 +23,8 @@ EQ34 = np.array([
 
 
 def dense(store) -> np.ndarray:
-    return store.to_scipy().toarray().astype(np.float64)
+    """The store in its matrix order, the order of ``scene.F`` and of the geometry."""
+    return store.to_scipy(output_order="matrix").toarray().astype(np.float64)
 
 
 def dense_transport(scene) -> np.ndarray:
