@@ -66,7 +66,7 @@ class SpectralRadius:
     products : int
         Operator products it took (one per vector; a block of p vectors counts p).
     method : str
-        ``"dense"``, ``"arnoldi"`` or ``"zero"`` (no unknowns).
+        ``"dense"``, ``"collatz-wielandt"``, ``"arnoldi"`` or ``"zero"`` (no unknowns).
     converged : bool
     """
 

@@ -18,7 +18,7 @@ from .core import (  # noqa: F401
 )
 from ..schedule.stream import stream_matmul  # noqa: F401
 from .files import FileCompensation, FileCompensationReport, compensate_files  # noqa: F401
-from .simulate import (  # noqa: F401
+from .simulation import (  # noqa: F401
     Flatness,
     SimulatedFrame,
     Simulation,

@@ -30,7 +30,7 @@ from ..storage import as_store
 from .core import CompensationReport, choose_path
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
                        video_batches)
-from .simulate import clipped_summary
+from .simulation import clipped_summary
 from .video import DEFAULT_FPS, VideoSink, VideoSource, is_video_file
 
 
