@@ -133,7 +133,14 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     ----------
     T : BlockCSR, shape (n, n)
     spec : "diag", "identity", (n,) array-like, or path of a ``.npy`` file with one
-        (e.g. the result of :func:`recover_first_bounce`).
+        (e.g. the result of :func:`recover_first_bounce`). A vector is indexed by pixel
+        in row-major image order (an (H, W) image raveled), as the public API speaks;
+        it is permuted into T's stored order here.
+
+    Returns
+    -------
+    FirstBounce
+        Its vectors in T's stored (matrix) order, as the engine uses them.
 
     Raises
     ------
@@ -155,7 +162,7 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
         f = d.copy() if kind == "diag" else np.ones(n)
     else:
         kind = "vector"
-        f = _as_vector(spec, n, source)
+        f = _stored_order(T, _as_vector(spec, n, source))
     if np.isnan(d).any():
         bad = np.flatnonzero(np.isnan(d))
         raise InvalidMatrixError(f"T's diagonal has {len(bad)} NaN entries, the first at "
@@ -176,6 +183,13 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     return FirstBounce(kind, f, finv, active, int(len(excluded)), digest)
 
 
+def _stored_order(T, f: np.ndarray) -> np.ndarray:
+    """The row-major per-pixel vector ``f`` in T's stored order (as it is when T records
+    no pixel order)."""
+    order = getattr(T, "pixel_order", None)
+    return f if order is None else f[order.permutation]
+
+
 def _as_vector(spec, n: int, source) -> np.ndarray:
     """``spec`` as an (n,) float64 vector of finite numbers; errors name ``source`` (the
     file it was read from, None for an array)."""
@@ -193,13 +207,17 @@ def _as_vector(spec, n: int, source) -> np.ndarray:
     return f
 
 
-def recover_first_bounce(X) -> np.ndarray:
+def recover_first_bounce(X, output_order: str = "row-major") -> np.ndarray:
     """The true first bounce of a diffuse scene from an inverse, F_ii = 1 / (T^-1)_ii
     (paper eq. 33; eq. 42 with the stratified inverse T_n^-1).
 
     Parameters
     ----------
     X : BlockCSR, path of an inverse store, scipy sparse matrix or 2-D ndarray, (n, n)
+    output_order : {"row-major", "matrix"}
+        Of a store's pixels (:meth:`BlockCSR.diagonal`): row-major image order by
+        default (``F.reshape(H, W)`` is an image), ``"matrix"`` for the stored order. A
+        scipy matrix or an ndarray has no pixel order: its own numbering.
 
     Returns
     -------
@@ -214,7 +232,7 @@ def recover_first_bounce(X) -> np.ndarray:
     elif sp.issparse(X):
         d = X.diagonal()
     else:
-        d = X.diagonal(output_order="matrix")
+        d = X.diagonal(output_order=output_order)
     d = np.asarray(d, dtype=np.float64)
     out = np.zeros_like(d)
     nz = d != 0

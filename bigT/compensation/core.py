@@ -294,7 +294,7 @@ def first_bounce_from_inverse(X) -> np.ndarray:
     from ..algorithms.first_bounce import recover_first_bounce  # dask via the engine:
     # only bounce separation needs it
 
-    F = recover_first_bounce(X)
+    F = recover_first_bounce(X, output_order="matrix")  # multiplied with stored vectors
     bad = np.flatnonzero(F < 0)
     if bad.size:
         raise InvalidMatrixError(f"diag(X) must not be negative to recover F_ii = 1/X_ii; "

@@ -56,3 +56,25 @@ def test_first_bounce_vector_shape(tmp_path, make_store):
     T = make_store(random_dominant(20, seed=4))
     with pytest.raises(bigT.ShapeMismatchError):
         bigT.stratified_inverse(T, tmp_path / "X.zarr", first_bounce=np.ones(5), progress=False)
+
+
+def test_first_bounce_vectors_are_row_major_images(tmp_path):
+    """recover_first_bounce gives F as an image (row-major) on a tile-major scene, and a
+    first_bounce= vector is read the same way: the round trip of eq. 33 lands on the
+    scene's true F, which the scene keeps in its stored order."""
+    scene = bigT.scenes.corner(size=(16, 24), path=tmp_path / "T.zarr", preview=False,
+                               progress=False, pixel_order="tile-major", dtype="float64")
+    order = scene.pixel_order
+    assert not np.array_equal(order.permutation, np.arange(order.n))  # a real reordering
+    X = tmp_path / "X.zarr"
+    bigT.stratified_inverse(scene.T, X, terms=60, prune=0, progress=False)
+    F_image = recover_first_bounce(X)                      # what a user saves as F.npy
+    F_stored = recover_first_bounce(X, output_order="matrix")
+    np.testing.assert_allclose(F_stored, scene.F, rtol=1e-6)   # eq. 33, stored order
+    np.testing.assert_allclose(F_image, order.to_images(scene.F).ravel(), rtol=1e-6)
+    np.save(tmp_path / "F.npy", F_image)
+    second = bigT.stratified_inverse(scene.T, tmp_path / "X2.zarr", terms=1, prune=0,
+                                     first_bounce=str(tmp_path / "F.npy"), progress=False)
+    assert second.first_bounce == "vector"
+    fb = bigT.algorithms.resolve_first_bounce(scene.T, F_image)
+    np.testing.assert_allclose(fb.f, scene.F, rtol=1e-6)      # back in the stored order
