@@ -115,7 +115,7 @@ class FileCompensation:
         if not self.video_in and self.source.is_folder:
             check_frame_shapes(self.source.files, self.shape)  # before anything is written
         self.output = Path(output)
-        stores = [st.path for st in (self.X, self.T) if st is not None]
+        stores = store_paths(self.X, self.T)
         self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores)
         self._options = dict(memory_limit=memory_limit, precision=precision,
                              resident=resident and scheduler is None,
@@ -208,6 +208,13 @@ def image_shape_of(store) -> tuple[int, int] | None:
     """The (H, W) of the images a store maps (None when it records no pixel order)."""
     order = getattr(store, "pixel_order", None)
     return None if order is None else order.image_shape
+
+
+def store_paths(*stores) -> list:
+    """The directories of the stores given (None skipped), each with the root it was
+    opened through (a versioned store's redirect): what no output may destroy."""
+    return [p for st in stores if st is not None
+            for p in (st.path, getattr(st, "redirected_from", None)) if p is not None]
 
 
 def check_same_images(shape, *stores) -> None:
