@@ -200,8 +200,9 @@ def refuse_overwriting_inputs(outputs: Iterable, inputs: Iterable, *,
         Naming the output (as the path) and the input, and how they meet.
     """
     sources = [(inp, Path(os.path.realpath(inp))) for inp in inputs if inp is not None]
-    for out, replaced_whole in [(o, True) for o in outputs if o is not None] + [
-            (f, False) for f in folders if f is not None]:
+    # folders first: a folder that is an input is named as such, not its first file
+    for out, replaced_whole in [(f, False) for f in folders if f is not None] + [
+            (o, True) for o in outputs if o is not None]:
         real = Path(os.path.realpath(out))
         for inp, real_inp in sources:
             if _same_file(real, real_inp):
