@@ -112,8 +112,8 @@ class FileCompensation:
         self.video_in = is_video_file(desired)
         self.source = (VideoSource(desired, self.shape) if self.video_in
                        else ImageSource(desired, self.shape))
-        if not self.video_in:  # from the headers, before X is read or anything written
-            check_frame_shapes(self.source.files, self.shape)
+        if not self.video_in and self.source.is_folder:
+            check_frame_shapes(self.source.files, self.shape)  # before anything is written
         self.output = Path(output)
         stores = store_paths(self.X, self.T)
         self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores)
