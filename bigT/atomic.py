@@ -6,7 +6,8 @@ checked, and renamed over the destination in one step. A full disk, a crash or a
 error half way leaves the destination as it was (absent, or its old contents), never
 a truncated file; the hidden sibling is deleted. Stores (directories) have their own
 protocol (:mod:`bigT.storage.replace`); their small JSON files are replaced whole by
-:func:`atomic_write_json`.
+:func:`atomic_write_json`. No output may destroy an input of the same command
+(:func:`refuse_overwriting_inputs`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import re
 import uuid
 from glob import escape as glob_escape
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 from .errors import DiskFullError, OutputError
 
@@ -171,3 +172,60 @@ def remove_stale_temp_files(directory: Path) -> int:
             entry.unlink()
             gone += 1
     return gone
+
+
+def refuse_overwriting_inputs(outputs: Iterable, inputs: Iterable, *,
+                              folders: Iterable = ()) -> None:
+    """Refuse, before anything is written, an output that would destroy an input of
+    the same call.
+
+    Paths are compared after resolving symbolic links and ``..`` (and by device and
+    inode where both exist, so a hard link or a case-insensitive spelling is caught).
+    Every command and library entry point that writes calls this with all of its
+    outputs and inputs, so ``bigT compensate X in.png -o in.png`` is one line, never
+    a lost input.
+
+    Parameters
+    ----------
+    outputs : paths replaced whole when written (a file, a store): refused when one
+        is an input, lies inside an input (a folder of frames, a store), or holds one.
+    inputs : paths read (files, folders of frames, stores); None entries are skipped.
+    folders : folders written into (files added beside what they hold): refused when
+        one is an input or lies inside one. An input inside such a folder is safe
+        unless a file written there is that input: list those files in ``outputs``.
+
+    Raises
+    ------
+    OutputError
+        Naming the output (as the path) and the input, and how they meet.
+    """
+    sources = [(inp, Path(os.path.realpath(inp))) for inp in inputs if inp is not None]
+    # folders first: a folder that is an input is named as such, not its first file
+    for out, replaced_whole in [(f, False) for f in folders if f is not None] + [
+            (o, True) for o in outputs if o is not None]:
+        real = Path(os.path.realpath(out))
+        for inp, real_inp in sources:
+            if _same_file(real, real_inp):
+                raise OutputError(f"is the input {os.fspath(inp)}: writing it would destroy "
+                                  "the input; choose another output", out)
+            if _lies_within(real, real_inp):
+                raise OutputError(f"lies inside the input {os.fspath(inp)}: writing it would "
+                                  "change the input; choose an output outside it", out)
+            if replaced_whole and _lies_within(real_inp, real):
+                raise OutputError(f"holds the input {os.fspath(inp)}, which writing it would "
+                                  "replace; choose another output", out)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` (resolved) name one file: equal, or one inode where both exist."""
+    if a == b:
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet): only the names could tell
+        return False
+
+
+def _lies_within(inner: Path, outer: Path) -> bool:
+    """``inner`` (resolved) is strictly below the folder ``outer`` (resolved)."""
+    return any(_same_file(parent, outer) for parent in inner.parents)

@@ -26,6 +26,14 @@ TO_SCIPY_MAX_BYTES = 4 << 30
 #: Edge of one image tile (pixels) for the image-tile-major pixel order.
 DEFAULT_IMAGE_TILE = (8, 8)
 
+#: Values (pixels x channels) an image file's header may declare when no transport shape
+#: bounds it (bigT.images.check_declared_size; with one, H x W x 4). An image becomes a
+#: float64 array, so this is 1 GiB: above any projector (8K is 33 M pixels) and the
+#: monochrome sensors of scientific cameras (up to ~100 M), and below Pillow's own
+#: refusal (179 M pixels). A forged header above it is refused before decoding, instead
+#: of costing its declared size in memory.
+IMAGE_MAX_VALUES = 1 << 27
+
 # --- inverse -----------------------------------------------------------------------
 #: Absolute threshold below which entries of each series term are dropped.
 DEFAULT_PRUNE = 1e-5

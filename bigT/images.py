@@ -21,7 +21,10 @@ with an :class:`~bigT.errors.ImageError` that names the file and its channel cou
 channels into three frames and process them as a batch) before calling bigT.
 
 NaN or Inf values, and a size that does not match the transport's image shape, are
-:class:`~bigT.errors.ImageError` s naming the file.
+:class:`~bigT.errors.ImageError` s naming the file. A file's header is read before its
+pixels: one declaring more values than an image of the transport's shape can hold (or,
+where no shape is known, more than :data:`bigT.config.IMAGE_MAX_VALUES`) is refused
+before anything is decoded, so a small forged file never costs gigabytes.
 """
 
 from __future__ import annotations
@@ -32,13 +35,17 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from .atomic import atomic_output
+from . import config
+from .atomic import atomic_output, refuse_overwriting_inputs
 from .errors import ImageError, short_reason
 
 #: File name suffixes read as images (lower case).
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 #: Bit depth of PNG files written when none is asked for.
 DEFAULT_PNG_BITS = 16
+#: Most channels a readable image may have per pixel (RGBA): an image of the transport's
+#: (H, W) holds at most this many values per pixel before it is refused as colour.
+MAX_CHANNELS = 4
 
 
 def is_image_file(path: str | os.PathLike) -> bool:
@@ -70,6 +77,8 @@ def _iio_call(name, *args):
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*vendored tifffile", category=DeprecationWarning)
+        # Pillow's own size guard: the header was bounded already (check_declared_size)
+        warnings.filterwarnings("ignore", message=".*could be decompression bomb")
         return getattr(iio, name)(*args)
 
 
@@ -120,6 +129,75 @@ def check_image(image: np.ndarray, path="<array>", shape: Sequence[int] | None =
     return image
 
 
+def declared_shape(path: str | os.PathLike) -> tuple[int, ...] | None:
+    """The array shape an image file's header declares, read without decoding a pixel.
+
+    Returns
+    -------
+    tuple of int or None
+        (H, W) or (H, W, C) for PNG and TIFF (C the channels, when more than one), the
+        array's shape for ``.npy``; None when the header cannot be parsed (the decoder
+        then says why the file is unreadable).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return _npy_shape(path)
+        # the plugin classes parse the header only, without Image.open's size warning
+        from PIL import PngImagePlugin, TiffImagePlugin  # Pillow: only when a file is read
+
+        cls = PngImagePlugin.PngImageFile if suffix == ".png" else TiffImagePlugin.TiffImageFile
+        with cls(os.fspath(path)) as im:
+            (W, H), channels = im.size, len(im.getbands())
+    except FileNotFoundError:
+        raise ImageError("no such file", path) from None
+    except Exception:  # not a parsable header: the decoder reports it
+        return None
+    return (H, W) if channels == 1 else (H, W, channels)
+
+
+def _npy_shape(path: Path) -> tuple[int, ...]:
+    """The shape in a ``.npy`` header (whatever the file's length: a short file that
+    declares a huge array must not be allocated by np.load before it fails)."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        return tuple(int(d) for d in read(f)[0])
+
+
+def check_declared_size(path: str | os.PathLike, shape: Sequence[int] | None = None) -> None:
+    """Refuse an image whose header declares more values than bigT would read.
+
+    Parameters
+    ----------
+    path : an image file (:data:`IMAGE_SUFFIXES`).
+    shape : (int, int), optional
+        The transport's (H, W): at most H W x :data:`MAX_CHANNELS` values are read.
+        Without it, at most :data:`bigT.config.IMAGE_MAX_VALUES`.
+
+    Raises
+    ------
+    ImageError
+        Naming the file and the declared size, before any pixel is decoded.
+    """
+    declared = declared_shape(path)
+    if declared is None:
+        return
+    values = int(np.prod(declared, dtype=np.float64))  # float: a forged header can overflow int64
+    if shape is not None:
+        if values > int(np.prod(shape)) * MAX_CHANNELS:
+            raise ImageError(
+                f"the header declares an image of shape {declared}, far larger than the "
+                f"transport's image shape {tuple(shape)}; refused before decoding it", path)
+    elif values > config.IMAGE_MAX_VALUES:
+        raise ImageError(
+            f"the header declares an image of shape {declared} ({values:,} values), more "
+            f"than the {config.IMAGE_MAX_VALUES:,} bigT reads (bigT.config.IMAGE_MAX_VALUES); "
+            "refused before decoding it", path)
+
+
 def read_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> np.ndarray:
     """Read one grayscale image as floats in [0, 1].
 
@@ -133,17 +211,19 @@ def read_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> n
     -------
     ndarray, shape (H, W), float64
     """
-    return check_image(read_raw_image(path), path, shape)
+    return check_image(read_raw_image(path, shape), path, shape)
 
 
-def read_raw_image(path: str | os.PathLike) -> np.ndarray:
-    """The pixels of an image file as stored (uint8, uint16, floats...), unchecked;
-    :func:`read_image` is this and :func:`check_image`. Acquisition needs the stored
-    type to check bit depths and find saturated pixels."""
+def read_raw_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> np.ndarray:
+    """The pixels of an image file as stored (uint8, uint16, floats...), unchecked but
+    for the size its header declares (:func:`check_declared_size`, ``shape`` the
+    transport's (H, W) when known); :func:`read_image` is this and :func:`check_image`.
+    Acquisition needs the stored type to check bit depths and find saturated pixels."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in IMAGE_SUFFIXES:
         raise ImageError(f"unknown image format {suffix!r} (use {', '.join(IMAGE_SUFFIXES)})", path)
+    check_declared_size(path, shape)
     try:
         if suffix == ".npy":
             return np.load(path, allow_pickle=False)
@@ -259,10 +339,14 @@ class ImageSink:
         each input's.
     bits : int, optional
         PNG bit depth; by default the bit depth of each input PNG (16 for other inputs).
+    inputs : paths, optional
+        The other inputs of the command (stores, files), which no file written may
+        destroy, as none may destroy the source (OutputError, before anything is
+        written).
     """
 
     def __init__(self, path: str | os.PathLike, source: ImageSource, *, suffix: str | None = None,
-                 bits: int | None = None):
+                 bits: int | None = None, inputs=()):
         self.path = Path(path)
         self.source = source
         self.suffix = suffix
@@ -270,13 +354,19 @@ class ImageSink:
         if source.is_folder:
             if self.path.exists() and not self.path.is_dir():
                 raise ImageError("the input is a folder, so the output must be a folder too", self.path)
-            self.path.mkdir(parents=True, exist_ok=True)
         else:
             if self.path.is_dir():
                 self.path = self.path / source.path.name
             if suffix is None and not is_image_file(self.path):
                 raise ImageError(f"unknown output format {self.path.suffix!r} "
                                  f"(use {', '.join(IMAGE_SUFFIXES)})", self.path)
+        # no folder is made here: write_image makes it with the first file
+        refuse_overwriting_inputs(self.targets(), [source.path, *inputs],
+                                  folders=[self.path] if source.is_folder else ())
+
+    def targets(self) -> list[Path]:
+        """Every file :meth:`write` may write, one per frame of the source."""
+        return [self.target(f) for f in self.source.files]
 
     def target(self, src: Path) -> Path:
         """Output path for the input frame ``src``."""

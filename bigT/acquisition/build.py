@@ -36,7 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..atomic import atomic_output
+from ..atomic import atomic_output, refuse_overwriting_inputs
 from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
@@ -173,6 +173,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     over.
     """
     t0 = time.perf_counter()
+    refuse_overwriting_inputs([output], [patterns, captures, black])
     manifest = read_manifest(patterns)
     if manifest.method == "graycode":
         raise AcquisitionError(

@@ -29,6 +29,7 @@ import os
 import time
 
 from .. import config
+from ..atomic import refuse_overwriting_inputs
 from ..errors import NotSquareError
 from ..schedule.runner import local_path, open_runner
 from ..sizes import parse_size
@@ -136,6 +137,9 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         raise NotSquareError(f"T is {T.shape[0]} x {T.shape[1]}; the inverse needs a square "
                              "T (apply the pixel correspondence first)", T.path)
     out = local_path(out, "inverse store")
+    fb = first_bounce if isinstance(first_bounce, (str, os.PathLike)) else "diag"
+    fb_file = None if fb in ("diag", "identity") else fb  # a .npy the run reads
+    refuse_overwriting_inputs([out], [T.path, T.redirected_from, fb_file])
     settings = SeriesSettings(int(terms), thresholds, tol, progress, force, seed,
                               overwrite, on_term)
     memory_limit = None if memory_limit is None else parse_size(memory_limit, "memory_limit")

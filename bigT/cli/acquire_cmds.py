@@ -134,6 +134,10 @@ def build_cmd(args) -> int:
     from ..acquisition import build_transport, load_correspondence
     from ..acquisition.validate import (check_white, figure_paths, plot_correspondence,
                                         plot_white_check)
+    from ..atomic import refuse_overwriting_inputs
+
+    planned = () if args.no_figures else figure_paths(args.output)
+    refuse_overwriting_inputs(planned, [args.patterns, args.captures, args.black])
 
     with _own_warnings("bigT acquire build"):
         report = build_transport(args.patterns, args.captures, args.output, black=args.black,
@@ -193,7 +197,10 @@ def _grid(report) -> tuple[int, int]:
 
 def simulate_cmd(args) -> int:
     from ..acquisition import read_manifest, simulate_captures
+    from ..atomic import refuse_overwriting_inputs
 
+    # the pattern folder as the output is refused by simulate_captures, in its own words
+    refuse_overwriting_inputs((), [args.scene], folders=[args.output])
     model = simulate_captures(args.scene, args.patterns, args.output, camera=args.camera,
                               noise=args.noise, black=args.black, gamma=args.gamma,
                               fmt=args.format, seed=args.seed, progress=_progress(args))

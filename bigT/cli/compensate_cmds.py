@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
+from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError
 from ..sizes import format_size
 from ._argtypes import clip_range, integer, memory_size, number
@@ -160,14 +161,17 @@ def _run_simulate(args, X, S, Tm, choice, shape) -> int:
     """compensate --simulate: :func:`bigT.compensation.simulate_batches` over the frames,
     its report and figures printed."""
     from ..compensation import simulate_batches, simulation_figures
-    from ..compensation.files import describe_path, describe_store
+    from ..compensation.files import describe_path, describe_store, store_paths
     from ..images import ImageSink, ImageSource
     from ..progress import progress_bar
 
     source = ImageSource(args.desired, shape)
     out_path = Path(args.output)
-    sink = ImageSink(out_path, source, bits=args.bits)
-    seen_sink = ImageSink(_sibling(out_path, "seen"), source, bits=args.bits)
+    stores = store_paths(X, S, Tm)
+    figures = (_sibling(out_path, "compare", ".png"), _sibling(out_path, "scanline", ".png"))
+    refuse_overwriting_inputs(figures, [args.desired, *stores])
+    sink = ImageSink(out_path, source, bits=args.bits, inputs=stores)
+    seen_sink = ImageSink(_sibling(out_path, "seen"), source, bits=args.bits, inputs=stores)
     print(f"bigT compensate: {len(source)} frame(s) from {args.desired}"
           + (f", image {shape[0]}x{shape[1]}" if shape else ""))
     shown = []
@@ -199,8 +203,7 @@ def _run_simulate(args, X, S, Tm, choice, shape) -> int:
     for line in report.describe().splitlines():
         print("  " + line)
     tag = f" (frame {report.first.name})" if source.is_folder else ""
-    pic, plot = simulation_figures(report, _sibling(out_path, "compare", ".png"),
-                                   _sibling(out_path, "scanline", ".png"), tag=tag)
+    pic, plot = simulation_figures(report, *figures, tag=tag)
     print(f"  figures -> {pic}, {plot}")
     return 0
 
@@ -239,14 +242,14 @@ def _run_stream(args, X, Tm) -> int:
 
 def run_relight(args) -> int:
     from ..compensation import relight
-    from ..compensation.files import describe_store, image_shape_of
+    from ..compensation.files import describe_store, image_shape_of, store_paths
     from ..schedule.stream import scheduler_runner
     from ..storage import as_store
     from ..images import ImageSink, ImageSource
 
     T = as_store(args.T, "T")
     source = ImageSource(args.input, image_shape_of(T))
-    sink = ImageSink(args.output, source, bits=args.bits)
+    sink = ImageSink(args.output, source, bits=args.bits, inputs=store_paths(T))
     print(f"bigT relight: {len(source)} frame(s) from {args.input}")
     print("  " + describe_store(T, "T"))
     above = pixels = 0
@@ -273,7 +276,7 @@ def run_relight(args) -> int:
 
 def run_bounces(args) -> int:
     from ..compensation import bounce_shares, separate_bounces
-    from ..compensation.files import describe_store, image_shape_of
+    from ..compensation.files import describe_store, image_shape_of, store_paths
     from ..figures import bounce_strip
     from ..images import read_image, write_image
     from ..storage import as_store
@@ -286,6 +289,10 @@ def run_bounces(args) -> int:
     if out.exists() and not out.is_dir():  # refused now, not after the passes
         raise ImageError("is a file; bounces writes a folder of images: choose a folder",
                          out)
+    names = [f"bounce_{k}" for k in range(args.bounces + 1)] + ["remainder"]
+    files = [out / f"{name}.{args.format}" for name in names + ["total"]]
+    refuse_overwriting_inputs(files + [out / "bounces.png"], [args.input, *store_paths(T, X)],
+                              folders=[out])
     image = read_image(args.input, image_shape_of(T))
     print(f"bigT bounces: {args.input}, K = {args.bounces}")
     print("  " + describe_store(T, "T"))
@@ -295,7 +302,6 @@ def run_bounces(args) -> int:
     dt = time.perf_counter() - t0
     shares = bounce_shares(parts)
     out.mkdir(parents=True, exist_ok=True)
-    names = [f"bounce_{k}" for k in range(args.bounces + 1)] + ["remainder"]
     K = args.bounces
     print(f"  {K + 2} parts in {dt:.2f} s: bounces 0 (direct light) to {K}, and the "
           f"remainder T l - (b_0 + ... + b_{K}) (the light of bounces after {K}, less what "

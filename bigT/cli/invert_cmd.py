@@ -106,6 +106,11 @@ def invert_cmd(args) -> int:
     if args.json not in (None, "-") and os.path.isdir(args.json):  # refused now, not after the run
         raise BigTError("is a folder; the --json report is a file: choose a file name",
                         args.json)
+    from ..atomic import refuse_overwriting_inputs
+
+    json_file = None if args.json == "-" else args.json
+    refuse_overwriting_inputs([args.output, json_file],
+                              [args.T, None if fb in ("diag", "identity") else fb])
     if args.target_error is not None:
         return _invert_to_target(args, fb)
     given = {name: getattr(args, name) for name in ("terms", "prune", "method")

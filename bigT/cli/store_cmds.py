@@ -7,6 +7,7 @@ import json
 import sys
 
 from .. import config
+from ..atomic import refuse_overwriting_inputs
 from ..sizes import format_size
 from ._argtypes import image_size, integer, number
 from ._options import add_json, add_size, deprecated
@@ -64,6 +65,7 @@ def convert_cmd(args) -> int:
     from ..storage import from_scipy
     from ..storage.convert import check_values, load_matrix
 
+    refuse_overwriting_inputs([args.output], [args.input])
     A = load_matrix(args.input, var=args.var)
     check_values(A, args.input, args.dtype)  # errors name IN, not the store
     S = from_scipy(A, args.output, tile_size=args.tile_size, dtype=args.dtype,
@@ -81,6 +83,7 @@ def export_cmd(args) -> int:
     from ..storage.convert import save_matrix
 
     S = open_store(args.store)
+    refuse_overwriting_inputs([args.output], [args.store, S.path])
     A = S.to_scipy(max_bytes=args.max_bytes, output_order=args.order)
     out = save_matrix(A, args.output)
     print(f"wrote {out}: {A.shape[0]} x {A.shape[1]}, nnz {A.nnz}")

@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from .. import config
+from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError
-from ..images import ImageSink, ImageSource, is_image_file, read_image
+from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
 from ..schedule.stream import scheduler_runner
 from ..storage import as_store
 from .core import CompensationReport, choose_path
@@ -116,7 +115,8 @@ class FileCompensation:
         if not self.video_in and self.source.is_folder:
             check_frame_shapes(self.source.files, self.shape)  # before anything is written
         self.output = Path(output)
-        self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps)
+        stores = store_paths(self.X, self.T)
+        self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores)
         self._options = dict(memory_limit=memory_limit, precision=precision,
                              resident=resident and scheduler is None,
                              cache_bytes=(config.COMPENSATE_CACHE_BYTES if cache_bytes is None
@@ -210,6 +210,13 @@ def image_shape_of(store) -> tuple[int, int] | None:
     return None if order is None else order.image_shape
 
 
+def store_paths(*stores) -> list:
+    """The directories of the stores given (None skipped), each with the root it was
+    opened through (a versioned store's redirect): what no output may destroy."""
+    return [p for st in stores if st is not None
+            for p in (st.path, getattr(st, "redirected_from", None)) if p is not None]
+
+
 def check_same_images(shape, *stores) -> None:
     """ImageError unless every ``(store, name)`` given maps images of ``shape`` (or
     records none)."""
@@ -236,14 +243,8 @@ def check_frame_shapes(files, shape) -> None:
     folder with one bad frame is refused before anything is written."""
     if shape is None:
         return
-    import imageio.v3 as iio  # ~0.2 s: only a folder of frames needs it
-
     for f in files:
-        try:
-            found = (np.load(f, mmap_mode="r", allow_pickle=False).shape
-                     if f.suffix.lower() == ".npy" else iio.improps(f).shape)
-        except Exception:  # unreadable: read_image says why, naming the file
-            found = None
+        found = declared_shape(f)  # None when unreadable: read_image says why
         if (found is None or len(found) not in (2, 3) or tuple(found[:2]) != tuple(shape)
                 or found[2:] not in ((), (1,))):
             read_image(f, shape)  # raises the one-line ImageError naming the file
@@ -251,19 +252,25 @@ def check_frame_shapes(files, shape) -> None:
 
 class _Sink:
     """``write(names, frames)`` into a video (whole or nothing) or images
-    (:class:`ImageSink`); checked when made, opened only by ``with``."""
+    (:class:`ImageSink`); checked when made (no output may destroy the source nor
+    one of ``stores``), opened only by ``with``."""
 
-    def __init__(self, source, out_path: Path, video: VideoSink | None, bits):
-        self.source, self.out_path, self.bits, self._video = source, out_path, bits, video
-        single_into_folder = video is None and not source.is_folder and out_path.is_dir()
-        #: what is written: the video, the folder, or the one image
-        self.path = out_path / source.path.name if single_into_folder else out_path
+    def __init__(self, source, out_path: Path, video: VideoSink | None, bits, stores=()):
+        self._video = video
+        if video is not None:
+            refuse_overwriting_inputs([video.path], [source.path, *stores])
+            self._images = None
+            self.path = video.path
+        else:
+            self._images = ImageSink(out_path, source, bits=bits, inputs=stores)
+            #: what is written: the video, the folder, or the one image
+            self.path = self._images.path
 
     def __enter__(self):
         if self._video is not None:
             video = self._video.__enter__()
             return lambda names, frames: video.write(frames)
-        return ImageSink(self.out_path, self.source, bits=self.bits).write
+        return self._images.write
 
     def __exit__(self, *exc):
         if self._video is not None:
@@ -271,13 +278,14 @@ class _Sink:
         return False
 
 
-def _sink_for(source, out_path: Path, video_in: bool, bits, fps) -> _Sink:
-    """The output of a compensation, its kind and format checked before X is read."""
+def _sink_for(source, out_path: Path, video_in: bool, bits, fps, stores=()) -> _Sink:
+    """The output of a compensation, its kind and format checked before X is read, and
+    refused where it would destroy the source or one of ``stores``."""
     if video_in or (source.is_folder and is_video_file(out_path)):
         fps = source.info.fps if video_in else (fps or DEFAULT_FPS)
         bits = bits or (source.info.bits if video_in else 8)
         shape = source.info.shape if video_in else _frame_shape(source)
-        return _Sink(source, out_path, VideoSink(out_path, shape, fps, bits), bits)
+        return _Sink(source, out_path, VideoSink(out_path, shape, fps, bits), bits, stores)
     if source.is_folder:
         if out_path.exists() and not out_path.is_dir():
             raise ImageError("the input is a folder, so the output must be a folder (or "
@@ -285,7 +293,7 @@ def _sink_for(source, out_path: Path, video_in: bool, bits, fps) -> _Sink:
     elif not out_path.is_dir() and not is_image_file(out_path):
         raise ImageError(f"unknown output format {out_path.suffix!r} (an image: .png, "
                          ".tif, .tiff, .npy)", out_path)
-    return _Sink(source, out_path, None, bits)
+    return _Sink(source, out_path, None, bits, stores)
 
 
 def _frame_shape(source):

@@ -78,12 +78,66 @@ class VideoInfo:
     codec: str
 
 
+#: Lines of ffmpeg's log that say nothing about the file: its version banner (version,
+#: compiler, configuration, library versions), the indented stream and metadata
+#: descriptions, progress lines, and its hints and format-guess warnings.
+_FFMPEG_CHATTER = re.compile(r"\s|ffmpeg version|Input #|Output #|Press \[q\]|frame=|size="
+                             r"|video:|Consider increasing|.*misdetection possible!$")
+#: The log line after which ffmpeg reports on its outputs, no longer on the input.
+_FFMPEG_OUTPUT_SIDE = "Stream mapping:"
+#: imageio-ffmpeg's own headline when ffmpeg printed no stream header: the log says why.
+_NO_HEADER = "Could not load meta information"
+#: Complaints of ffmpeg's log kept as the cause.
+FFMPEG_CAUSE_LINES = 2
+
+
 def _reason(exc: BaseException, path) -> str:
-    """ffmpeg's complaint in one line, without the command line imageio-ffmpeg adds."""
-    text = " ".join(str(exc).split())
-    text = text.replace(os.fspath(path), Path(path).name)
-    text = re.sub(r"FFMPEG COMMAND:.*?FFMPEG STDERR OUTPUT:", "", text).strip()
-    return (text or type(exc).__name__)[:200]
+    """Why ffmpeg could not read ``path``, in one line: the complaints of its log
+    (:func:`ffmpeg_cause`), after imageio-ffmpeg's own headline where it says more than
+    that it failed."""
+    head, _, log = str(exc).partition("=== stderr ===")
+    head = re.sub(r"FFMPEG COMMAND:.*?FFMPEG STDERR OUTPUT:", "", head, flags=re.S)
+    parts = [" ".join(head.split())] if _NO_HEADER not in head else []
+    parts += ffmpeg_cause(log, path)
+    text = "; ".join(p for p in parts if p)
+    return (text or type(exc).__name__)[:300]
+
+
+def ffmpeg_cause(log: str, path) -> list[str]:
+    """The lines of an ffmpeg log that say what is wrong with the input ``path``.
+
+    ffmpeg prints its version banner first, then each component's complaints prefixed
+    by its name (``[in#0/mov,mp4 @ 0x55...] moov atom not found``). The reader of the
+    input complains first and says why (``File ended prematurely``); the filters and
+    encoders after it then fail in turn for want of frames, and the callers above a
+    complaint repeat its final clause (``Error opening input: Invalid data...``, then
+    ``Error opening input files: Invalid data...``). So: the first distinct complaints
+    about the input, else the last ones of the log.
+
+    Returns
+    -------
+    list of str
+        At most :data:`FFMPEG_CAUSE_LINES`, without component prefixes, ``path``
+        shortened to its name.
+    """
+    name, full = Path(path).name, os.fspath(path)
+    inputs: list[str] = []
+    others: list[str] = []
+    seen: set[str] = set()
+    output_side = False
+    for line in log.splitlines():
+        output_side = output_side or line.startswith(_FFMPEG_OUTPUT_SIDE)
+        if not line.strip() or _FFMPEG_CHATTER.match(line):
+            continue
+        prefixes = re.match(r"(\[[^\]]*@ 0x[0-9a-f]+\]\s*)*", line.strip()).group(0)
+        text = line.strip()[len(prefixes):].replace(full, name)
+        clause = text.rsplit(": ", 1)[-1]
+        if not text or clause in seen or text.startswith(f"Error opening input file {name}"):
+            continue
+        seen.add(clause)
+        on_input = prefixes.startswith("[in#") or not (output_side or prefixes)
+        (inputs if on_input else others).append(text)
+    return inputs[:FFMPEG_CAUSE_LINES] or others[-FFMPEG_CAUSE_LINES:]
 
 
 def _deep(pix_fmt: str) -> bool:
