@@ -35,9 +35,11 @@ class Scene:
     path : pathlib.Path
         The T store; the ground truth is in ``path / "ground_truth"``.
     T, A : BlockCSR, shape (n, n)
-        Light transport and interreflection (matrix order, ``pixel_order``).
+        Light transport and interreflection, stored in ``pixel_order``; their products,
+        ``to_scipy`` and ``diagonal`` speak row-major image vectors like every store's.
     F : ndarray, (n,) float64
-        True first bounce (diagonal of F), matrix order.
+        True first bounce (diagonal of F) in the stored order (the order of the
+        stores' tiles); ``pixel_order.to_images(F)`` is its image.
     pixel_order : PixelOrder
     summary : dict
         Name, parameters, nnz, spectral radii, bounce shares, timings (JSON).
