@@ -11,12 +11,29 @@ series may grow for a term).
 
 from __future__ import annotations
 
+from typing import Callable
+
 from .. import config
 from ..errors import DivergenceError
 from ..spectral import SpectralRadius, spectral_radius
 from .first_bounce import FirstBounce
 from .matvecs import MatVecs
 from .records import SeriesRecord
+
+
+def checked_radius(record: SeriesRecord, matvecs: MatVecs, seed: int, force: bool,
+                   save: Callable[[SeriesRecord], None]) -> tuple[SpectralRadius, bool]:
+    """(rho(M), whether it was estimated now): read from ``record``, else estimated and,
+    once converged, recorded through ``save`` (else estimated anew on the next run);
+    then a series that may diverge is refused (:func:`refuse_diverging`)."""
+    rho = recorded_radius(record)
+    computed = rho is None
+    if computed:
+        rho = estimate_radius(matvecs, seed)
+        if rho.converged:
+            save(with_radius(record, rho))
+    refuse_diverging(rho, matvecs.layout.fb, matvecs.layout.T.path, force)
+    return rho, computed
 
 
 def recorded_radius(record: SeriesRecord) -> SpectralRadius | None:

@@ -10,7 +10,8 @@
 * :mod:`.matvecs` and :mod:`.term_residual`: the products with M and X, and each
   term's residual estimate, the probes' X Z carried from term to term;
 * :mod:`.publish`: a finished term published (X's record, redirect, root record) and
-  the previous term deleted in the background.
+  the previous term deleted in the background;
+* :mod:`.run_report`: the :class:`~.report.InverseReport` from how the run ended.
 
 The driver holds what changes during the run: the store's record (the term held) and
 the probes' X Z for it. A term is published only once complete; a crash leaves the
@@ -24,11 +25,9 @@ import time
 
 import numpy as np
 
-from ..spectral import SpectralRadius
 from ..storage import InverseStore
 from ..storage import open as open_store
-from .divergence import (estimate_radius, recorded_radius, refuse_diverging,
-                         refuse_growing_residual, with_radius)
+from .divergence import checked_radius, refuse_growing_residual
 from .matvecs import MatVecs
 from .methods import TERM_ZERO, SeriesMethod
 from .passes import PassRunner, exhausted_before
@@ -71,7 +70,8 @@ class InverseEngine:
         resumed_from = self.record.term
         try:
             t0 = time.perf_counter()
-            rho, computed = self._spectral_radius()
+            rho, computed = checked_radius(self.record, self.matvecs, self.settings.seed,
+                                           self.settings.force, self._save)
             t_rho = time.perf_counter() - t0
             if self.record.term is None:
                 self._term_zero()
@@ -92,19 +92,6 @@ class InverseEngine:
         return inverse_report(outcome, self.layout, self.record, self.settings,
                               self.series.name, self.passes.totals, self.runner,
                               self.store.path)
-
-    def _spectral_radius(self) -> tuple[SpectralRadius, bool]:
-        """(rho(M), whether this run estimated it): read from the record, else estimated
-        and recorded once converged (else estimated anew on the next run); a series
-        that may diverge is refused unless forced."""
-        rho = recorded_radius(self.record)
-        computed = rho is None
-        if computed:
-            rho = estimate_radius(self.matvecs, self.settings.seed)
-            if rho.converged:
-                self._save(with_radius(self.record, rho))
-        refuse_diverging(rho, self.layout.fb, self.layout.T.path, self.settings.force)
-        return rho, computed
 
     def _extend(self, resumed_from: int | None) -> str:
         """Compute terms until ``terms`` is held, ``tol`` is reached or the series is
