@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..schedule.matvec import matvec, matvec_spec
+from ..schedule.runner import ClusterRunner, ThreadRunner
 from .run_setup import RunLayout
 
 
@@ -16,7 +17,7 @@ from .run_setup import RunLayout
 class MatVecs:
     """Products with M and X through ``runner`` for the run laid out by ``layout``."""
 
-    runner: object
+    runner: ThreadRunner | ClusterRunner
     layout: RunLayout
 
     def apply_M(self, V: np.ndarray, largest: bool = False) -> np.ndarray:

@@ -18,7 +18,7 @@ from .. import config
 from ..schedule.memory import MemoryPlan
 from ..schedule.runner import ClusterRunner, local_path
 from ..schedule.spec import MemoryPolicy
-from ..storage import InverseStore
+from ..storage import BlockCSR, InverseStore
 from .fingerprint import inverse_fingerprint
 from .first_bounce import FirstBounce, resolve_first_bounce
 from .methods import SeriesMethod
@@ -50,7 +50,7 @@ class RunLayout:
         finished, the run discards it.
     """
 
-    T: object
+    T: BlockCSR
     T_path: str
     fb: FirstBounce
     policy: MemoryPolicy
@@ -80,7 +80,7 @@ class RunLayout:
         return "; ".join(f"{addr}: {plan.describe()}" for addr, plan in sorted(self.plans.items()))
 
 
-def open_run(T, store: InverseStore, series: SeriesMethod, runner, settings: SeriesSettings,
+def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, settings: SeriesSettings,
              first_bounce, memory_limit: int | None) -> tuple[RunLayout, SeriesRecord]:
     """The run's layout and the store's record, the store opened (created, or resumed
     when it holds the same fingerprint; its writer lock taken).
