@@ -53,6 +53,11 @@ class InverseEngine:
     settings : SeriesSettings
     first_bounce : what :func:`resolve_first_bounce` takes
     memory_limit : int or None
+
+    It holds what changes during the run, ``record`` (the store's
+    :class:`~.records.SeriesRecord`: the term held) and ``XZ`` (X Z of that term for
+    the residual probes), and the pieces that run its steps: ``layout`` (fixed at
+    set-up), ``matvecs``, ``residual`` and ``passes``.
     """
 
     def __init__(self, T, store: InverseStore, series: SeriesMethod, runner,
@@ -150,7 +155,8 @@ class InverseEngine:
 
     def _finish_term(self, k: int, stats, t0: float, XZ: np.ndarray | None = None) -> None:
         """Estimate term k's residual (``XZ``: X_k Z when known), refuse the term when
-        the residual grew, else publish it."""
+        the residual grew, else publish it. Every published term, term 0 included,
+        passes here (benchmarks/bench_tradeoff.py wraps it to measure each term)."""
         X = open_store(self.store.term_path(k, "X"))
         residual = self.residual.estimate(X, XZ)
         refuse_growing_residual(self.record, k, residual.relative, self.settings.force,
