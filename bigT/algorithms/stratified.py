@@ -14,7 +14,8 @@ Where the rest lives:
   :mod:`.settings`. The pruning error bound, power against Horner under pruning, and
   why P_k and M may be pruned harder ("Carrying"): docs/DESIGN.md;
 * the run (rho(M) checked before term 0, the terms computed and published one by one,
-  a growing residual refused, the resume): :mod:`.engine`; the residual estimate:
+  a growing residual refused, the resume): :mod:`.engine`, a driver whose docstring
+  names the module of each of its steps; the residual estimate:
   :mod:`.residual`; what a store's inverse depends on: :mod:`.fingerprint`; the
   record kept in the store: :mod:`.records`; the report: :mod:`.report`.
 

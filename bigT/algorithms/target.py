@@ -31,10 +31,10 @@ the error of T_k^-1 on the probes, ||M^(k+1) d|| / ||d||, is computed before any
 by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper than a
 sparse product): it gives the number of terms the series needs
 (:func:`truncation_curve`). After each term the measured residual r_k = (I - T X_k) d
-minus M^(k+1) d is exactly what pruning added (stratified.py's docstring: M P_n
-- sum_k D_k for the power form), so a prune too large for the target is seen at the
-first term measured (by term 4 in a long series) and the run restarts with a smaller
-one instead of running into the floor.
+minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k for the power form:
+docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
+is seen at the first term measured (by term 4 in a long series) and the run restarts
+with a smaller one instead of running into the floor.
 
 Rules (constants below, measured by ``benchmarks/bench_target.py``)
 -------------------------------------------------------------------
@@ -80,8 +80,10 @@ from ..errors import BigTError
 from ..schedule.runner import ThreadRunner
 from ..schedule.stream import forget_tiles, stream_matmul
 from ..storage import as_store
+from ..storage import open as open_store
 from ..storage.frames import pixel_order_of, to_vectors
 from .first_bounce import resolve_first_bounce
+from .stratified import stratified_inverse
 
 #: Stop when the worst probe's error is below SAFETY * target.
 SAFETY = 0.8
@@ -389,9 +391,6 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     -------
     (Attempt, InverseReport, reason to restart or None)
     """
-    from ..storage import open as open_store
-    from .stratified import stratified_inverse
-
     measured: list[TermErrors] = []
 
     def measure(held: int, during_run: bool = True) -> None:

@@ -183,17 +183,18 @@ def test_residual_from_the_probes_carried_term_to_term_equals_reading_x(
     """The power form's tasks report (X_k - X_{k-1}) Z, so the engine estimates the
     residual without reading X back: the same estimate as from X read (to float32
     rounding of the stored X)."""
-    from bigT.algorithms import engine
+    from bigT.algorithms.matvecs import MatVecs
+    from bigT.algorithms.term_residual import ProbedResidual
 
     A = random_dominant(96, seed=9, density=0.3, margin=0.8)
     T = make_store(A, tile_size=32, dtype="float32")
     read = []
-    monkeypatch.setattr(engine.InverseEngine, "_apply_X",
+    monkeypatch.setattr(MatVecs, "apply_X",
                         lambda self, X, V: read.append(X.path) or X.to_scipy() @ V)
     carried = bigT.stratified_inverse(T, tmp_path / "a.zarr", terms=4, prune=1e-6,
                                       prune_feed=1e-4, progress=False)
     assert read == []  # no term read X back
-    monkeypatch.setattr(engine.InverseEngine, "_updated_XZ", lambda self, stats: None)
+    monkeypatch.setattr(ProbedResidual, "updated_XZ", lambda self, XZ, stats: None)
     reread = bigT.stratified_inverse(T, tmp_path / "b.zarr", terms=4, prune=1e-6,
                                      prune_feed=1e-4, progress=False)
     assert len(read) == 4  # terms 1-4 read X; term 0's X Z = F^-1 Z is known
@@ -210,7 +211,7 @@ def test_the_bracket_is_asked_for_only_when_m_has_no_positive_entry(
     (MOperand.largest_entries, exact whether M's rows are cached or not:
     tests/schedule/test_operators.py); a T with one negative entry (noise) goes to
     ARPACK."""
-    from bigT.algorithms import engine
+    from bigT.algorithms import divergence
     from bigT.spectral import spectral_radius
 
     A = random_dominant(300, seed=4, density=0.05)
@@ -223,8 +224,8 @@ def test_the_bracket_is_asked_for_only_when_m_has_no_positive_entry(
         told.append(kw["nonpositive"])
         return spectral_radius(*args, **kw)
 
-    monkeypatch.setattr(engine, "spectral_radius", spy)
-    monkeypatch.setattr(engine.config, "SPECTRAL_RADIUS_DENSE_MAX", 16)
+    monkeypatch.setattr(divergence, "spectral_radius", spy)
+    monkeypatch.setattr(divergence.config, "SPECTRAL_RADIUS_DENSE_MAX", 16)
     rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=1, progress=False)
     assert told == [not negative]
     d = np.diag(A)

@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 import bigT
-from bigT.algorithms import engine
+from bigT.algorithms import divergence
 from bigT.spectral import SpectralRadius
 from bigT.testing import clustered_spectrum
 
@@ -44,7 +44,7 @@ def test_a_growing_residual_stops_the_run_and_keeps_the_last_good_term(tmp_path,
     """An estimator fooled into 0.5: the residual check alone must stop the run."""
     A = block_transport(1, 1.05, 10, low=0.3, high=0.6).toarray()
     T = bigT.from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=64, dtype="float64")
-    monkeypatch.setattr(engine, "spectral_radius",
+    monkeypatch.setattr(divergence, "spectral_radius",
                         lambda *a, **k: SpectralRadius(0.5, 0.0, 1, "fooled"))
     X = tmp_path / "X.zarr"
     with pytest.raises(bigT.DivergenceError, match="residual grew") as err:

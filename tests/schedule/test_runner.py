@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 import bigT
 from bigT.algorithms.methods import power_task
-from bigT.algorithms.engine import choose_tile_size
+from bigT.algorithms.run_setup import choose_tile_size
 from bigT.schedule import matvec as mv
 from bigT.schedule.cache import TileCache
 from bigT.schedule.operators import StoreOperand

@@ -1,0 +1,45 @@
+"""The engine's products of M = I - T F^-1 and of a term's X with dense blocks, run on
+the runner one task per row block (:func:`bigT.schedule.matvec.matvec`): the spectral
+radius's products with M, and the residual estimate's with M and X."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..schedule.matvec import matvec, matvec_spec
+from ..schedule.runner import ClusterRunner, ThreadRunner
+from .run_setup import RunLayout
+
+
+@dataclass(frozen=True, eq=False)
+class MatVecs:
+    """Products with M and X through ``runner`` for the run laid out by ``layout``."""
+
+    runner: ThreadRunner | ClusterRunner
+    layout: RunLayout
+
+    def apply_M(self, V: np.ndarray, largest: bool = False) -> np.ndarray:
+        """M V, shape (n, p), for V of shape (n, p); with ``largest``, each row's
+        largest entry of M instead, shape (n, 1) (V then only gives the shape)."""
+        lay = self.layout
+        spec = matvec_spec("largest-M" if largest else "matvec-M", lay.T_path, lay.n,
+                           lay.tile_size, lay.T.dtype, memory=lay.policy, T=lay.T_path,
+                           first_bounce=lay.fb.digest, zero_diagonal=lay.fb.zero_diagonal,
+                           largest=largest)
+        return matvec(self.runner, spec, V, lay.shared)
+
+    def m_nonpositive(self) -> bool:
+        """Whether M = I - T F^-1 has no positive entry (a transport with no negative
+        entry and F = diag T): one pass over M's rows, which the spectral radius's
+        products then find in the tile cache."""
+        largest = self.apply_M(np.zeros((self.layout.n, 1)), largest=True)
+        return bool(largest.max(initial=0.0) <= 0.0)
+
+    def apply_X(self, X, V: np.ndarray) -> np.ndarray:
+        """X V, shape (n, p), for the term store ``X`` (its tiles read once, not
+        cached: the next term replaces it)."""
+        spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,
+                           memory=self.layout.policy, cache_tiles=False)
+        return matvec(self.runner, spec, V)

@@ -1,0 +1,136 @@
+"""Setting up one run of the engine, or resuming one: where the tasks read T, the first
+bounce F, each process's memory plan, the inverse store opened under the run's
+fingerprint, and the term stores' tile size (chosen by the run that made the store,
+recorded, kept on resume so that a resumed run cuts the same row blocks).
+
+What :func:`open_run` returns, a :class:`RunLayout`, is fixed for the whole run: every
+other piece of the engine reads it.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import config
+from ..schedule.memory import MemoryPlan
+from ..schedule.runner import ClusterRunner, local_path
+from ..schedule.spec import MemoryPolicy
+from ..storage import BlockCSR, InverseStore
+from .fingerprint import inverse_fingerprint
+from .first_bounce import FirstBounce, resolve_first_bounce
+from .methods import SeriesMethod
+from .records import SeriesRecord
+from .settings import SeriesSettings
+
+
+@dataclass(frozen=True, eq=False)
+class RunLayout:
+    """What one run fixes before its first product.
+
+    Attributes
+    ----------
+    T : BlockCSR, shape (n, n)
+    T_path : str
+        T's path as the workers open it.
+    fb : FirstBounce
+    policy : MemoryPolicy
+        The memory limit and T's widths, from which each process plans.
+    plans : dict of str to MemoryPlan
+        Each process's plan, by worker address (``"local"`` for a local run).
+    tile_size : int
+        Tile size of the term stores; their row blocks are the tasks.
+    kernel_threads : int
+        Threads each task's product kernel may use (1 when the row blocks alone keep
+        every runner thread busy).
+    created : bool
+        This run creates (or overwrites) the store: stopped before its first term is
+        finished, the run discards it.
+    """
+
+    T: BlockCSR
+    T_path: str
+    fb: FirstBounce
+    policy: MemoryPolicy
+    plans: dict[str, MemoryPlan]
+    tile_size: int
+    kernel_threads: int
+    created: bool
+
+    @property
+    def n(self) -> int:
+        return self.T.shape[0]
+
+    @property
+    def n_blocks(self) -> int:
+        return -(-self.n // self.tile_size)
+
+    @property
+    def shared(self) -> dict[str, np.ndarray]:
+        """What every task of the series reads beside its stores: F^-1, F and the kept
+        pixels (each shape (n,))."""
+        return {"finv": self.fb.finv, "f": self.fb.f, "active": self.fb.active}
+
+    def memory_text(self) -> str:
+        """The memory plans, one line (the report's ``memory``)."""
+        if len(self.plans) == 1:
+            return next(iter(self.plans.values())).describe()
+        return "; ".join(f"{addr}: {plan.describe()}" for addr, plan in sorted(self.plans.items()))
+
+
+def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, settings: SeriesSettings,
+             first_bounce, memory_limit: int | None) -> tuple[RunLayout, SeriesRecord]:
+    """The run's layout and the store's record, the store opened (created, or resumed
+    when it holds the same fingerprint; its writer lock taken).
+
+    Raises what :func:`resolve_first_bounce`, :meth:`InverseStore.open_or_create` and
+    the runner's path check raise (before anything is written where they can).
+    """
+    T_path = _tasks_path(T, runner, settings.progress)
+    fb = resolve_first_bounce(T, first_bounce)
+    policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], max_row_nnz(T))
+    plans = runner.plans(policy)
+    created = not store.path.exists() or settings.overwrite
+    params = inverse_fingerprint(T, fb, settings.thresholds, series.name)
+    record = SeriesRecord.from_stored(
+        store.open_or_create(params, overwrite=settings.overwrite), store.path)
+    runner.check_paths([str(store.path)])
+    if record.tile_size is None:  # a new store: its tile size chosen now, and recorded
+        ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads)
+        record = record.replace(tile_size=ts, excluded_pixels=fb.excluded)
+        store.save(record.to_stored())
+    n_blocks = -(-T.shape[0] // record.tile_size)
+    kernel_threads = 1 if n_blocks >= runner.threads else runner.idle_kernel_threads
+    return RunLayout(T, T_path, fb, policy, plans, record.tile_size, kernel_threads,
+                     created), record
+
+
+def _tasks_path(T, runner, progress: bool) -> str:
+    """T's path as the workers will open it, checked on every worker."""
+    T_path = local_path(T.path, "transport T")
+    runner.check_paths([T_path])
+    if progress and isinstance(runner, ClusterRunner):
+        # a cluster run may be long: where to watch it (the dashboard) comes first
+        print(f"bigT: running on {runner.describe()}", file=sys.stderr)
+    return T_path
+
+
+def choose_tile_size(n: int, tile_size: int, threads: int) -> int:
+    """T's tile size, halved while it gives fewer than ``config.TASKS_PER_THREAD`` row
+    blocks per thread, halving adds blocks, and blocks keep at least
+    ``config.MIN_BLOCK_ROWS`` rows."""
+    ts = int(tile_size)
+    while (-(-n // ts) < config.TASKS_PER_THREAD * threads and ts // 2 >= config.MIN_BLOCK_ROWS
+           and -(-n // (ts // 2)) > -(-n // ts)):
+        ts //= 2
+    return ts
+
+
+def max_row_nnz(T) -> int:
+    """Entries of T's widest tile row."""
+    indptr = np.asarray(T.tile_indptr)
+    tile_nnz = np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0)
+    row_nnz = np.add.reduceat(tile_nnz, indptr[:-1]) * (np.diff(indptr) > 0)
+    return int(row_nnz.max(initial=0))
