@@ -202,7 +202,7 @@ def desired_frames(scene) -> tuple[np.ndarray, float, float]:
     patterns = np.stack([test_pattern(size, k) for k in range(FRAMES)])
     order = scene.T.pixel_order
     B = to_vectors(patterns, order, np.float64)
-    exact = (B - scene.A.matmul(B, order="matrix")) / scene.F[:, None]  # F^-1 (I - A) d
+    exact = (B - scene.A.matmul(B, order="matrix")) / scene.F_stored[:, None]  # F^-1 (I - A) d
     gain = min(1.0, 0.95 / float(exact.max()))
     return patterns * gain, gain, float(np.mean(exact < 0))
 

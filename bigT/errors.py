@@ -119,6 +119,8 @@ class BigTError(ValueError):
         """
         if self.option is None:
             return str(self)
+        # a name the running command has no option for is often another command's
+        # (acquire build naming acquire patterns' --superpixel): spelt as a flag too
         return self._prefixed(self._fill(self.option.as_flag(flag_of(self.option.name))))
 
     def __reduce__(self):

@@ -57,20 +57,32 @@ def _empty_rows_and_cols(T, candidates: np.ndarray) -> np.ndarray:
     return candidates[~row_nz[candidates] & ~col_nz[candidates]]
 
 
-def _refuse_nonpositive(f: np.ndarray, active: np.ndarray, what: str, path) -> None:
+def _pixel_namer(T):
+    """``i -> "index 7"`` for a row of T in its stored order, or ``"pixel (y, x)"`` where
+    the store numbers pixels in another order than the row-major one users see."""
+    order = getattr(T, "pixel_order", None)
+    if order is None or np.array_equal(order.permutation, np.arange(order.n)):
+        return lambda i: f"index {i}"
+    W = order.image_shape[1]
+    return lambda i: "pixel (%d, %d)" % divmod(int(order.permutation[i]), W)
+
+
+def _refuse_nonpositive(f: np.ndarray, active: np.ndarray, what: str, path,
+                        name=lambda i: f"index {i}") -> None:
     """InvalidMatrixError when F has a negative entry, or a zero one on a pixel that is
-    not left out (its row or column of T holds light): counts and first indices."""
+    not left out (its row or column of T holds light): counts and first pixels
+    (``name`` spells a stored row)."""
     bad = np.flatnonzero(active & (f <= 0))
     if not len(bad):
         return
     neg, zero = bad[f[bad] < 0], bad[f[bad] == 0]
     parts = []
     if len(neg):
-        parts.append(f"{len(neg)} negative entries (first at index {neg[0]}, "
+        parts.append(f"{len(neg)} negative entries (first at {name(neg[0])}, "
                      f"value {f[neg[0]]:.4g})")
     if len(zero):
         parts.append(f"{len(zero)} zero entries on pixels whose row or column is not "
-                     f"zero (first at index {zero[0]})")
+                     f"zero (first at {name(zero[0])})")
     raise InvalidMatrixError(
         f"{what} has " + " and ".join(parts) + "; F = diag(T) needs a positive "
         "diagonal: fix the measurement, or pass {option} or a vector", path,
@@ -112,7 +124,8 @@ def load_first_bounce(path) -> np.ndarray:
     return f
 
 
-def _check_reciprocal(f: np.ndarray, active: np.ndarray, dtype, what: str, path) -> None:
+def _check_reciprocal(f: np.ndarray, active: np.ndarray, dtype, what: str, path,
+                      name=lambda i: f"index {i}") -> None:
     """InvalidMatrixError when 1/f overflows ``dtype`` (an entry below 1/max: a
     subnormal float32 diagonal, for one): F^-1 would hold Inf."""
     dtype = np.dtype(dtype) if np.dtype(dtype).kind == "f" else np.dtype(np.float64)
@@ -121,8 +134,8 @@ def _check_reciprocal(f: np.ndarray, active: np.ndarray, dtype, what: str, path)
         i = small[0]
         wider = "" if dtype == np.float64 else " or store it as float64"
         raise InvalidMatrixError(
-            f"{what} has {len(small)} entries too small for {dtype.name} (first at index "
-            f"{i}, value {f[i]:.3g}): F^-1 = 1/{what} overflows; scale T (its inverse "
+            f"{what} has {len(small)} entries too small for {dtype.name} (first at "
+            f"{name(i)}, value {f[i]:.3g}): F^-1 = 1/{what} overflows; scale T (its inverse "
             f"scales exactly){wider}", path)
 
 
@@ -163,10 +176,11 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     else:
         kind = "vector"
         f = _stored_order(T, _as_vector(spec, n, source))
+    name = _pixel_namer(T)
     if np.isnan(d).any():
         bad = np.flatnonzero(np.isnan(d))
         raise InvalidMatrixError(f"T's diagonal has {len(bad)} NaN entries, the first at "
-                                 f"index {bad[0]}", getattr(T, "path", None))
+                                 f"{name(bad[0])}", getattr(T, "path", None))
     zero_diag = np.flatnonzero(d == 0)
     excluded = _empty_rows_and_cols(T, zero_diag) if len(zero_diag) else zero_diag
     active = np.ones(n, dtype=bool)
@@ -174,8 +188,8 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     what, where = (("T's diagonal", getattr(T, "path", None)) if kind == "diag"
                    else ("first_bounce", source))
     if kind != "identity":
-        _refuse_nonpositive(f, active, what, where)
-        _check_reciprocal(f, active, getattr(T, "dtype", np.float64), what, where)
+        _refuse_nonpositive(f, active, what, where, name)
+        _check_reciprocal(f, active, getattr(T, "dtype", np.float64), what, where, name)
     f = np.where(active, f, 0.0)
     finv = np.zeros(n)
     finv[active] = 1.0 / f[active]

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from ..errors import BigTError
+from ..errors import UNSET, BigTError
 from .methods import METHODS, SeriesMethod
 from .records import SeriesRecord
 
@@ -87,7 +87,7 @@ def checked_thresholds(method: str, prune, prune_feed=None, prune_operator=None)
         given to a method other than the power form.
     """
     if not prune >= 0:
-        raise BigTError(f"prune must be >= 0, got {prune!r}")
+        raise BigTError(f"{{option}} must be >= 0, got {prune!r}", option=("prune", UNSET))
     feed = None if prune_feed is None else float(prune_feed)
     operator = None if prune_operator is None else float(prune_operator)
     for name, value, what in (("prune_feed", feed, "P_k"),
@@ -96,19 +96,22 @@ def checked_thresholds(method: str, prune, prune_feed=None, prune_operator=None)
             continue
         if method != "power":
             # Horner's S_{n-1} holds I: M pruned there would miss D_o itself
-            raise BigTError(f"{name} is a threshold of the power form's {what}; the "
-                            f"{method} method has none")
+            raise BigTError(f"{{option}} is a threshold of the power form's {what}; the "
+                            f"{method} method has none", option=(name, UNSET))
         if not value >= prune:
-            raise BigTError(f"{name} must be >= prune ({prune:g}), got {value!r}")
+            raise BigTError(f"{{option}} must be >= prune ({prune:g}), got {value!r}",
+                            option=(name, UNSET))
     return Thresholds(float(prune), None if feed == prune else feed, operator)
 
 
 def checked_method(method: str, terms, tol) -> SeriesMethod:
     """The series method named ``method``, after checking ``terms`` and ``tol``."""
     if method not in METHODS:
-        raise BigTError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+        raise BigTError(f"{{option}} must be one of {', '.join(METHODS)}, got {method!r}",
+                        option=("method", UNSET))
     if isinstance(terms, bool) or int(terms) != terms or terms < 0:
-        raise BigTError(f"terms must be an integer >= 0, got {terms!r}")
+        raise BigTError(f"{{option}} must be an integer >= 0, got {terms!r}",
+                        option=("terms", UNSET))
     if tol is not None and not tol >= 0:
-        raise BigTError(f"tol must be >= 0, got {tol!r}")
+        raise BigTError(f"{{option}} must be >= 0, got {tol!r}", option=("tol", UNSET))
     return METHODS[method]

@@ -138,8 +138,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         raise NotSquareError(f"T is {T.shape[0]} x {T.shape[1]}; the inverse needs a square "
                              "T (apply the pixel correspondence first)", T.path)
     out = local_path(out, "inverse store")
-    fb = first_bounce if isinstance(first_bounce, (str, os.PathLike)) else "diag"
-    fb_file = None if fb in ("diag", "identity") else fb  # a .npy the run reads
+    fb_file = (first_bounce if isinstance(first_bounce, (str, os.PathLike))
+               and str(first_bounce) not in ("diag", "identity") else None)  # a .npy read
     refuse_overwriting_inputs([out], [T.path, T.redirected_from, fb_file])
     settings = SeriesSettings(int(terms), thresholds, tol, progress, force, seed,
                               overwrite, on_term)

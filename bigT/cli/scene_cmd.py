@@ -8,6 +8,10 @@ from .. import config
 from ._argtypes import density, image_size, integer, number
 from ._options import add_json, add_memory_limit, add_progress
 
+# The library's layers are imported inside each command's functions, where the
+# command runs: building the parser imports every command module, and a command
+# should pay only for the layers it uses (stores: zarr ~0.3 s; compensation ~0.5 s).
+
 
 def register(subparsers) -> None:
     from ..scenes import DENSITIES, SCENE_NAMES

@@ -12,6 +12,10 @@ from ..sizes import format_size
 from ._argtypes import image_size, integer, number
 from ._options import add_json, add_size, deprecated
 
+# The library's layers are imported inside each command's functions, where the
+# command runs: building the parser imports every command module, and a command
+# should pay only for the layers it uses (stores: zarr ~0.3 s; compensation ~0.5 s).
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import time
+
 from ._options import add_progress
+
+# The library's layers are imported inside each command's functions, where the
+# command runs: building the parser imports every command module, and a command
+# should pay only for the layers it uses (stores: zarr ~0.3 s; compensation ~0.5 s).
 
 
 def register(subparsers) -> None:
@@ -19,8 +25,6 @@ def register(subparsers) -> None:
 
 
 def verify_cmd(args) -> int:
-    import time
-
     from ..storage import open as open_store
 
     t0 = time.perf_counter()

@@ -41,7 +41,8 @@ _FINV: dict[tuple, np.ndarray] = {}
 
 
 def first_bounce_diag(T) -> np.ndarray:
-    """F^-1 for F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,): the
+    """F^-1 for F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,), in T's
+    stored order (it scales stored vectors, as the matrix-free path does): the
     algorithms layer's :func:`~bigT.algorithms.resolve_first_bounce`, with its policy
     for zero diagonals (a pixel whose row and column are empty is left out: 0 here;
     any other zero or negative entry is an InvalidMatrixError). Kept per store
@@ -288,9 +289,11 @@ def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = Fa
 # --- bounce separation ------------------------------------------------------------------
 
 def first_bounce_from_inverse(X) -> np.ndarray:
-    """True F of a diffuse scene from its inverse (paper eq. 33): F_ii = 1 / X_ii, (n,),
-    by the algorithms layer's :func:`~bigT.algorithms.recover_first_bounce` (0 on pixels
-    left out of the inverse, X_ii = 0); a negative X_ii is an InvalidMatrixError."""
+    """True F of a diffuse scene from its inverse (paper eq. 33): F_ii = 1 / X_ii, (n,), in
+    X's stored order, since bounce separation multiplies stored vectors with it (the
+    algorithms layer's :func:`~bigT.algorithms.recover_first_bounce`, which gives it
+    as an image by default; 0 on pixels left out of the inverse, X_ii = 0); a negative
+    X_ii is an InvalidMatrixError."""
     from ..algorithms.first_bounce import recover_first_bounce  # dask via the engine:
     # only bounce separation needs it
 

@@ -24,7 +24,7 @@ from .. import config
 from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError
 from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
-from ..schedule.stream import scheduler_runner
+from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
 from .core import CompensationReport, choose_path
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
@@ -119,8 +119,7 @@ class FileCompensation:
         self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores)
         self._options = dict(memory_limit=memory_limit, precision=precision,
                              resident=resident and scheduler is None,
-                             cache_bytes=(config.COMPENSATE_CACHE_BYTES if cache_bytes is None
-                                          else cache_bytes))
+                             cache_bytes=cache_budget(cache_bytes))
         self._scheduler = scheduler
         self._stack: contextlib.ExitStack | None = None
         self.runner = None

@@ -215,7 +215,7 @@ class VideoSource:
 
     def frames(self) -> Iterator[np.ndarray]:
         """Yield each frame, shape (H, W), float32 in [0, 1]."""
-        import imageio_ffmpeg
+        import imageio_ffmpeg  # finds its ffmpeg binary on import: only for video
 
         H, W = self.info.shape
         deep = self.info.bits == 16
@@ -282,7 +282,7 @@ class VideoSink:
         self._log = None
 
     def _command(self, tmp: Path) -> list[str]:
-        import imageio_ffmpeg
+        import imageio_ffmpeg  # finds its ffmpeg binary on import: only for video
 
         H, W = self.shape
         fmt = "gray16le" if self.bits == 16 else "gray"

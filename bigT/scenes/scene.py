@@ -37,9 +37,9 @@ class Scene:
     T, A : BlockCSR, shape (n, n)
         Light transport and interreflection, stored in ``pixel_order``; their products,
         ``to_scipy`` and ``diagonal`` speak row-major image vectors like every store's.
-    F : ndarray, (n,) float64
-        True first bounce (diagonal of F) in the stored order (the order of the
-        stores' tiles); ``pixel_order.to_images(F)`` is its image.
+    F_stored : ndarray, (n,) float64
+        True first bounce (diagonal of F) in the stored order, the order of the stores'
+        tiles, as the ground truth holds it (:attr:`F` is the same as an image vector).
     pixel_order : PixelOrder
     summary : dict
         Name, parameters, nnz, spectral radii, bounce shares, timings (JSON).
@@ -48,9 +48,18 @@ class Scene:
     path: Path
     T: object
     A: object
-    F: np.ndarray
+    F_stored: np.ndarray
     pixel_order: PixelOrder
     summary: dict = field(default_factory=dict)
+
+    @property
+    def F(self) -> np.ndarray:
+        """True first bounce (diagonal of F), (n,) float64, in row-major image order like
+        every vector of the public API (``F.reshape(H, W)`` is its image; pass it as
+        ``first_bounce=``)."""
+        if self.pixel_order is None:
+            return self.F_stored
+        return self.pixel_order.to_images(self.F_stored).ravel()
 
     @property
     def name(self) -> str:
@@ -85,7 +94,7 @@ class Scene:
 
     def exact_inverse_rows(self, i: int) -> sp.csr_array:
         """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64."""
-        return exact_inverse_rows(self.A, self.F, i)
+        return exact_inverse_rows(self.A, self.F_stored, i)
 
     def inverse_error(self, X, sample: int | None = None, seed: int = 0) -> float:
         """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row, over
@@ -94,7 +103,8 @@ class Scene:
         Parameters
         ----------
         X : BlockCSR of T's shape and pixel order (any tile size), or (n,) ndarray
-            An inverse on disk, or the diagonal of a diagonal one (e.g. 1 / diag(T)).
+            An inverse on disk, or the diagonal of a diagonal one in row-major image
+            order (e.g. ``1 / T.diagonal()``).
         sample : int, optional
             Measure on this many rows drawn uniformly without replacement (seeded by
             ``seed``) instead of all n: the error of a full-HD inverse in one read of
@@ -152,11 +162,13 @@ class Scene:
 
 def _inverse_rows(X, T):
     """``rows(i)``: tile row ``i`` of T's grid of the inverse ``X`` (a store, or the
-    (n,) diagonal of a diagonal inverse), float64 CSR."""
+    (n,) row-major diagonal of a diagonal inverse), float64 CSR."""
     if isinstance(X, np.ndarray):
         if X.shape != (T.shape[0],):
             raise ShapeMismatchError(f"a diagonal X needs {T.shape[0]} entries, got {X.shape}")
         diag = np.asarray(X, np.float64)
+        if T.pixel_order is not None:
+            diag = diag[T.pixel_order.permutation]  # into the stored order of T's rows
 
         def rows(i):
             r0, r1 = T.tile_row_range(i)

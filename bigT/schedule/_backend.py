@@ -1,6 +1,7 @@
-"""The one place where ``bigT.schedule`` reaches the storage and kernel layers: its
-other modules (and the algorithms' block tasks) import stores and kernels from here, so
-the layers' contracts (docs/CONTRACTS.md) are used in one spot."""
+"""The one place where ``bigT.schedule``'s modules reach the storage and kernel layers:
+they import stores and kernels from here, so the layers' contracts
+(docs/CONTRACTS.md) are used in one spot. Other layers import ``bigT.storage`` and
+``bigT.kernels`` themselves."""
 
 from __future__ import annotations
 

@@ -68,7 +68,7 @@ def _ru_maxrss_bytes() -> int:
     """The peak resident set from getrusage, in bytes (kilobytes on Linux, bytes on
     macOS); 0 on Windows, where the plan then assumes nothing held."""
     try:
-        import resource
+        import resource  # POSIX only: Windows has no getrusage
     except ImportError:
         return 0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -33,12 +33,15 @@ def compute_dtype(store) -> np.dtype:
 def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
                   progress: bool = False, desc: str = "pass",
                   cache_bytes: int | None = None) -> np.ndarray:
-    """A @ V with A streamed from disk one tile row at a time.
+    """A @ V with A streamed from disk one tile row at a time, V and the result in the
+    store's stored (matrix) order: the streaming primitive under compensation, which
+    converts images with :mod:`bigT.storage.frames` (``BlockCSR @ x`` is the row-major
+    form a user calls).
 
     Parameters
     ----------
     A : BlockCSR, shape (n_rows, n_cols)
-    V : ndarray, shape (n_cols, K) or (n_cols,)
+    V : ndarray, shape (n_cols, K) or (n_cols,), in A's stored order
     runner : bigT.schedule.runner runner, optional
         Where the tile rows run (a dask cluster's workers, say); default: local threads.
     workers : int, optional
@@ -54,7 +57,7 @@ def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
     -------
     ndarray, shape (n_rows, K) or (n_rows,), dtype ``compute_dtype(A)``
     """
-    from .matvec import matvec, matvec_spec
+    from .matvec import matvec, matvec_spec  # these two import dask (see above)
     from .runner import ThreadRunner, local_path
 
     n_rows, n_cols = A.shape
@@ -79,7 +82,7 @@ def scheduler_runner(scheduler):
     """The runner of ``scheduler`` (:func:`bigT.schedule.runner.open_runner`) for the
     duration of the block, closed after; None (local threads) when none is given; a
     runner itself is passed through (and left open)."""
-    from .runner import ClusterRunner, ThreadRunner, open_runner
+    from .runner import ClusterRunner, ThreadRunner, open_runner  # dask (see above)
 
     if scheduler is None or isinstance(scheduler, (ThreadRunner, ClusterRunner)):
         yield scheduler
@@ -102,7 +105,7 @@ def forget_tiles(runner, *stores) -> None:
     """Drop the cached tiles of ``stores`` in every process that ran the passes (the
     end of a compensation call: a library's caller should not keep a gigabyte of
     tiles)."""
-    from .worker import end_pass
+    from .worker import end_pass  # the worker module's state: only once passes ran
 
     paths = tuple(os.path.abspath(s.path) for s in stores if s is not None)
     if runner is None:

@@ -70,11 +70,23 @@ def test_first_bounce_vectors_are_row_major_images(tmp_path):
     bigT.stratified_inverse(scene.T, X, terms=60, prune=0, progress=False)
     F_image = recover_first_bounce(X)                      # what a user saves as F.npy
     F_stored = recover_first_bounce(X, output_order="matrix")
-    np.testing.assert_allclose(F_stored, scene.F, rtol=1e-6)   # eq. 33, stored order
-    np.testing.assert_allclose(F_image, order.to_images(scene.F).ravel(), rtol=1e-6)
+    np.testing.assert_allclose(F_stored, scene.F_stored, rtol=1e-6)   # eq. 33
+    np.testing.assert_allclose(F_image, scene.F, rtol=1e-6)          # as an image
+    np.testing.assert_allclose(scene.F, order.to_images(scene.F_stored).ravel())
     np.save(tmp_path / "F.npy", F_image)
     second = bigT.stratified_inverse(scene.T, tmp_path / "X2.zarr", terms=1, prune=0,
                                      first_bounce=str(tmp_path / "F.npy"), progress=False)
     assert second.first_bounce == "vector"
-    fb = bigT.algorithms.resolve_first_bounce(scene.T, F_image)
-    np.testing.assert_allclose(fb.f, scene.F, rtol=1e-6)      # back in the stored order
+    fb = bigT.algorithms.resolve_first_bounce(scene.T, scene.F)   # first_bounce=scene.F
+    np.testing.assert_allclose(fb.f, scene.F_stored, rtol=1e-12)  # back in the stored order
+
+
+def test_errors_name_the_pixel_a_user_sees(tmp_path):
+    """On a tile-major store, a bad first_bounce entry is named by its image pixel
+    (y, x), not by its row in the stored order."""
+    scene = bigT.scenes.corner(size=(16, 24), path=tmp_path / "T.zarr", preview=False,
+                               progress=False, pixel_order="tile-major")
+    F = scene.F.copy()
+    F[3 * 24 + 17] = -1.0  # pixel (3, 17) of the row-major image vector
+    with pytest.raises(bigT.InvalidMatrixError, match=r"first at pixel \(3, 17\)"):
+        bigT.algorithms.resolve_first_bounce(scene.T, F)

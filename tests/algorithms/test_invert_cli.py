@@ -61,7 +61,7 @@ def test_invert_with_feed_and_operator_thresholds(tmp_path, make_store, capsys):
     assert main(["invert", T.path.as_posix(), "-o", str(tmp_path / "Y.zarr"), "--prune",
                  "1e-3", "--prune-operator", "1e-4", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "prune_operator must be >= prune" in err and len(_lines(err)) == 1
+    assert "--prune-operator must be >= prune" in err and len(_lines(err)) == 1
 
 
 def test_invert_errors_are_one_line(tmp_path, make_store, capsys):

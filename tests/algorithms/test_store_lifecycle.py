@@ -135,7 +135,8 @@ def test_converged_block_rows_are_skipped(tmp_path, make_store):
 
 
 #: The keys of the root record and of its history entries as bigT wrote them before the
-#: record was split into storage's generic part and the engine's details (commit 60b422a).
+#: record was split into storage's generic part and the engine's details (the split:
+#: e227470; 60b422a wrote this layout).
 OLD_RECORD_KEYS = ("params", "term", "dir", "history", "spectral_radius", "exhausted_at",
                    "tile_size", "excluded_pixels", "residual", "spectral_uncertainty",
                    "spectral_products")

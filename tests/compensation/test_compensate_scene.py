@@ -37,10 +37,10 @@ def store_like(M, path, T):
 def corner(tmp_path_factory):
     d = tmp_path_factory.mktemp("corner")
     scene = scenes.corner(size=(H, W), path=str(d / "T.zarr"))
-    # dense references in matrix order, the order of scene.F and of po.to_matrix
+    # dense references in matrix order, the order of scene.F_stored and of po.to_matrix
     T = scene.T.to_scipy(output_order="matrix").toarray().astype(np.float64)
     A = scene.A.to_scipy(output_order="matrix").toarray().astype(np.float64)
-    F = np.asarray(scene.F, dtype=np.float64)
+    F = np.asarray(scene.F_stored, dtype=np.float64)
     perm = scene.T.pixel_order.permutation
     # The ground truth F^-1 (I - A), in matrix order (F given in either order).
     cands = [(np.eye(len(F)) - A) / f[:, None] for f in (F, F[perm])]

@@ -52,9 +52,9 @@ def test_transport_rows_against_a_stored_A_equal_those_against_A_in_memory(
     assert (sc.A.nnz * 12 > memory_limit // 2) == (memory_limit == SMALL)
     for i in (0, 3):
         r0, r1 = sc.T.tile_row_range(i)
-        got, k1 = radiosity.transport_rows(times_A, sc.F, r0, r1, prune=1e-9, stop=1e-8,
+        got, k1 = radiosity.transport_rows(times_A, sc.F_stored, r0, r1, prune=1e-9, stop=1e-8,
                                            max_bounces=50)
-        want, k2 = radiosity.transport_rows(A_mem, sc.F, r0, r1, prune=1e-9, stop=1e-8,
+        want, k2 = radiosity.transport_rows(A_mem, sc.F_stored, r0, r1, prune=1e-9, stop=1e-8,
                                             max_bounces=50)
         assert k1 == k2 > 2
         np.testing.assert_allclose(got.toarray(), want.toarray(), rtol=1e-12, atol=1e-18)

@@ -23,14 +23,14 @@ EQ34 = np.array([
 
 
 def dense(store) -> np.ndarray:
-    """The store in its matrix order, the order of ``scene.F`` and of the geometry."""
+    """The store in its matrix order, the order of ``scene.F_stored`` and of the geometry."""
     return store.to_scipy(output_order="matrix").toarray().astype(np.float64)
 
 
 def dense_transport(scene) -> np.ndarray:
     """(I - A)^-1 F from the stored ground truth, by a dense solve."""
     A = dense(scene.A)
-    return np.linalg.solve(np.eye(A.shape[0]) - A, np.diag(scene.F))
+    return np.linalg.solve(np.eye(A.shape[0]) - A, np.diag(scene.F_stored))
 
 
 def test_dihedral4_is_eq34(tmp_path):
@@ -57,7 +57,7 @@ def test_untruncated_scene_equals_dense_transport(tmp_path, name, size):
     assert sc.exact and sc.T.shape == (n, n) and sc.T.grid[0] >= 2
     np.testing.assert_allclose(dense(sc.T), dense_transport(sc), rtol=0, atol=1e-6)
     # F^-1 (I - A) is the exact inverse; inverse_error measures a stored matrix against it
-    X = np.diag(1.0 / sc.F) @ (np.eye(n) - dense(sc.A))
+    X = np.diag(1.0 / sc.F_stored) @ (np.eye(n) - dense(sc.A))
     np.testing.assert_allclose(dense(sc.T) @ X, np.eye(n), atol=1e-9)
     po = sc.pixel_order
     kw = dict(tile_size=32, dtype="float64", input_order="matrix", image_shape=po.image_shape,
@@ -75,8 +75,9 @@ def test_untruncated_scene_equals_dense_transport(tmp_path, name, size):
     assert sc.inverse_error(Ys, sample=n // 3, seed=5) == pytest.approx(ref_rows, rel=1e-9)
     assert sc.inverse_error(Ys, sample=n) == pytest.approx(ref, rel=1e-9)
     # a diagonal X (F^-1 alone) given as a vector
+    # (row-major, as sc.F is; X is dense in the stored order, as sc.F_stored is)
     assert sc.inverse_error(1.0 / sc.F) == pytest.approx(
-        np.linalg.norm(np.diag(1.0 / sc.F) - X) / np.linalg.norm(X), rel=1e-9)
+        np.linalg.norm(np.diag(1.0 / sc.F_stored) - X) / np.linalg.norm(X), rel=1e-9)
 
 
 @pytest.mark.parametrize("name", ["convex", "flat"])
@@ -103,7 +104,7 @@ def test_corner_interreflects_across_the_fold_only(tmp_path):
     assert shares[0] > shares[1] > shares[2] > 0
     assert sum(shares) == pytest.approx(1.0, abs=1e-12)
     T1 = dense(sc.T) @ np.ones(sc.T.shape[0])  # exact scene: the bounces sum to T 1
-    assert shares[1] == pytest.approx(float(np.sum(dense(sc.A) @ sc.F)) / T1.sum(), rel=1e-3)
+    assert shares[1] == pytest.approx(float(np.sum(dense(sc.A) @ sc.F_stored)) / T1.sum(), rel=1e-3)
 
 
 @pytest.mark.parametrize("builder", [
@@ -210,7 +211,8 @@ def test_blur_spreads_the_direct_bounce(tmp_path):
                      dtype="float64", preview=False)
     po = sc.pixel_order
     T = dense(sc.T)
-    f_img = po.to_images(sc.F)
+    f_img = po.to_images(sc.F_stored)
+    np.testing.assert_array_equal(f_img.ravel(), sc.F)  # the public F is the image
     rad = int(np.ceil(3 * sigma))
     yy, xx = np.mgrid[0:H, 0:W]
     for r, c in [(0, 0), (4, 5), (9, 11), (5, 0)]:
@@ -253,7 +255,7 @@ def test_albedo_texture(tmp_path):
     tex[:, :3] = 0.1
     sc = scenes.corner((8, 12), tmp_path / "t.zarr", albedo=tex, density="exact",
                        preview=False)
-    F_img = sc.pixel_order.to_images(sc.F)
+    F_img = sc.F.reshape(8, 12)
     assert F_img[:, :3].max() < F_img[:, 3:6].min()
     assert sc.summary["albedo"] == "texture"
 
