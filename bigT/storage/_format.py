@@ -339,7 +339,7 @@ def read_array_files(adir: Path, length: int | None = None, *,
                                  adir / "zarr.json", high=MAX_SIDE)
         chunk, dtype, fill, direct = _array_meta(meta, length, adir / "zarr.json")
         if not direct:
-            _check_tree_has_no_links(root, rel)  # zarr reads it by path
+            check_tree_has_no_links(root, rel)  # zarr reads it by path
             return None
         out = np.empty(length, dtype)
         if not length:
@@ -374,10 +374,10 @@ def read_array_files(adir: Path, length: int | None = None, *,
     return out.astype(dtype.newbyteorder("="), copy=False)
 
 
-def _check_tree_has_no_links(root: Path, rel: str) -> None:
+def check_tree_has_no_links(root: Path, rel: str) -> None:
     """LinkInStoreError for a symbolic link anywhere below ``root/rel`` (an array that
-    zarr reads by path)."""
-    for dirpath, dirnames, filenames in os.walk(root / rel):
+    zarr reads by path; the whole store for ``verify``)."""
+    for dirpath, dirnames, filenames in os.walk(root / rel if rel else root):
         for name in dirnames + filenames:
             if os.path.islink(os.path.join(dirpath, name)):
                 link = os.path.relpath(os.path.join(dirpath, name), root)

@@ -563,7 +563,8 @@ class BlockCSR:
     def verify(self, progress: bool | None = False) -> dict:
         """Full check of every tile and every chunk file (``bigT verify``).
 
-        Checks that every chunk file exists, that every checksum matches, the CSR
+        Checks that the store holds no symbolic link, that every chunk file exists,
+        that every checksum matches, the CSR
         structure of every tile (monotone indptr, sorted duplicate-free in-range
         indices, finite data) and that the per-tile nnz add up to the recorded nnz.
 
@@ -579,6 +580,7 @@ class BlockCSR:
         """
         from ..progress import progress_bar
 
+        fmt.check_tree_has_no_links(self.path, "")  # a store is a closed world
         self.check_chunks_exist()
         total = 0
         for i in progress_bar(range(self.grid[0]), progress=progress, desc="verify",
