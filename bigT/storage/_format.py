@@ -154,7 +154,9 @@ class LinkInStoreError(CorruptStoreError):
 
 
 def _open_component(name: str, dir_fd: int, directory: bool, root: Path, rel: str) -> int:
-    flags = os.O_RDONLY | os.O_NOFOLLOW | (os.O_DIRECTORY if directory else 0)
+    # O_NONBLOCK: a FIFO put in a store's place opens at once (and is refused as not a
+    # regular file) instead of waiting for a writer that never comes
+    flags = os.O_RDONLY | os.O_NOFOLLOW | (os.O_DIRECTORY if directory else os.O_NONBLOCK)
     try:
         return os.open(name, flags, dir_fd=dir_fd)
     except OSError as exc:
@@ -210,7 +212,12 @@ def _read_at(name: str, dir_fd: int, max_bytes: int, root: Path, rel: str) -> by
     ValueError past that."""
     fd = _open_component(name, dir_fd, False, root, rel)
     with os.fdopen(fd, "rb") as f:
-        raw = f.read(max_bytes + 1)
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):  # a FIFO or a device: no end, or no size
+            raise ValueError(f"{rel} is not a regular file")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{rel} is larger than {max_bytes} bytes")
+        raw = f.read(max_bytes + 1)  # a file still growing stops here
     if len(raw) > max_bytes:
         raise ValueError(f"{rel} is larger than {max_bytes} bytes")
     return raw

@@ -564,9 +564,9 @@ class BlockCSR:
         """Full check of every tile and every chunk file (``bigT verify``).
 
         Checks that the store holds no symbolic link, that every chunk file exists,
-        that every checksum matches, the CSR
-        structure of every tile (monotone indptr, sorted duplicate-free in-range
-        indices, finite data) and that the per-tile nnz add up to the recorded nnz.
+        that every checksum matches, the CSR structure of every tile (monotone indptr,
+        sorted duplicate-free in-range indices, finite data) and that the per-tile nnz
+        add up to the recorded nnz.
 
         Returns
         -------

@@ -189,6 +189,15 @@ def test_metadata_file_that_never_ends_is_refused(store, capsys):
     _one_line_error(store, capsys, "info")
 
 
+def test_metadata_fifo_is_refused_without_waiting(store, capsys):
+    """A FIFO in a zarr.json's place: no writer will ever come; refused at once."""
+    (store / "rows/0/0/indptr/zarr.json").unlink()
+    os.mkfifo(store / "rows/0/0/indptr/zarr.json")
+    with pytest.raises(CorruptStoreError, match="not a regular file"):
+        bigT.open(store).get_tile_row(0)
+    _one_line_error(store, capsys)
+
+
 @pytest.mark.parametrize("attrs", [
     {"nnz": 10**9},                     # more entries than the matrix has
     {"shape": [2**40, 2**40]},          # beyond sense
