@@ -540,19 +540,33 @@ class BlockCSR:
                     if not (arr_dir / "zarr.json").is_file():
                         missing.append(f"{fmt.tile_path(i, j)}/{name}/zarr.json")
                         continue
-                    try:
-                        arr = self._tile_arrays(i, j)[fmt.TILE_ARRAYS.index(name)]
-                        n_chunks = -(-length // arr.chunks[0])
-                        keys = [arr.metadata.encode_chunk_key((c,)) for c in range(n_chunks)]
-                    except Exception:
-                        n_chunks = -(-length // chunk)
-                        keys = [f"c/{c}" for c in range(n_chunks)]
+                    keys = self._chunk_keys(arr_dir, length, chunk)
                     for key in keys:
                         if not (arr_dir / key).is_file():
                             missing.append(f"{fmt.tile_path(i, j)}/{name}/{key}")
                     if limit and len(missing) >= limit:
                         return missing
         return missing
+
+    def _chunk_keys(self, arr_dir: Path, length: int, default_chunk: int) -> list[str]:
+        """The chunk files of the array in ``arr_dir`` of ``length`` entries, from its
+        zarr.json read as every metadata file is (bounded, no link, no FIFO); those of
+        ``default_chunk`` entries when it is not bigT's layout."""
+        meta = fmt.read_json(arr_dir / "zarr.json", root=self.path)
+        try:
+            (chunk,) = meta["chunk_grid"]["configuration"]["chunk_shape"]
+            default_keys = meta["chunk_key_encoding"] == {"name": "default",
+                                                          "configuration": {"separator": "/"}}
+        except (KeyError, TypeError, ValueError):
+            chunk, default_keys = default_chunk, True
+        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+            chunk = default_chunk
+        n_chunks = -(-length // chunk)
+        if not default_keys:  # another writer's key encoding: zarr spells the keys
+            arr = zarr.open_array(self._store, path=arr_dir.relative_to(self.path).as_posix(),
+                                  mode="r")
+            return [arr.metadata.encode_chunk_key((c,)) for c in range(n_chunks)]
+        return [f"c/{c}" for c in range(n_chunks)]
 
     def check_chunks_exist(self) -> None:
         """Cheap existence check of every chunk file; CorruptStoreError naming the first missing."""
