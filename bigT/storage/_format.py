@@ -5,14 +5,16 @@ Only this module and the storage modules that read and write stores know key nam
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import stat
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from .. import config
-from ..errors import StoreError
+from ..errors import CorruptStoreError, StoreError
 
 FORMAT_NAME = "bigT-block-csr"
 FORMAT_VERSION = 1
@@ -112,65 +114,306 @@ def write_array_files(root: Path, name: str, values: np.ndarray, fill_value,
             f.write(crc)
 
 
-def read_array_files(adir: Path) -> np.ndarray | None:
-    """The whole 1-D array in directory ``adir``, read from its files directly; None
-    when its zarr.json is not the layout :func:`write_array_files` produces (the caller
-    then reads it through zarr).
+# --- what a store declares, bounded by sense -------------------------------------
 
-    Same semantics as zarr's read: a missing chunk file reads as the fill value (the
-    tile checks catch that), a damaged one raises ``ValueError`` naming the checksum.
-    Why: zarr's per-array open and read cost ~2 ms, a tile row reads ~60 arrays.
-    """
-    import google_crc32c
-    from numcodecs import Zstd  # numcodecs: ~0.15 s, kept off `import bigT.storage`
+#: Largest zarr.json bigT reads. The largest it writes is an inverse root's record,
+#: ~0.5 KB a term of history, so 8 MiB holds ~16,000 terms (no run makes 100), while
+#: a file that never ends (a FIFO, a link to /dev/zero) is refused after 8 MiB read.
+METADATA_MAX_BYTES = 8 << 20
+#: Largest matrix side a store may declare: 2^32 pixels is a 65536^2 image, beyond any
+#: camera; its diagonal alone is 32 GiB. A larger shape is damage, not a matrix.
+MAX_SIDE = 1 << 32
+#: Most tile rows or tile columns a grid may have: the tile index pointer (8 bytes a
+#: tile row) and an incomplete store's row scan stay under 128 MiB. Tile size 256
+#: reaches it at 2^32 pixels only.
+MAX_TILES_PER_SIDE = 1 << 24
 
-    with open(adir / "zarr.json", "rb") as f:
-        meta = json.load(f)
+
+def check_count(value, name: str, path, *, low: int = 0, high: int | None = None) -> int:
+    """``value`` as an int when it is a JSON integer in ``[low, high]``; CorruptStoreError
+    naming ``path`` otherwise (a float such as 3.5 or 3.0, a bool, a string)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise CorruptStoreError(f"{name} must be an integer, got {value!r:.60}", path)
+    if value < low or (high is not None and value > high):
+        bound = f"[{low}, {high}]" if high is not None else f">= {low}"
+        raise CorruptStoreError(f"{name} = {value} is out of range {bound}", path)
+    return value
+
+
+def check_text(value, name: str, path) -> str:
+    """``value`` when it is a JSON string without NUL; CorruptStoreError otherwise."""
+    if not isinstance(value, str) or "\x00" in value:
+        raise CorruptStoreError(f"{name} must be a string without NUL, got {value!r:.60}", path)
+    return value
+
+
+# --- a store is a closed world: no symbolic link below its root is followed ----------
+
+class LinkInStoreError(CorruptStoreError):
+    """A symbolic link below a store's root: bigT neither reads nor deletes through it."""
+
+
+def _open_component(name: str, dir_fd: int, directory: bool, root: Path, rel: str) -> int:
+    # O_NONBLOCK: a FIFO put in a store's place opens at once (and is refused as not a
+    # regular file) instead of waiting for a writer that never comes
+    flags = os.O_RDONLY | os.O_NOFOLLOW | (os.O_DIRECTORY if directory else os.O_NONBLOCK)
     try:
-        (n,) = meta["shape"]
+        return os.open(name, flags, dir_fd=dir_fd)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.ENOTDIR, errno.EMLINK):
+            try:
+                is_link = stat.S_ISLNK(os.lstat(name, dir_fd=dir_fd).st_mode)
+            except OSError:
+                is_link = False
+            if is_link:
+                raise LinkInStoreError(f"{rel} is a symbolic link: a store holds none, and "
+                                       "bigT does not follow one (delete it, or copy what "
+                                       "it points at in its place)", root) from None
+        raise
+
+
+def open_inside(root: Path, rel: str, directory: bool = True) -> int:
+    """A descriptor of ``root/rel``, opened component by component with O_NOFOLLOW:
+    a symbolic link below ``root`` (``root`` itself may be one the user named) raises
+    :class:`LinkInStoreError` naming it. The caller closes the descriptor.
+
+    Raises
+    ------
+    LinkInStoreError
+    OSError
+        FileNotFoundError and the like, as ``open`` raises them.
+    """
+    fd = os.open(root, os.O_RDONLY | os.O_DIRECTORY)
+    parts = PurePosixPath(rel).parts if rel else ()
+    try:
+        for n, part in enumerate(parts):
+            last = n == len(parts) - 1
+            child = _open_component(part, fd, directory or not last, root,
+                                    "/".join(parts[:n + 1]))
+            os.close(fd)
+            fd = child
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def check_no_links(root: Path, rel: str) -> None:
+    """LinkInStoreError when a component of ``rel`` below ``root`` is a symbolic link;
+    nothing when the path is not there."""
+    try:
+        os.close(open_inside(root, rel))
+    except (FileNotFoundError, NotADirectoryError):
+        pass
+
+
+def _read_at(name: str, dir_fd: int, max_bytes: int, root: Path, rel: str) -> bytes:
+    """At most ``max_bytes`` of file ``name`` in ``dir_fd`` (not followed if a link);
+    ValueError past that."""
+    fd = _open_component(name, dir_fd, False, root, rel)
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):  # a FIFO or a device: no end, or no size
+            raise ValueError(f"{rel} is not a regular file")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{rel} is larger than {max_bytes} bytes")
+        raw = f.read(max_bytes + 1)  # a file still growing stops here
+    if len(raw) > max_bytes:
+        raise ValueError(f"{rel} is larger than {max_bytes} bytes")
+    return raw
+
+
+def parse_json(raw: bytes, what: str, path) -> dict:
+    """The JSON object ``raw``; CorruptStoreError naming ``path`` for anything else
+    (not JSON, not an object, nested deeper than the parser's recursion)."""
+    try:
+        meta = json.loads(raw)
+    except RecursionError:
+        raise CorruptStoreError(f"unreadable {what} (JSON nested too deeply)", path) from None
+    except ValueError as exc:
+        raise CorruptStoreError(f"unreadable {what} ({exc})", path) from None
+    if not isinstance(meta, dict):
+        raise CorruptStoreError(f"unreadable {what} (not a JSON object)", path)
+    return meta
+
+
+# --- the arrays' own files ----------------------------------------------------------
+
+def _frame_content_size(frame: bytes) -> int | None:
+    """The decompressed size a zstd frame's header declares, None when it declares
+    none (RFC 8878, 3.1.1.1). ValueError for a frame shorter than its header."""
+    if len(frame) < 5 or frame[:4] != b"\x28\xb5\x2f\xfd":
+        raise ValueError("not a zstd frame")
+    descriptor = frame[4]
+    fcs_flag, single_segment, dict_flag = descriptor >> 6, (descriptor >> 5) & 1, descriptor & 3
+    size_bytes = (1 if single_segment else 0, 2, 4, 8)[fcs_flag]
+    if not size_bytes:
+        return None
+    start = 5 + (0 if single_segment else 1) + (0, 1, 2, 4)[dict_flag]
+    if len(frame) < start + size_bytes:
+        raise ValueError("truncated zstd frame header")
+    value = int.from_bytes(frame[start:start + size_bytes], "little")
+    return value + 256 if size_bytes == 2 else value
+
+
+def _decode_chunk(frame: bytes, out: np.ndarray, name: str) -> None:
+    """Decompress ``frame`` into ``out`` (the chunk's declared size) and nowhere else:
+    a frame that declares or holds more, or less, raises ValueError. Memory is the
+    chunk's declared size, whatever the frame claims."""
+    from numcodecs.zstd import decompress  # numcodecs: ~0.15 s, kept off `import bigT.storage`
+
+    declared = _frame_content_size(frame)
+    if declared is not None and declared != out.nbytes:
+        raise ValueError(f"chunk file {name} decompresses to {declared} bytes, its array "
+                         f"declares {out.nbytes}")
+    try:
+        # a frame without a size is decoded into ``out`` and fails when it overflows it
+        decompress(frame, out.view(np.uint8))
+    except RuntimeError as exc:
+        raise ValueError(f"chunk file {name}: {exc}") from None
+
+
+def _array_meta(meta: dict, length: int, path) -> tuple[int, np.dtype, object, bool]:
+    """(chunk, dtype, fill, direct) of an array's zarr.json, checked against the
+    ``length`` the store's shape implies before anything is allocated; ``direct`` is
+    False for another layout than :func:`write_array_files`'s."""
+    shape = meta.get("shape")
+    if not isinstance(shape, list) or len(shape) != 1:
+        raise CorruptStoreError(f"array shape {shape!r:.60} is not 1-D", path)
+    check_count(shape[0], "array length", path)
+    if shape[0] != length:
+        raise CorruptStoreError(f"array declares {shape[0]} entries, the store's index "
+                                f"says {length}", path)
+    try:
         (chunk,) = meta["chunk_grid"]["configuration"]["chunk_shape"]
         codecs_ = meta["codecs"]
-        ok = (meta["chunk_grid"]["name"] == "regular"
-              and meta["chunk_key_encoding"] == {"name": "default",
-                                                 "configuration": {"separator": "/"}}
-              and [c["name"] for c in codecs_] == ["bytes", "zstd", "crc32c"]
-              and codecs_[0]["configuration"]["endian"] == "little"
-              and not meta.get("storage_transformers"))
-        dtype = np.dtype(meta["data_type"]).newbyteorder("<")
+        direct = (meta["chunk_grid"]["name"] == "regular"
+                  and meta["chunk_key_encoding"] == {"name": "default",
+                                                     "configuration": {"separator": "/"}}
+                  and [c["name"] for c in codecs_] == ["bytes", "zstd", "crc32c"]
+                  and codecs_[0]["configuration"]["endian"] == "little"
+                  and not meta.get("storage_transformers"))
+        dtype = np.dtype(check_text(meta["data_type"], "data_type", path)).newbyteorder("<")
         fill = meta["fill_value"]
-    except (KeyError, TypeError, ValueError):
-        return None
-    if not ok:
-        return None
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise CorruptStoreError(f"bad array metadata ({exc!r:.80})", path) from None
+    # a chunk larger than the array would let one chunk file claim more than it holds
+    check_count(chunk, "chunk length", path, low=1, high=max(length, 1))
+    if dtype.kind not in "if":
+        raise CorruptStoreError(f"array of data_type {dtype.name}, not a number", path)
     fill = float("nan") if fill == "NaN" else fill
-    out = np.empty(n, dtype)
-    codec = Zstd()
-    for c, start in enumerate(range(0, n, chunk)):
-        stop = min(start + chunk, n)
+    if isinstance(fill, bool) or not isinstance(fill, (int, float)):
+        raise CorruptStoreError(f"fill_value {fill!r:.60} is not a number", path)
+    return chunk, dtype, fill, direct
+
+
+def read_array_files(adir: Path, length: int | None = None, *,
+                     root: Path | None = None) -> np.ndarray | None:
+    """The whole 1-D array in directory ``adir``, read from its files directly; None
+    when its zarr.json is not the layout :func:`write_array_files` produces (the
+    caller then reads it through zarr).
+
+    Memory is bounded by ``length``, which a reader derives from the store's validated
+    shape and index: the declared length must equal it (None takes the declared one,
+    for tools that read a single array), each chunk is decompressed into its declared
+    size and fails past it. No symbolic link between ``root`` (the store; default
+    ``adir``'s parent) and the files is followed (:class:`LinkInStoreError`).
+
+    Same semantics as zarr's read otherwise: a missing chunk file reads as the fill
+    value (the tile checks catch that), a damaged one raises ``ValueError`` naming the
+    checksum. Why: zarr's per-array open and read cost ~2 ms, a tile row reads ~60
+    arrays.
+
+    Raises
+    ------
+    CorruptStoreError
+        Metadata that is not JSON, a declared length other than ``length``, a chunk
+        longer than the array, a link.
+    ValueError
+        A chunk's checksum, or a frame that does not decompress to its declared size.
+    """
+    import google_crc32c
+
+    adir = Path(adir)
+    root = adir.parent if root is None else Path(root)
+    rel = adir.relative_to(root).as_posix()
+    dfd = open_inside(root, rel)
+    try:
+        raw = _read_at("zarr.json", dfd, METADATA_MAX_BYTES, root, f"{rel}/zarr.json")
+        meta = parse_json(raw, "zarr.json", adir / "zarr.json")
+        if length is None:
+            length = check_count((meta.get("shape") or [None])[0], "array length",
+                                 adir / "zarr.json", high=MAX_SIDE)
+        chunk, dtype, fill, direct = _array_meta(meta, length, adir / "zarr.json")
+        if not direct:
+            check_tree_has_no_links(root, rel)  # zarr reads it by path
+            return None
+        out = np.empty(length, dtype)
+        if not length:
+            return out.astype(dtype.newbyteorder("="), copy=False)
         try:
-            with open(adir / "c" / str(c), "rb") as f:
-                raw = f.read()
+            cfd = _open_component("c", dfd, True, root, f"{rel}/c")
         except FileNotFoundError:
-            out[start:stop] = fill
-            continue
-        frame, stored = raw[:-4], raw[-4:]
-        if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
-            raise ValueError(f"crc32c checksum mismatch in chunk file {adir.name}/c/{c}")
-        # not decoded in place: a frame shorter than the chunk must fail here, not
-        # leave the rest of ``out`` unset
-        out[start:stop] = np.frombuffer(codec.decode(frame), dtype)[:stop - start]
+            out[:] = fill
+            return out.astype(dtype.newbyteorder("="), copy=False)
+        try:
+            chunk_buf = np.empty(chunk, dtype)
+            max_frame = chunk_buf.nbytes * 2 + 1024 + 4  # zstd's worst case is ~raw size
+            for c, start in enumerate(range(0, length, chunk)):
+                stop = min(start + chunk, length)
+                name = f"{rel}/c/{c}"
+                try:
+                    raw = _read_at(str(c), cfd, max_frame, root, name)
+                except FileNotFoundError:
+                    out[start:stop] = fill
+                    continue
+                frame, stored = raw[:-4], raw[-4:]
+                if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
+                    raise ValueError(f"crc32c checksum mismatch in chunk file {name}")
+                # not decoded in place: a frame shorter than the chunk must fail here,
+                # not leave the rest of ``out`` unset
+                _decode_chunk(frame, chunk_buf, name)
+                out[start:stop] = chunk_buf[:stop - start]
+        finally:
+            os.close(cfd)
+    finally:
+        os.close(dfd)
     return out.astype(dtype.newbyteorder("="), copy=False)
 
 
-def read_json(path: Path) -> dict:
-    """Parse a zarr.json; StoreError naming the file when it is absent or not JSON."""
+def check_tree_has_no_links(root: Path, rel: str) -> None:
+    """LinkInStoreError for a symbolic link anywhere below ``root/rel`` (an array that
+    zarr reads by path; the whole store for ``verify``)."""
+    for dirpath, dirnames, filenames in os.walk(root / rel if rel else root):
+        for name in dirnames + filenames:
+            if os.path.islink(os.path.join(dirpath, name)):
+                link = os.path.relpath(os.path.join(dirpath, name), root)
+                raise LinkInStoreError(f"{link} is a symbolic link: a store holds none, and "
+                                       "bigT does not follow one", root)
+
+
+def read_json(path: Path, root: Path | None = None) -> dict:
+    """Parse a zarr.json (at most :data:`METADATA_MAX_BYTES`); StoreError naming the
+    file when it is absent, CorruptStoreError when it is not a JSON object. With
+    ``root``, no symbolic link between ``root`` and the file is followed."""
+    root = path.parent if root is None else root
+    rel = path.relative_to(root).as_posix()
+    parent, _, name = rel.rpartition("/")
     try:
-        with open(path, "rb") as f:
-            return json.load(f)
+        dfd = open_inside(root, parent)
+        try:
+            raw = _read_at(name, dfd, METADATA_MAX_BYTES, root, rel)
+        finally:
+            os.close(dfd)
     except FileNotFoundError:
         raise StoreError("not a zarr v3 group (no zarr.json)", path.parent) from None
+    except NotADirectoryError:
+        raise StoreError("not a bigT store (not a directory)", path.parent) from None
     except (OSError, ValueError) as exc:
+        if isinstance(exc, StoreError):
+            raise
         raise StoreError(f"unreadable zarr.json ({exc})", path.parent) from None
+    return parse_json(raw, "zarr.json", path)
 
 
 def disk_bytes(path: str | os.PathLike) -> int:
@@ -179,7 +422,8 @@ def disk_bytes(path: str | os.PathLike) -> int:
     for root, _dirs, files in os.walk(path):
         for name in files:
             try:
-                total += os.path.getsize(os.path.join(root, name))
+                # lstat: a link counts as itself, what it points at is not the store's
+                total += os.lstat(os.path.join(root, name)).st_size
             except OSError:
                 pass
     return total
@@ -190,22 +434,49 @@ def group_json(attributes: dict) -> dict:
     return {"zarr_format": 3, "node_type": "group", "attributes": attributes}
 
 
-def redirect_target(target: str, root: Path) -> Path:
+def redirect_target(target, root: Path) -> Path:
     """The directory a redirect ``target`` names inside the store at ``root``;
-    StoreError for anything but a relative path that stays inside it."""
+    StoreError for anything but a relative path that stays inside it, through no
+    symbolic link."""
+    if not isinstance(target, str) or "\x00" in target:
+        raise CorruptStoreError(f"invalid redirect {target!r:.60}: must be a string "
+                                "(a relative path inside the store)", root / "zarr.json")
     p = PurePosixPath(target)
     if not target or p.is_absolute() or ".." in p.parts:
         raise StoreError(f"invalid redirect {target!r}: must be a relative path inside the store", root)
+    check_no_links(root, p.as_posix())
     return root.joinpath(*p.parts)
 
 
 def row_marker(path: Path, i: int) -> dict | None:
     """The completion record of tile row ``i`` (``{"complete": True, "tile_columns":
-    [...], "tile_nnz": [...]}``), or None when the row is not complete."""
+    [...], "tile_nnz": [...]}``), or None when the row is not complete (its
+    zarr.json missing, unreadable, larger than :data:`METADATA_MAX_BYTES`, or a link).
+    The record's values are the caller's to check."""
+    rel = row_path(i)
     try:
-        with open(path / row_path(i) / "zarr.json", "rb") as f:
-            meta = json.load(f)
-    except (OSError, ValueError):
+        dfd = open_inside(path, rel)
+        try:
+            raw = _read_at("zarr.json", dfd, METADATA_MAX_BYTES, path, f"{rel}/zarr.json")
+        finally:
+            os.close(dfd)
+        meta = parse_json(raw, "zarr.json", path)
+    except (OSError, ValueError):  # StoreError is a ValueError
         return None
-    rec = (meta.get("attributes") or {}).get(ROW_ATTRS_KEY) or {}
-    return rec if rec.get("complete") is True else None
+    rec = meta.get("attributes")
+    rec = rec.get(ROW_ATTRS_KEY) if isinstance(rec, dict) else None
+    return rec if isinstance(rec, dict) and rec.get("complete") is True else None
+
+
+def stored_tile_rows(path: Path, n_tile_rows: int) -> list[int]:
+    """The tile rows below ``n_tile_rows`` whose directory exists under ``rows/``, from
+    one listing: a loop over them is bounded by what is on disk, not by the grid the
+    store declares."""
+    check_no_links(path, ROWS_GROUP)
+    try:
+        names = os.listdir(path / ROWS_GROUP)
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    rows = (int(name) for name in names if name.isdigit() and name.isascii()
+            and name == str(int(name)))
+    return sorted(i for i in rows if i < n_tile_rows)

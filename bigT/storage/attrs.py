@@ -110,27 +110,54 @@ class StoreAttrs:
             An inner format this bigT does not read.
         """
         try:
-            shape = tuple(int(s) for s in attrs["shape"])
-            tile_size = int(attrs["tile_size"])
-            dtype = np.dtype(attrs["dtype"])
+            shape, tile_size = _checked_grid(attrs, path)
+            dtype = np.dtype(fmt.check_text(attrs["dtype"], "dtype", path))
             nnz = attrs.get("nnz")
-            nnz = None if nnz is None else int(nnz)
+            if nnz is not None:
+                nnz = fmt.check_count(nnz, "nnz", path, high=shape[0] * shape[1])
+            complete = attrs.get("complete", False)
+            if not isinstance(complete, bool):
+                raise TypeError(f"complete must be true or false, got {complete!r:.60}")
             metadata = attrs.get("metadata") or {}
             if not isinstance(metadata, Mapping):
                 raise TypeError("metadata is not an object")
             pixel_order = PixelOrder.from_attrs(dict(attrs))
+            version = fmt.check_count(attrs.get("version", fmt.FORMAT_VERSION), "version",
+                                      path, low=1)
+        except CorruptStoreError:
+            raise
         except (KeyError, TypeError, ValueError, BigTError) as exc:
-            raise CorruptStoreError(f"bad bigT attributes ({exc!r})", path) from None
-        if len(shape) != 2 or min(shape) < 0 or tile_size < 1:
-            raise CorruptStoreError(f"bad shape {shape} or tile_size {tile_size}", path)
+            raise CorruptStoreError(f"bad bigT attributes ({exc!r:.200})", path) from None
         if dtype.name not in fmt.DTYPES:
             raise CorruptStoreError(f"unsupported dtype {dtype.name}", path)
+        if pixel_order is not None and not pixel_order.n == shape[0] == shape[1]:
+            raise CorruptStoreError(f"image_shape {list(pixel_order.image_shape)} has "
+                                    f"{pixel_order.n} pixels, the matrix is {shape[0]}x{shape[1]}",
+                                    path)
         inner = attrs.get("inner_format", "csr")
         if inner not in fmt.INNER_FORMATS:
-            raise StoreError(f"inner_format {inner!r} is not supported by this bigT "
+            raise StoreError(f"inner_format {inner!r:.60} is not supported by this bigT "
                              f"(supported: {', '.join(fmt.INNER_FORMATS)})", path)
-        return cls(shape, tile_size, dtype, inner, nnz, bool(attrs.get("complete", False)),
-                   metadata, pixel_order, int(attrs.get("version", fmt.FORMAT_VERSION)))
+        return cls(shape, tile_size, dtype, inner, nnz, complete, metadata, pixel_order, version)
+
+
+def _checked_grid(attrs: Mapping, path) -> tuple[tuple[int, int], int]:
+    """(shape, tile_size) of ``attrs``, integers within sense (``fmt.MAX_SIDE``, at
+    most ``fmt.MAX_TILES_PER_SIDE`` tiles a side): every later allocation is sized
+    from them. CorruptStoreError naming ``path`` otherwise."""
+    shape = attrs["shape"]
+    if not isinstance(shape, (list, tuple)) or len(shape) != 2:
+        raise CorruptStoreError(f"shape must be [n_rows, n_cols], got {shape!r:.60}", path)
+    shape = tuple(fmt.check_count(s, "shape", path, high=fmt.MAX_SIDE) for s in shape)
+    tile_size = fmt.check_count(attrs["tile_size"], "tile_size", path, low=1,
+                                high=fmt.MAX_SIDE)
+    for side in shape:
+        tiles = -(-side // tile_size)
+        if tiles > fmt.MAX_TILES_PER_SIDE:
+            raise CorruptStoreError(f"shape {list(shape)} with tile_size {tile_size} is a grid "
+                                    f"of {tiles} tiles a side, more than bigT reads "
+                                    f"({fmt.MAX_TILES_PER_SIDE})", path)
+    return shape, tile_size
 
 
 def read_raw_attrs(path: Path) -> dict:
@@ -149,15 +176,18 @@ def read_raw_attrs(path: Path) -> dict:
     meta = fmt.read_json(path / "zarr.json")
     if meta.get("zarr_format") != 3 or meta.get("node_type") != "group":
         raise StoreError("not a bigT store (zarr.json is not a zarr v3 group)", path)
-    attrs = (meta.get("attributes") or {}).get(fmt.ATTRS_KEY)
-    if attrs is None and fmt.INVERSE_ATTR in (meta.get("attributes") or {}):
+    group_attrs = meta.get("attributes") or {}
+    if not isinstance(group_attrs, dict):
+        raise CorruptStoreError("attributes of zarr.json is not an object", path / "zarr.json")
+    attrs = group_attrs.get(fmt.ATTRS_KEY)
+    if attrs is None and fmt.INVERSE_ATTR in group_attrs:
         raise IncompleteStoreError("an inverse whose first term is not finished yet: wait "
                                    "for bigT invert, or rerun it if it was stopped", path)
     if not isinstance(attrs, dict) or attrs.get("format") != fmt.FORMAT_NAME:
         raise StoreError(f"not a bigT store (zarr group without attrs['{fmt.ATTRS_KEY}'] "
                          f"of format {fmt.FORMAT_NAME!r})", path)
     version = attrs.get("version")
-    if not isinstance(version, int) or version > fmt.FORMAT_VERSION:
-        raise StoreError(f"unsupported {fmt.FORMAT_NAME} version {version!r} "
+    if isinstance(version, bool) or not isinstance(version, int) or version > fmt.FORMAT_VERSION:
+        raise StoreError(f"unsupported {fmt.FORMAT_NAME} version {version!r:.60} "
                          f"(this bigT reads up to {fmt.FORMAT_VERSION})", path)
     return attrs

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import math
 import os
 import re
@@ -199,17 +198,16 @@ class InverseStore:
     # --- the record --------------------------------------------------------------
 
     def _root(self) -> dict | None:
-        try:
-            with open(self.path / "zarr.json") as f:
-                return json.load(f)
-        except FileNotFoundError:
+        if not (self.path / "zarr.json").exists():
             return None
-        except (OSError, ValueError) as exc:
-            raise StoreError(f"unreadable zarr.json ({exc})", self.path) from None
+        return fmt.read_json(self.path / "zarr.json")  # bounded, a link refused
 
     def read_record(self) -> InverseRecord | None:
         root = self._root()
-        raw = None if root is None else (root.get("attributes") or {}).get(INVERSE_ATTR)
+        attributes = None if root is None else root.get("attributes") or {}
+        if attributes is not None and not isinstance(attributes, dict):
+            raise damaged_record(TypeError("attributes is not an object"), self.path)
+        raw = None if attributes is None else attributes.get(INVERSE_ATTR)
         return None if raw is None else InverseRecord.from_dict(raw, self.path)
 
     def save(self, record: InverseRecord) -> None:
@@ -297,7 +295,8 @@ class InverseStore:
         (self.path / "zarr.json").unlink(missing_ok=True)
         for entry in self.path.iterdir():
             if entry.name != WRITER_LOCK:
-                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+                # a link is deleted as itself, never what it points at
+                shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
 
     def reconcile(self, record: InverseRecord) -> InverseRecord:
         """Adopt the term the redirect points at when the record lags behind it (a
@@ -330,6 +329,9 @@ class InverseStore:
         interrupted run left (its complete rows; what its writers left half done is
         deleted now, before any writer starts). Returns its path."""
         path = self.term_path(k, name)
+        # the term's directory and store are cleaned below: never through a link
+        fmt.check_no_links(self.path, path.relative_to(self.path).as_posix())
+        fmt.check_no_links(path, fmt.ROWS_GROUP)
         if path.parent.is_dir():  # the term directory's group record, cut before renaming
             remove_stale_temp_files(path.parent)
         recover_interrupted_replace(path)
@@ -383,7 +385,7 @@ class InverseStore:
         if remove_unless_read(directory, removals) or not directory.is_dir():
             return
         for entry in directory.iterdir():
-            if entry.is_dir() and not (entry / READER_LEASE).exists():
+            if entry.is_dir() and not entry.is_symlink() and not (entry / READER_LEASE).exists():
                 shutil.rmtree(entry, ignore_errors=True)
 
 

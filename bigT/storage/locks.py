@@ -165,6 +165,19 @@ def _remove_tree(trash: Path, removals: list | None) -> None:
     removals.append(thread)
 
 
+def _lease_files(directory: Path) -> list[Path]:
+    """The lease files of the stores directly inside ``directory``, never through a
+    symbolic link (a link, or ``directory`` itself a link, has none)."""
+    if directory.is_symlink():
+        return []
+    try:
+        with os.scandir(directory) as entries:
+            return [Path(e.path, READER_LEASE) for e in entries
+                    if e.is_dir(follow_symlinks=False)]
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
 def remove_unless_read(directory: str | os.PathLike, removals: list | None = None) -> bool:
     """Delete ``directory`` unless a reader holds a lease on a store inside it (the
     deletion itself in a background thread, appended to ``removals``, when given).
@@ -182,12 +195,17 @@ def remove_unless_read(directory: str | os.PathLike, removals: list | None = Non
     directory = Path(os.fspath(directory))
     held: list[int] = []
     try:
-        for file in directory.glob(f"*/{READER_LEASE}"):
+        # the leases of the stores directly inside, never through a link out of it
+        for file in _lease_files(directory):
             try:
                 # read-write: NFS emulates flock with byte-range locks, whose exclusive
                 # form needs a descriptor open for writing
-                held.append(os.open(file, os.O_RDWR))
-            except FileNotFoundError:
+                held.append(os.open(file, os.O_RDWR | os.O_NOFOLLOW))
+            except (FileNotFoundError, NotADirectoryError):
+                continue
+            except OSError as exc:
+                if exc.errno != errno.ELOOP:  # a link is no lease: nothing to wait for
+                    raise
                 continue
             if fcntl is not None:
                 _flock(held[-1], fcntl.LOCK_EX | fcntl.LOCK_NB)

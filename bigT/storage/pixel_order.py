@@ -125,8 +125,27 @@ class PixelOrder:
 
     @classmethod
     def from_attrs(cls, attrs: dict) -> "PixelOrder | None":
-        """Inverse of :meth:`to_attrs`; None when the matrix maps no image."""
+        """Inverse of :meth:`to_attrs`; None when the matrix maps no image.
+
+        Raises
+        ------
+        ShapeMismatchError
+            A value of the wrong JSON type: sizes that are not integers (3.5), an
+            order that is not one of :data:`PIXEL_ORDERS`.
+        """
         if not attrs.get("image_shape"):
             return None
-        return cls(tuple(attrs["image_shape"]), attrs.get("pixel_order", "row-major"),
-                   tuple(attrs.get("image_tile") or DEFAULT_IMAGE_TILE))
+        order = attrs.get("pixel_order", "row-major")
+        if not isinstance(order, str) or order not in PIXEL_ORDERS:
+            raise ShapeMismatchError(f"pixel_order must be one of {PIXEL_ORDERS}, got {order!r:.60}")
+        return cls(_int_pair(attrs["image_shape"], "image_shape"), order,
+                   _int_pair(attrs.get("image_tile") or list(DEFAULT_IMAGE_TILE), "image_tile"))
+
+
+def _int_pair(value, name: str) -> tuple[int, int]:
+    """``value`` as (int, int) when it is a JSON list of two integers (not 3.5, not
+    true); ShapeMismatchError otherwise."""
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or any(isinstance(v, bool) or not isinstance(v, int) for v in value)):
+        raise ShapeMismatchError(f"{name} must be two integers, got {value!r:.60}")
+    return value[0], value[1]
