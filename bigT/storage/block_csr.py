@@ -18,24 +18,18 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import zarr
 from zarr.storage import LocalStore
 
 from .. import config
-from ..errors import (
-    BigTError,
-    CorruptStoreError,
-    IncompleteStoreError,
-    MemoryLimitError,
-    Option,
-    ShapeMismatchError,
-    StoreError,
-)
+from ..errors import MemoryLimitError, ShapeMismatchError, StoreError
 from . import _format as fmt
+from . import checks
 from .attrs import StoreAttrs, read_raw_attrs
 from .locks import ReaderLease
 from .pixel_order import PixelOrder
 from .replace import recover_interrupted_replace, write_root_attrs
+from .tile_index import read_tile_index
+from .tiles import TileReader
 
 
 # --- the store ---------------------------------------------------------------------
@@ -156,138 +150,13 @@ class BlockCSR:
         self.grid = attrs.grid
         self.pixel_order = attrs.pixel_order
         self.metadata = dict(attrs.metadata)
-        self._store = LocalStore(self.path, read_only=True)
-        self._arrays: dict[tuple[int, int], tuple] = {}
-        self.missing_tile_rows: list[int] = []
-        if self.complete:
-            self._load_index()
-        else:
-            self._scan_rows(allow_incomplete)
-        self._row_starts = self.tile_indptr[:-1]
-
-    # --- index ---------------------------------------------------------------------
-
-    def _load_index(self):
-        n_rows, n_cols = self.grid
-        # each array's declared length is checked against what the grid and the arrays
-        # read before it imply, before anything of that length is allocated
-        indptr = self._read_index_array("tile_indptr", n_rows + 1)
-        problem = None
-        if indptr[0] != 0 or np.any(np.diff(indptr) < 0):
-            problem = "tile_indptr is not a valid index pointer for the tile grid"
-        elif indptr[-1] > n_rows * n_cols:
-            problem = f"tile_indptr counts {indptr[-1]} tiles, the grid has {n_rows * n_cols}"
-        if problem:
-            raise CorruptStoreError(problem, self.path)
-        indices = self._read_index_array("tile_indices", int(indptr[-1]))
-        nnz = self._read_index_array("tile_nnz", int(indptr[-1]))
-        if indices.size and (indices.min() < 0 or indices.max() >= n_cols):
-            problem = "tile_indices out of range (a chunk file is missing or damaged)"
-        elif nnz.size and nnz.min() < 1:
-            problem = "tile_nnz holds non-positive counts (a chunk file is missing or damaged)"
-        elif np.any(nnz > self._tile_areas(indptr, indices)):
-            problem = "tile_nnz holds counts larger than their tile"
-        elif int(nnz.sum()) != (-1 if self.attrs.nnz is None else self.attrs.nnz):
-            problem = f"tile_nnz sums to {int(nnz.sum())}, attrs record nnz={self.attrs.nnz}"
-        else:
-            # within a tile row, tile columns strictly increase: a step down or a repeat
-            # is allowed only where a new tile row starts
-            steps = np.diff(indices)
-            starts = indptr[1:-1]
-            steps[starts[(starts > 0) & (starts < indices.size)] - 1] = 1
-            if np.any(steps <= 0):
-                bad = int(np.searchsorted(indptr, np.flatnonzero(steps <= 0)[0] + 1, "right")) - 1
-                problem = f"tile_indices of tile row {bad} not strictly increasing"
-        if problem:
-            raise CorruptStoreError(problem, self.path)
-        self.tile_indptr, self.tile_indices, self.tile_nnz = indptr, indices, nnz
-        self.nnz = int(nnz.sum())
-
-    def _tile_areas(self, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
-        """(n_tiles_stored,) int64: rows x columns of each stored tile (ragged edges)."""
-        ts = self.tile_size
-        tile_rows = np.repeat(np.arange(indptr.size - 1, dtype=np.int64), np.diff(indptr))
-        heights = np.minimum(ts, self.shape[0] - tile_rows * ts)
-        widths = np.minimum(ts, self.shape[1] - indices * ts)
-        return heights * widths
-
-    def _read_index_array(self, name: str, length: int) -> np.ndarray:
-        """One array of the tile index, of ``length`` entries, as int64; read from its
-        files directly when bigT wrote them (zarr's open and read cost ~5 ms a store,
-        more than a small term's work), else through zarr.
-
-        Raises
-        ------
-        CorruptStoreError
-            Its metadata declares another length, or a chunk is damaged.
-        """
-        try:
-            values = fmt.read_array_files(self.path / name, length, root=self.path)
-            if values is None:
-                values = zarr.open_array(self._store, path=name, mode="r")[...]
-            return np.asarray(values, dtype=np.int64)
-        except BigTError:
-            raise
-        except FileNotFoundError:
-            raise CorruptStoreError(f"cannot read the tile index: {name} is missing",
-                                    self.path) from None
-        except Exception as exc:
-            raise CorruptStoreError(f"cannot read the tile index ({type(exc).__name__}: {exc})",
-                                    self.path) from None
-
-    def _scan_rows(self, allow_incomplete: bool):
-        """The tile index of an unfinalized store, from the row markers on disk: only
-        rows whose directory is listed are read (a store declaring 10^12 rows costs what
-        it holds, not what it declares)."""
-        n_rows = self.grid[0]
-        lengths = np.zeros(n_rows, np.int64)
-        cols, counts, present = [], [], []
-        for i in fmt.stored_tile_rows(self.path, n_rows):
-            rec = fmt.row_marker(self.path, i)
-            if rec is None:
-                continue
-            c, k = self._checked_marker(i, rec)
-            present.append(i)
-            cols.extend(c)
-            counts.extend(k)
-            lengths[i] = len(c)
-        is_present = np.zeros(n_rows, bool)
-        is_present[present] = True
-        self.missing_tile_rows = np.flatnonzero(~is_present).tolist()
-        if not allow_incomplete:
-            missing = self.missing_tile_rows
-            if missing:
-                first = ", ".join(str(i) for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
-                msg = (f"incomplete store: {len(missing)} of {n_rows} tile rows are missing "
-                       f"(rows {first}); to resume writing: {{option}}")
-            else:
-                msg = "incomplete store: all tile rows written but the writer never finalized; " \
-                      "to finish it: {option}"
-            raise IncompleteStoreError(msg, self.path, option=Option(
-                "resume", python="resume=True, then finalize()",
-                cli="rerun the command that wrote it"))
-        self.tile_indptr = np.concatenate([[0], np.cumsum(lengths, dtype=np.int64)]).astype(np.int64)
-        self.tile_indices = np.asarray(cols, dtype=np.int64)
-        self.tile_nnz = np.asarray(counts, dtype=np.int64)
-        self.nnz = int(self.tile_nnz.sum())
-
-    def _checked_marker(self, i: int, rec: dict) -> tuple[list[int], list[int]]:
-        """(tile_columns, tile_nnz) of tile row ``i``'s completion marker, checked:
-        integers, columns strictly increasing inside the grid, counts within their
-        tile. CorruptStoreError naming the marker's file otherwise."""
-        where = self.path / fmt.row_path(i) / "zarr.json"
-        c, k = rec.get("tile_columns", []), rec.get("tile_nnz", [])
-        if not isinstance(c, list) or not isinstance(k, list) or len(c) != len(k):
-            raise CorruptStoreError("completion marker: tile_columns and tile_nnz must be "
-                                    "lists of the same length", where)
-        height = min(self.tile_size, self.shape[0] - i * self.tile_size)
-        previous = -1
-        for j, count in zip(c, k):
-            fmt.check_count(j, "tile column", where, low=previous + 1, high=self.grid[1] - 1)
-            width = min(self.tile_size, self.shape[1] - j * self.tile_size)
-            fmt.check_count(count, "tile nnz", where, low=1, high=height * width)
-            previous = j
-        return c, k
+        self._index = read_tile_index(self.path, attrs, allow_incomplete=allow_incomplete)
+        self.tile_indptr = self._index.indptr
+        self.tile_indices = self._index.indices
+        self.tile_nnz = self._index.nnz
+        self.nnz = self._index.total_nnz
+        self.missing_tile_rows: list[int] = list(self._index.missing_tile_rows)
+        self._tiles = TileReader(self.path, LocalStore(self.path, read_only=True))
 
     # --- geometry ------------------------------------------------------------------
 
@@ -327,59 +196,16 @@ class BlockCSR:
         """Index of tile (i, j) in tile_indices, or -1 when the tile is not stored."""
         i = self._check_tile_row(i)
         self.tile_col_range(j)
-        lo, hi = self.tile_indptr[i], self.tile_indptr[i + 1]
-        k = lo + int(np.searchsorted(self.tile_indices[lo:hi], j))
-        return k if k < hi and self.tile_indices[k] == j else -1
+        return self._index.position(i, int(j))
 
     def has_tile(self, i: int, j: int) -> bool:
         return self._position(i, j) >= 0
 
     # --- tiles ---------------------------------------------------------------------
 
-    def _corrupt(self, i, j, problem) -> CorruptStoreError:
-        return CorruptStoreError(f"tile ({i}, {j}): {problem}", self.path)
-
-    def _tile_arrays(self, i: int, j: int):
-        arrays = self._arrays.get((i, j))
-        if arrays is None:
-            base = fmt.tile_path(i, j)
-            arrays = tuple(zarr.open_array(self._store, path=f"{base}/{name}", mode="r")
-                           for name in fmt.TILE_ARRAYS)
-            self._arrays[(i, j)] = arrays
-        return arrays
-
     def _read_tile(self, i: int, j: int, k: int) -> sp.csr_array:
-        rows, cols = self.tile_shape(i, j)
-        nnz = int(self.tile_nnz[k])
-        base = fmt.tile_path(i, j)
-        try:
-            lengths = (rows + 1, nnz, nnz)
-            direct = [fmt.read_array_files(self.path / base / name, n, root=self.path)
-                      for name, n in zip(fmt.TILE_ARRAYS, lengths)]
-            if any(a is None for a in direct):  # not bigT's own layout: zarr reads it
-                direct = [a[...] for a in self._tile_arrays(i, j)]
-            indptr, indices, data = direct
-        except BigTError:
-            raise
-        except Exception as exc:
-            self._arrays.pop((i, j), None)
-            raise self._corrupt(i, j, f"unreadable ({type(exc).__name__}: {exc})") from None
-        # Cheap checks, always on: zarr reads a missing chunk as the fill value (-1 or
-        # NaN), which none of these arrays may hold.
-        if indptr.shape != (rows + 1,) or indices.shape != (nnz,) or data.shape != (nnz,):
-            raise self._corrupt(i, j, "array lengths disagree with the tile index")
-        if indptr[0] != 0 or indptr[-1] != nnz or np.any(indptr[1:] < indptr[:-1]):
-            raise self._corrupt(i, j, "indptr is not monotone from 0 to the tile nnz "
-                                      "(a chunk file is missing or damaged)")
-        if nnz and (indices.min() < 0 or indices.max() >= cols):
-            raise self._corrupt(i, j, "column indices out of range (a chunk file is missing or damaged)")
-        if not _sorted_within_rows(indptr, indices):
-            raise self._corrupt(i, j, "column indices not sorted and duplicate-free within a row")
-        if not np.isfinite(data).all():
-            raise self._corrupt(i, j, "non-finite values (a chunk file is missing or damaged)")
-        out = sp.csr_array((data, indices, indptr), shape=(rows, cols))
-        out.has_sorted_indices = True  # checked above
-        return out
+        """Stored tile (i, j), entry ``k`` of the tile index, read and checked."""
+        return self._tiles.read(i, j, self.tile_shape(i, j), int(self.tile_nnz[k]))
 
     def get_tile(self, i: int, j: int) -> sp.csr_array:
         """Tile (i, j) as a csr_array of shape ``tile_shape(i, j)`` (local indices).
@@ -606,54 +432,9 @@ class BlockCSR:
         self.attrs = attrs
         self.metadata = dict(attrs.metadata)
 
-    def _missing_chunk_files(self, limit: int | None = None) -> list[str]:
-        """Chunk files the stored tiles need but that are not on disk (stat only)."""
-        missing = []
-        chunk = config.CHUNK_ELEMENTS
-        for i in range(self.grid[0]):
-            rows = self.tile_shape(i, 0)[0] if self.grid[1] else 0
-            for k in range(self.tile_indptr[i], self.tile_indptr[i + 1]):
-                j = int(self.tile_indices[k])
-                base = self.path / fmt.tile_path(i, j)
-                for name, length in (("indptr", rows + 1), ("indices", int(self.tile_nnz[k])),
-                                     ("data", int(self.tile_nnz[k]))):
-                    arr_dir = base / name
-                    if not (arr_dir / "zarr.json").is_file():
-                        missing.append(f"{fmt.tile_path(i, j)}/{name}/zarr.json")
-                        continue
-                    keys = self._chunk_keys(arr_dir, length, chunk)
-                    for key in keys:
-                        if not (arr_dir / key).is_file():
-                            missing.append(f"{fmt.tile_path(i, j)}/{name}/{key}")
-                    if limit and len(missing) >= limit:
-                        return missing
-        return missing
-
-    def _chunk_keys(self, arr_dir: Path, length: int, default_chunk: int) -> list[str]:
-        """The chunk files of the array in ``arr_dir`` of ``length`` entries, from its
-        zarr.json read as every metadata file is (bounded, no link, no FIFO); those of
-        ``default_chunk`` entries when it is not bigT's layout."""
-        meta = fmt.read_json(arr_dir / "zarr.json", root=self.path)
-        try:
-            (chunk,) = meta["chunk_grid"]["configuration"]["chunk_shape"]
-            default_keys = meta["chunk_key_encoding"] == {"name": "default",
-                                                          "configuration": {"separator": "/"}}
-        except (KeyError, TypeError, ValueError):
-            chunk, default_keys = default_chunk, True
-        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-            chunk = default_chunk
-        n_chunks = -(-length // chunk)
-        if not default_keys:  # another writer's key encoding: zarr spells the keys
-            arr = zarr.open_array(self._store, path=arr_dir.relative_to(self.path).as_posix(),
-                                  mode="r")
-            return [arr.metadata.encode_chunk_key((c,)) for c in range(n_chunks)]
-        return [f"c/{c}" for c in range(n_chunks)]
-
     def check_chunks_exist(self) -> None:
         """Cheap existence check of every chunk file; CorruptStoreError naming the first missing."""
-        missing = self._missing_chunk_files(limit=1)
-        if missing:
-            raise CorruptStoreError(f"missing chunk file {missing[0]}", self.path)
+        checks.check_chunks_exist(self.path, self.attrs, self._index)
 
     def verify(self, progress: bool | None = False) -> dict:
         """Full check of every tile and every chunk file (``bigT verify``).
@@ -673,39 +454,8 @@ class BlockCSR:
         CorruptStoreError
             Naming the store and the first bad tile or chunk.
         """
-        from ..progress import progress_bar
-
-        fmt.check_tree_has_no_links(self.path, "")  # a store is a closed world
-        self.check_chunks_exist()
-        total = 0
-        for i in progress_bar(range(self.grid[0]), progress=progress, desc="verify",
-                              unit="tile row"):
-            if self.complete:
-                self._check_row_marker(i)
-            for j, t in self.iter_tiles(i):
-                if t.nnz == 0:
-                    raise self._corrupt(i, j, "stored tile is empty")
-                d = np.diff(t.indices)
-                starts = t.indptr[1:-1]
-                ok = np.ones(d.size, dtype=bool)
-                ok[starts[(starts > 0) & (starts <= d.size)] - 1] = False  # row boundaries
-                if np.any(d[ok] <= 0):
-                    raise self._corrupt(i, j, "column indices not sorted and duplicate-free within a row")
-                total += t.nnz
-        if total != self.nnz:
-            raise CorruptStoreError(f"tiles hold {total} entries, the index records {self.nnz}", self.path)
-        return {"tiles": self.n_tiles_stored, "nnz": total}
-
-    def _check_row_marker(self, i: int) -> None:
-        rec = fmt.row_marker(self.path, i)
-        if rec is None:
-            raise CorruptStoreError(f"tile row {i} has no completion marker "
-                                    f"({fmt.row_path(i)}/zarr.json missing or damaged)", self.path)
-        lo, hi = self.tile_indptr[i], self.tile_indptr[i + 1]
-        if (list(rec.get("tile_columns", [])) != self.tile_columns(i).tolist()
-                or list(rec.get("tile_nnz", [])) != self.tile_nnz[lo:hi].tolist()):
-            raise CorruptStoreError(f"tile row {i}: completion marker disagrees with the "
-                                    "tile index", self.path)
+        return checks.verify(self.path, self.attrs, self._index, self.iter_tiles,
+                             complete=self.complete, progress=progress)
 
     def info(self) -> dict:
         """Summary: shape, nnz, density, tile fill, diagonal statistics, bytes on disk."""
@@ -742,18 +492,6 @@ class BlockCSR:
     def __repr__(self) -> str:
         return (f"<BlockCSR {self.shape[0]}x{self.shape[1]} {self.dtype.name} nnz={self.nnz} "
                 f"tile_size={self.tile_size} tiles={self.n_tiles_stored} at {str(self.path)!r}>")
-
-
-def _sorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
-    """True when the column ``indices`` (nnz,) of a CSR tile increase strictly inside
-    each row of ``indptr`` (rows + 1,). Vectorised: a step down is allowed only where
-    a new row starts (~0.1 ms for a 64k-entry tile)."""
-    if indices.size < 2:
-        return True
-    steps = np.diff(indices)
-    starts = indptr[1:-1]
-    steps[starts[(starts > 0) & (starts < indices.size)] - 1] = 1
-    return not np.any(steps <= 0)
 
 
 def _spmm_dense():

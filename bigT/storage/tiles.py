@@ -1,0 +1,107 @@
+"""Reading one tile of a block-CSR store, checked: :class:`TileReader`.
+
+Every read checks the cheap invariants of a CSR tile (lengths, monotone indptr, sorted
+in-range column indices, finite values), always on: zarr reads a missing chunk as the
+fill value (-1 or NaN), which none of these arrays may hold, so a damaged store fails
+loudly instead of reading as a different matrix.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import zarr
+from zarr.storage import LocalStore
+
+from ..errors import BigTError, CorruptStoreError
+from . import _format as fmt
+
+
+def tile_error(path: Path, i: int, j: int, problem: str) -> CorruptStoreError:
+    """The error of a bad tile (i, j) of the store at ``path``."""
+    return CorruptStoreError(f"tile ({i}, {j}): {problem}", path)
+
+
+class TileReader:
+    """Reads the tiles of the store at ``path``: from their files directly when bigT
+    wrote them, else through zarr (whose opened arrays are kept for the next read)."""
+
+    def __init__(self, path: Path, store: LocalStore):
+        self._path = path
+        self._store = store
+        self._arrays: dict[tuple[int, int], tuple] = {}
+
+    def read(self, i: int, j: int, shape: tuple[int, int], nnz: int) -> sp.csr_array:
+        """Tile (i, j) of ``shape`` (rows, cols) holding ``nnz`` entries, as the tile
+        index records them; a csr_array with local, sorted indices.
+
+        Raises
+        ------
+        CorruptStoreError
+            The tile's arrays are unreadable or break a CSR invariant.
+        """
+        rows, cols = shape
+        indptr, indices, data = self._read_arrays(i, j, (rows + 1, nnz, nnz))
+        if indptr.shape != (rows + 1,) or indices.shape != (nnz,) or data.shape != (nnz,):
+            raise tile_error(self._path, i, j, "array lengths disagree with the tile index")
+        problem = _csr_problem(indptr, indices, data, cols)
+        if problem:
+            raise tile_error(self._path, i, j, problem)
+        out = sp.csr_array((data, indices, indptr), shape=(rows, cols))
+        out.has_sorted_indices = True  # checked above
+        return out
+
+    def _read_arrays(self, i: int, j: int, lengths: tuple[int, int, int]) -> list[np.ndarray]:
+        """indptr, indices, data of tile (i, j), expected of ``lengths`` entries."""
+        base = fmt.tile_path(i, j)
+        try:
+            direct = [fmt.read_array_files(self._path / base / name, n, root=self._path)
+                      for name, n in zip(fmt.TILE_ARRAYS, lengths)]
+            if any(a is None for a in direct):  # not bigT's own layout: zarr reads it
+                direct = [a[...] for a in self._zarr_arrays(i, j)]
+            return direct
+        except BigTError:
+            raise
+        except Exception as exc:
+            self._arrays.pop((i, j), None)
+            raise tile_error(self._path, i, j,
+                             f"unreadable ({type(exc).__name__}: {exc})") from None
+
+    def _zarr_arrays(self, i: int, j: int) -> tuple:
+        arrays = self._arrays.get((i, j))
+        if arrays is None:
+            base = fmt.tile_path(i, j)
+            arrays = tuple(zarr.open_array(self._store, path=f"{base}/{name}", mode="r")
+                           for name in fmt.TILE_ARRAYS)
+            self._arrays[(i, j)] = arrays
+        return arrays
+
+
+def _csr_problem(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
+                 cols: int) -> str | None:
+    """What breaks CSR in a tile of ``cols`` columns, or None: indptr (rows + 1,),
+    indices and data (nnz,), of the lengths the index records."""
+    nnz = indices.size
+    if indptr[0] != 0 or indptr[-1] != nnz or np.any(indptr[1:] < indptr[:-1]):
+        return "indptr is not monotone from 0 to the tile nnz (a chunk file is missing or damaged)"
+    if nnz and (indices.min() < 0 or indices.max() >= cols):
+        return "column indices out of range (a chunk file is missing or damaged)"
+    if not sorted_within_rows(indptr, indices):
+        return "column indices not sorted and duplicate-free within a row"
+    if not np.isfinite(data).all():
+        return "non-finite values (a chunk file is missing or damaged)"
+    return None
+
+
+def sorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
+    """True when the column ``indices`` (nnz,) of a CSR tile increase strictly inside
+    each row of ``indptr`` (rows + 1,). Vectorised: a step down is allowed only where
+    a new row starts (~0.1 ms for a 64k-entry tile)."""
+    if indices.size < 2:
+        return True
+    steps = np.diff(indices)
+    starts = indptr[1:-1]
+    steps[starts[(starts > 0) & (starts < indices.size)] - 1] = 1
+    return not np.any(steps <= 0)
