@@ -26,19 +26,15 @@ from . import _format as fmt
 from . import checks
 from .attrs import StoreAttrs, read_raw_attrs
 from .locks import ReaderLease
-from .pixel_order import PixelOrder
+from .products import diagonal_of_tiles, matmul_tiles, reordering, to_row_major
 from .replace import recover_interrupted_replace, write_root_attrs
+from .rows import join_tile_row, rows_between
+from .summary import summary
 from .tile_index import read_tile_index
 from .tiles import TileReader
 
 
 # --- the store ---------------------------------------------------------------------
-
-#: Orders a pixel-indexed vector or matrix is given in or asked for: "row-major", the
-#: order of ``image.ravel()`` (the public default), or "matrix", the store's own pixel
-#: order (the engine's, free of any permutation). A store that records no pixel order
-#: maps no image: both then name its one order.
-VECTOR_ORDERS = ("row-major", "matrix")
 
 #: Times ``open`` follows a redirect that moved on while it took the term's lease.
 _LEASE_ATTEMPTS = 5
@@ -232,27 +228,7 @@ class BlockCSR:
         matrix order; only the tiles in ``columns`` (tile columns) when given, the
         others empty."""
         r0, r1 = self.tile_row_range(i)
-        rows = r1 - r0
-        from ..kernels.csr import ColumnTiles, join_column_tiles  # numba: big rows only
-
-        tiles = list(self.iter_tiles(i, columns))
-        if not tiles:
-            return sp.csr_array((rows, self.shape[1]), dtype=self.dtype)
-        bounds = np.zeros(len(tiles) + 1, np.int64)
-        np.cumsum([t.nnz for _, t in tiles], out=bounds[1:])
-        # tiles in ascending column order: appending each tile's part of a row keeps the
-        # row's columns sorted
-        joined = ColumnTiles(
-            np.array([j for j, _ in tiles], np.int64),
-            np.stack([np.asarray(t.indptr, np.int64) for _, t in tiles]),
-            np.concatenate([t.indices for _, t in tiles]),
-            np.concatenate([t.data for _, t in tiles]).astype(self.dtype, copy=False), bounds)
-        del tiles  # two copies of the row at most: the joined tiles and the output
-        indptr, indices, data = join_column_tiles(joined, self.tile_size, self.shape[1])
-        out = sp.csr_array((data, indices, indptr.astype(indices.dtype)),
-                           shape=(rows, self.shape[1]))
-        out.has_sorted_indices = True
-        return out
+        return join_tile_row(self.iter_tiles(i, columns), r1 - r0, self.attrs, self.dtype)
 
     def get_rows(self, start: int, stop: int) -> sp.csr_array:
         """Matrix rows ``start:stop`` as a csr_array of shape (stop - start, n_cols),
@@ -262,21 +238,7 @@ class BlockCSR:
         if not 0 <= start <= stop <= self.shape[0]:
             raise ShapeMismatchError(f"rows {start}:{stop} out of range [0, {self.shape[0]}]",
                                      self.path)
-        ts = self.tile_size
-        parts = []
-        for i in range(start // ts, -(-stop // ts)):
-            r0, r1 = self.tile_row_range(i)
-            row = self.get_tile_row(i)
-            parts.append(row if (r0, r1) == (max(r0, start), min(r1, stop))
-                         else row[max(r0, start) - r0:min(r1, stop) - r0])
-        if len(parts) == 1:
-            out = sp.csr_array(parts[0])
-        elif parts:
-            out = sp.csr_array(sp.vstack(parts, format="csr"))
-        else:
-            return sp.csr_array((0, self.shape[1]), dtype=self.dtype)
-        out.has_sorted_indices = True
-        return out
+        return rows_between(start, stop, self.attrs, self.dtype, self.get_tile_row)
 
     def diagonal(self, output_order: str = "row-major") -> np.ndarray:
         """The main diagonal, reading diagonal tiles only.
@@ -291,21 +253,14 @@ class BlockCSR:
         -------
         ndarray, shape (min(shape),), of the store's dtype
         """
-        order = self._reordering(output_order, "output_order")
-        diag = self._matrix_diagonal()
+        order = reordering(self.pixel_order, output_order, "output_order")
+        diag = diagonal_of_tiles(self.attrs, self._diagonal_tile)
         return diag if order is None else diag[order.inverse_permutation]
 
-    def _matrix_diagonal(self) -> np.ndarray:
-        n = min(self.shape)
-        out = np.zeros(n, dtype=self.dtype)
-        for i in range(min(self.grid)):
-            k = self._position(i, i)
-            if k < 0:
-                continue
-            d = self._read_tile(i, i, k).diagonal()
-            r0 = i * self.tile_size
-            out[r0:r0 + d.size] = d[:n - r0]
-        return out
+    def _diagonal_tile(self, i: int) -> sp.csr_array | None:
+        """Tile (i, i), or None when it is not stored."""
+        k = self._position(i, i)
+        return None if k < 0 else self._read_tile(i, i, k)
 
     def csr_bytes(self) -> int:
         """Bytes of the CSR arrays of the whole matrix in memory (int64 index)."""
@@ -330,7 +285,7 @@ class BlockCSR:
         -------
         scipy.sparse.csr_array, shape ``shape``, sorted indices
         """
-        order = self._reordering(output_order, "output_order")
+        order = reordering(self.pixel_order, output_order, "output_order")
         limit = config.TO_SCIPY_MAX_BYTES if max_bytes is None else int(max_bytes)
         need = self.csr_bytes()
         if need > limit:
@@ -343,28 +298,9 @@ class BlockCSR:
             out = sp.vstack([self.get_tile_row(i) for i in range(self.grid[0])], format="csr")
             out = sp.csr_array(out)
         if order is not None:
-            inv = order.inverse_permutation
-            out = sp.csr_array(out[inv][:, inv])
-            out.sort_indices()
+            out = to_row_major(out, order)
         out.has_sorted_indices = True
         return out
-
-    def _reordering(self, order: str, name: str) -> PixelOrder | None:
-        """The store's PixelOrder when vectors in ``order`` must be permuted to or from
-        the stored order, else None (matrix order asked, no pixel order recorded, or a
-        row-major store: no permutation to pay).
-
-        Raises
-        ------
-        ValueError
-            ``order`` is not one of VECTOR_ORDERS (the message names ``name``).
-        """
-        if order not in VECTOR_ORDERS:
-            raise ValueError(f"{name} must be one of {VECTOR_ORDERS}, got {order!r}")
-        stored = self.pixel_order
-        if order == "matrix" or stored is None or stored.order == "row-major":
-            return None
-        return stored
 
     # --- products ------------------------------------------------------------------
 
@@ -385,7 +321,7 @@ class BlockCSR:
         -------
         ndarray, shape (n_rows,) or (n_rows, k), of the promoted float dtype
         """
-        reorder = self._reordering(order, "order")
+        reorder = reordering(self.pixel_order, order, "order")
         x = np.asarray(x)
         if x.ndim not in (1, 2) or x.shape[0] != self.shape[1]:
             raise ShapeMismatchError(f"cannot multiply a {self.shape} matrix by an array of shape "
@@ -395,25 +331,10 @@ class BlockCSR:
         X = x.reshape(self.shape[1], -1)
         if reorder is not None:
             X = X[reorder.permutation]  # row-major pixels to matrix indices (a copy)
-        Y = self._matmul_stored(np.ascontiguousarray(X, dtype=dtype))
+        Y = matmul_tiles(self.attrs, self.iter_tiles, np.ascontiguousarray(X, dtype=dtype))
         if reorder is not None:
             Y = Y[reorder.inverse_permutation]  # matrix indices back to row-major pixels
         return Y[:, 0] if x.ndim == 1 else Y
-
-    def _matmul_stored(self, X: np.ndarray) -> np.ndarray:
-        """(n_rows, k) product of the stored matrix with C-contiguous X (n_cols, k)."""
-        Y = np.zeros((self.shape[0], X.shape[1]), dtype=X.dtype)
-        spmm = _spmm_dense()
-        for i in range(self.grid[0]):
-            r0, r1 = self.tile_row_range(i)
-            for j, tile in self.iter_tiles(i):
-                c0 = j * self.tile_size
-                xs = X[c0:c0 + tile.shape[1]]
-                if spmm is None:
-                    Y[r0:r1] += tile @ xs
-                else:
-                    spmm(tile, xs, out=Y[r0:r1])
-        return Y
 
     def __matmul__(self, x):
         """``A @ x``: :meth:`matmul` of row-major image vectors (scipy's convention)."""
@@ -459,47 +380,8 @@ class BlockCSR:
 
     def info(self) -> dict:
         """Summary: shape, nnz, density, tile fill, diagonal statistics, bytes on disk."""
-        diag = self.diagonal(output_order="matrix")  # statistics only: no permutation
-        n_total = self.grid[0] * self.grid[1]
-        n, m = self.shape
-        return {
-            "path": str(self.path),
-            "redirected_from": None if self.redirected_from is None else str(self.redirected_from),
-            "format": fmt.FORMAT_NAME,
-            "version": self.attrs.version,
-            "inner_format": self.inner_format,
-            "complete": self.complete,
-            "missing_tile_rows": list(self.missing_tile_rows),
-            "shape": list(self.shape),
-            "dtype": self.dtype.name,
-            "nnz": self.nnz,
-            "density": self.nnz / (n * m) if n * m else 0.0,
-            "nnz_per_row": self.nnz / n if n else 0.0,
-            "tile_size": self.tile_size,
-            "grid": list(self.grid),
-            "n_tiles_stored": self.n_tiles_stored,
-            "n_tiles_total": n_total,
-            "tile_fill": self.n_tiles_stored / n_total if n_total else 0.0,
-            "diagonal_min": float(diag.min()) if diag.size else None,
-            "diagonal_max": float(diag.max()) if diag.size else None,
-            "zero_diagonal": int(np.count_nonzero(diag == 0)),
-            "bytes_on_disk": fmt.disk_bytes(self.path),
-            "csr_bytes": self.csr_bytes(),
-            "pixel_order": None if self.pixel_order is None else self.pixel_order.to_attrs(),
-            "metadata": dict(self.metadata),
-        }
+        return summary(self)
 
     def __repr__(self) -> str:
         return (f"<BlockCSR {self.shape[0]}x{self.shape[1]} {self.dtype.name} nnz={self.nnz} "
                 f"tile_size={self.tile_size} tiles={self.n_tiles_stored} at {str(self.path)!r}>")
-
-
-def _spmm_dense():
-    """``bigT.kernels.spmm_dense`` when the kernels layer provides it, else None."""
-    try:
-        from ..kernels import spmm_dense
-    except ImportError:
-        return None
-    return spmm_dense
-
-

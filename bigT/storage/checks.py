@@ -9,7 +9,6 @@ that the reader depends on them and not the other way round.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -23,11 +22,7 @@ from ..progress import progress_bar
 from . import _format as fmt
 from .attrs import StoreAttrs
 from .tile_index import TileIndex
-from .tiles import tile_error
-
-#: The stored tiles of tile row i, ``(j, tile)`` by ascending tile column j.
-TileRowReader = Callable[[int], Iterable[tuple[int, sp.csr_array]]]
-
+from .tiles import TileRowReader, tile_error
 
 def check_chunks_exist(path: Path, attrs: StoreAttrs, index: TileIndex) -> None:
     """Cheap existence check of every chunk file; CorruptStoreError naming the first missing."""

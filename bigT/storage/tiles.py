@@ -8,6 +8,7 @@ loudly instead of reading as a different matrix.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,9 @@ from zarr.storage import LocalStore
 
 from ..errors import BigTError, CorruptStoreError
 from . import _format as fmt
+
+#: The stored tiles of tile row i, ``(j, tile)`` by ascending tile column j.
+TileRowReader = Callable[[int], Iterable[tuple[int, sp.csr_array]]]
 
 
 def tile_error(path: Path, i: int, j: int, problem: str) -> CorruptStoreError:
