@@ -14,7 +14,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from .. import config
 from ..atomic import refuse_overwriting_inputs
@@ -244,33 +243,17 @@ def _run_stream(args, X, Tm) -> int:
 # --- relight ----------------------------------------------------------------------------
 
 def run_relight(args) -> int:
-    from ..compensation import relight
-    from ..compensation.files import describe_store, image_shape_of, store_paths
-    from ..schedule.stream import scheduler_runner
+    from ..compensation.files import describe_store, relight_files
     from ..storage import as_store
 
     T = as_store(args.T, "T")
-    source = ImageSource(args.input, image_shape_of(T))
-    sink = ImageSink(args.output, source, bits=args.bits, inputs=store_paths(T))
-    print(f"bigT relight: {len(source)} frame(s) from {args.input}")
+    print(f"bigT relight: {args.input}")
     print("  " + describe_store(T, "T"))
-    above = pixels = 0
-    t0 = time.perf_counter()
-    with scheduler_runner(args.scheduler) as runner:
-        if runner is not None:
-            print(f"  running on {runner.describe()}")
-        for files, frames in source.batches(args.batch):
-            seen = relight(T, frames, batch=args.batch, progress=args.progress,
-                           scheduler=runner)
-            above += int(np.count_nonzero(seen > 1))
-            pixels += seen.size
-            sink.write(files, seen)
-    dt = time.perf_counter() - t0
-    print(f"  {len(source)} frame(s) in {dt:.2f} s ({len(source) / dt:.1f} frames/s)")
-    print(f"  wrote -> {sink.path}")
-    if above and any(sink.target(f).suffix.lower() == ".png" for f in source.files[:1]):
-        print(f"  note: {100 * above / pixels:.2f} % of pixels exceed 1 and are clipped in the "
-              "PNG output; use .tif or .npy to keep them")
+    report = relight_files(T, args.input, args.output, batch=args.batch, bits=args.bits,
+                           scheduler=args.scheduler, progress=args.progress,
+                           on_start=lambda runner: print(f"  running on {runner}"))
+    for line in report.describe().splitlines():
+        print("  " + line)
     return 0
 
 

@@ -16,9 +16,12 @@ whole or not at all (:class:`~bigT.compensation.video.VideoSink`).
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 from .. import config
 from ..atomic import refuse_overwriting_inputs
@@ -26,7 +29,7 @@ from ..errors import ImageError
 from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
 from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
-from .core import CompensationReport, choose_path
+from .core import CompensationReport, choose_path, relight
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
                        video_batches)
 from .simulation import clipped_summary
@@ -223,6 +226,70 @@ def check_same_images(shape, *stores) -> None:
         if store is not None and shape is not None and image_shape_of(store) not in (None, shape):
             raise ImageError(f"{name} maps images of shape {image_shape_of(store)} but the "
                              f"compensation store maps {shape}", store.path)
+
+
+@dataclass(frozen=True)
+class RelightReport:
+    """What :func:`relight_files` did.
+
+    Attributes
+    ----------
+    output : Path, the image or folder written
+    frames : int
+    seconds : float, of the products
+    above_one : float
+        Share of the camera's pixels brighter than 1 (an 8/16-bit PNG clips them).
+    clipped_in_output : bool, the output is PNG, so those pixels were clipped in it
+    """
+
+    output: Path
+    frames: int
+    seconds: float
+    above_one: float
+    clipped_in_output: bool
+
+    def describe(self) -> str:
+        lines = [f"{self.frames} frame(s) in {self.seconds:.2f} s "
+                 f"({self.frames / max(self.seconds, 1e-9):.1f} frames/s)",
+                 f"wrote -> {self.output}"]
+        if self.above_one and self.clipped_in_output:
+            lines.append(f"note: {100 * self.above_one:.2f} % of pixels exceed 1 and are "
+                         "clipped in the PNG output; use .tif or .npy to keep them")
+        return "\n".join(lines)
+
+
+def relight_files(T, images, output, *, batch: int = config.DEFAULT_BATCH,
+                  bits: int | None = None, scheduler=None, progress: bool = False,
+                  on_start: Callable[[str], None] | None = None) -> RelightReport:
+    """What the camera sees, T l, for an image or a folder of them, written as images.
+
+    Parameters
+    ----------
+    T : BlockCSR or path
+    images : path, an image or a folder of them
+    output : path, an image, or a folder for a folder
+    batch : int, frames per pass over T
+    bits : int, optional, of the images written
+    scheduler : as :func:`bigT.schedule.runner.open_runner`, optional
+    on_start : callable, optional
+        Called with the runner's description once it runs on a cluster.
+    """
+    T = as_store(T, "T")
+    source = ImageSource(images, image_shape_of(T))
+    sink = ImageSink(output, source, bits=bits, inputs=store_paths(T))
+    above = pixels = 0
+    t0 = time.perf_counter()
+    with scheduler_runner(scheduler) as runner:
+        if runner is not None and on_start is not None:
+            on_start(runner.describe())
+        for files, frames in source.batches(batch):
+            seen = relight(T, frames, batch=batch, progress=progress, scheduler=runner)
+            above += int(np.count_nonzero(seen > 1))
+            pixels += seen.size
+            sink.write(files, seen)
+    png = any(sink.target(f).suffix.lower() == ".png" for f in source.files[:1])
+    return RelightReport(sink.path, len(source), time.perf_counter() - t0,
+                         above / max(pixels, 1), png)
 
 
 def describe_store(store, name: str) -> str:
