@@ -102,3 +102,24 @@ def test_relight_files_matches_dense_numpy(tmp_path, stores):
     assert report.frames == 2 and report.above_one == pytest.approx(above)
     assert above > 0 and not report.clipped_in_output  # .npy keeps them
     assert "2 frame(s)" in report.describe() and "clipped" not in report.describe()
+
+
+def test_file_simulation_matches_dense_numpy(tmp_path, stores):
+    """compensate --simulate as a library call: the projector image and the camera's
+    view written beside it, the errors against dense numpy."""
+    from bigT.compensation import FileSimulation
+
+    s, X, T = stores
+    desired = _desired(s, 1, seed=4)[0]
+    np.save(tmp_path / "d.npy", desired)
+    job = FileSimulation(X, tmp_path / "d.npy", tmp_path / "out.npy", T, path="explicit")
+    assert "path: explicit" in job.describe()
+    report = job.run()
+    l_in = np.clip(s["X"] @ desired.ravel(), 0, 1)
+    seen = s["T"] @ l_in
+    np.testing.assert_allclose(np.load(report.projector).ravel(), l_in, atol=2e-6)
+    np.testing.assert_allclose(np.load(report.seen).ravel(), seen, atol=2e-5)
+    assert report.seen == tmp_path / "out_seen.npy"
+    want = np.linalg.norm(seen - desired.ravel()) / np.linalg.norm(desired)
+    assert report.simulation.error == pytest.approx(want, rel=1e-3)
+    assert all(f.exists() and f.suffix == ".png" for f in report.figures)
