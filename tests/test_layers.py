@@ -74,48 +74,80 @@ def test_every_unit_has_a_layer():
     assert units <= set(RANK), f"not in any layer: {sorted(units - set(RANK))}"
 
 
-@pytest.mark.parametrize("module", sorted(MODULES))
-def test_imports_run_down_the_layers(module):
-    upward = sorted(target for target in GRAPH[module]
-                    if _unit(target) != _unit(module)
-                    and RANK[_unit(target)] >= RANK[_unit(module)])
-    assert not upward, f"{module} imports a layer at or above its own: {upward}"
+def upward_imports(graph: dict[str, set[str]], module: str) -> list[str]:
+    """The imports of ``module`` that reach a layer at or above its own."""
+    return sorted(t for t in graph[module] if _unit(t) != _unit(module)
+                  and RANK[_unit(t)] >= RANK[_unit(module)])
 
 
-@pytest.mark.parametrize("module", sorted(MODULES))
-def test_no_private_module_of_another_subpackage(module):
-    private = sorted(t for t in GRAPH[module] if t.rpartition(".")[2].startswith("_")
-                     and not t.endswith("__init__") and _unit(t) != _unit(module))
-    assert not private, f"{module} imports private modules of other subpackages: {private}"
+def private_imports(graph: dict[str, set[str]], module: str) -> list[str]:
+    """The private (``_name``) modules of other subpackages that ``module`` imports."""
+    return sorted(t for t in graph[module] if t.rpartition(".")[2].startswith("_")
+                  and not t.endswith("__init__") and _unit(t) != _unit(module))
 
 
-def test_no_import_cycle_between_modules():
-    # a package's __init__ re-exporting its own modules is not a loop
-    edges = {m: {t for t in ts if t in MODULES
-                 and not (MODULES[m].name == "__init__.py" and t.startswith(m + "."))}
-             for m, ts in GRAPH.items()}
+def find_cycle(graph: dict[str, set[str]], packages: set[str]) -> list[str] | None:
+    """A cycle of module imports (as a path that returns to its start), or None. A
+    package's ``__init__`` re-exporting its own modules is not counted as an edge."""
+    edges = {m: {t for t in ts if t in graph and not (m in packages and t.startswith(m + "."))}
+             for m, ts in graph.items()}
     state: dict[str, int] = {}
 
     def visit(m, stack):
         state[m] = 1
         for t in sorted(edges[m]):
             if state.get(t) == 1:
-                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(t):] + [t]))
+                return stack[stack.index(t):] + [t]
             if t not in state:
-                visit(t, stack + [t])
+                found = visit(t, stack + [t])
+                if found:
+                    return found
         state[m] = 2
+        return None
 
     for m in sorted(edges):
         if m not in state:
-            visit(m, [m])
+            found = visit(m, [m])
+            if found:
+                return found
+    return None
 
 
-def test_the_check_sees_a_loop_and_an_upward_import():
-    """The checks can fail: a storage module that imported compensation would be
-    caught (as the reader importing the writer's recovery once was)."""
-    fake = dict(GRAPH)
-    fake["bigT.storage.block_csr"] = GRAPH["bigT.storage.block_csr"] | {"bigT.compensation"}
-    bad = [t for t in fake["bigT.storage.block_csr"] if RANK[_unit(t)] > RANK["storage"]]
-    assert bad == ["bigT.compensation"]
-    assert "bigT.storage.block_csr" in _imports(MODULES["bigT.storage.writer"],
-                                                "bigT.storage.writer")
+PACKAGES = {m for m, p in MODULES.items() if p.name == "__init__.py"}
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_imports_run_down_the_layers(module):
+    upward = upward_imports(GRAPH, module)
+    assert not upward, f"{module} imports a layer at or above its own: {upward}"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_no_private_module_of_another_subpackage(module):
+    private = private_imports(GRAPH, module)
+    assert not private, f"{module} imports private modules of other subpackages: {private}"
+
+
+def test_no_import_cycle_between_modules():
+    cycle = find_cycle(GRAPH, PACKAGES)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+def test_the_checks_catch_a_loop_an_upward_import_and_a_private_one():
+    """Each check fails on a graph with the fault planted: the reader importing the
+    writer back (the loop this issue removed), storage importing compensation, and
+    algorithms importing compensation's private module."""
+    graph = {m: set(ts) for m, ts in GRAPH.items()}
+    assert find_cycle(graph, PACKAGES) is None
+    graph["bigT.storage.block_csr"].add("bigT.storage.writer")  # writer imports block_csr
+    assert "bigT.storage.block_csr" in GRAPH["bigT.storage.writer"]
+    cycle = find_cycle(graph, PACKAGES)
+    assert cycle is not None and {"bigT.storage.block_csr", "bigT.storage.writer"} <= set(cycle)
+
+    graph = {m: set(ts) for m, ts in GRAPH.items()}
+    graph["bigT.storage.block_csr"].add("bigT.compensation")
+    assert upward_imports(graph, "bigT.storage.block_csr") == ["bigT.compensation"]
+    graph["bigT.algorithms.target"].add("bigT.compensation._resident_kernels")
+    assert private_imports(graph, "bigT.algorithms.target") == [
+        "bigT.compensation._resident_kernels"]
+    assert "bigT.compensation._resident_kernels" in upward_imports(graph, "bigT.algorithms.target")

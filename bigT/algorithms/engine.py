@@ -7,11 +7,11 @@
   series refused before term 0; a term whose residual grew refused after it;
 * :mod:`.passes`: each pass of a term run over its row blocks on the runner
   (local threads, or a dask cluster's workers), and the totals of the passes;
-* :mod:`.matvecs` and :mod:`.term_residual`: the products with M and X, and each
+* :mod:`.matvecs` and :mod:`.probes`: the products with M and X, and each
   term's residual estimate, the probes' X Z carried from term to term;
 * :mod:`.publish`: a finished term published (X's record, redirect, root record) and
   the previous term deleted in the background;
-* :mod:`.run_report`: the :class:`~.report.InverseReport` from how the run ended.
+* :mod:`.outcome`: the :class:`~.report.InverseReport` from how the run ended.
 
 The driver holds what changes during the run: the store's record (the term held) and
 the probes' X Z for it. A term is published only once complete; a crash leaves the
@@ -34,10 +34,10 @@ from .passes import PassRunner, exhausted_before
 from .publish import let_go_of_term, publish_term, series_metadata, term_record
 from .records import SeriesRecord
 from .report import InverseReport
-from .run_report import RunOutcome, inverse_report
+from .outcome import RunOutcome, inverse_report
 from .run_setup import open_run
 from .settings import SeriesSettings
-from .term_residual import ProbedResidual
+from .probes import ProbedResidual
 
 
 class InverseEngine:

@@ -18,7 +18,7 @@ from ..storage.inverse_store import term_dir
 from .first_bounce import FirstBounce
 from .records import SeriesRecord, TermRecord
 from .settings import Thresholds
-from .term_residual import TermResidual
+from .probes import TermResidual
 
 
 def series_metadata(method: str, thresholds: Thresholds, fb: FirstBounce,

@@ -14,12 +14,11 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from .. import config
 from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError
-from ..images import ImageSink, ImageSource, read_image, write_image
+from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..sizes import format_size
 from ._argtypes import clip_range, integer, memory_size, number
@@ -133,83 +132,38 @@ def register(sub) -> None:
 
 # --- helpers ----------------------------------------------------------------------------
 
-def _sibling(path: Path, tag: str, suffix: str | None = None) -> Path:
-    """``out.png`` -> ``out_<tag>.png`` (``suffix`` to change it); ``dir`` -> ``dir_<tag>``."""
-    if path.suffix:
-        return path.with_name(f"{path.stem}_{tag}{suffix or path.suffix}")
-    return path.with_name(f"{path.name}_{tag}{suffix or ''}")
-
-
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
     # the compensation layer's imports (~0.5 s) are paid by these commands only, not by
     # every command whose parser this module adds
-    from ..compensation import choose_path
-    from ..compensation.files import check_same_images, image_shape_of
-    from ..compensation.video import is_video_file
     from ..storage import as_store
 
     X = None if args.X == "-" else as_store(args.X, "X")
-    S = None if args.simulate is None else as_store(args.simulate, "T")
-    Tm = as_store(args.matrix_free, "T") if args.matrix_free else S
     if args.simulate is None:
+        Tm = as_store(args.matrix_free, "T") if args.matrix_free else None
         return _run_stream(args, X, Tm)
-    choice = choose_path(X, Tm if args.path != "explicit" else None, args.terms, args.path)
-    shape = image_shape_of(X if choice.path == "explicit" else Tm)
-    check_same_images(shape, (X, "X"), (Tm, "T"), (S, "T (--simulate)"))
-    if is_video_file(args.desired):
-        raise ImageError("--simulate takes an image or a folder of frames, not a video",
-                         args.desired)
-    return _run_simulate(args, X, S, Tm, choice, shape)
+    return _run_simulate(args, X)
 
 
-def _run_simulate(args, X, S, Tm, choice, shape) -> int:
-    """compensate --simulate: :func:`bigT.compensation.simulate_batches` over the frames,
-    its report and figures printed."""
-    from ..compensation import simulate_batches, simulation_figures
-    from ..compensation.files import describe_path, describe_store, store_paths
+def _run_simulate(args, X) -> int:
+    """compensate --simulate: :class:`bigT.compensation.FileSimulation` made (inputs
+    checked), described, run, its report printed."""
+    from ..compensation import FileSimulation
 
-    source = ImageSource(args.desired, shape)
-    out_path = Path(args.output)
-    stores = store_paths(X, S, Tm)
-    figures = (_sibling(out_path, "compare", ".png"), _sibling(out_path, "scanline", ".png"))
-    refuse_overwriting_inputs(figures, [args.desired, *stores])
-    sink = ImageSink(out_path, source, bits=args.bits, inputs=stores)
-    seen_sink = ImageSink(_sibling(out_path, "seen"), source, bits=args.bits, inputs=stores)
-    print(f"bigT compensate: {len(source)} frame(s) from {args.desired}"
-          + (f", image {shape[0]}x{shape[1]}" if shape else ""))
-    shown = []
-    for st, name in ((X, "X"), (Tm if choice.path == "matrix-free" else None, "T"), (S, "T")):
-        if st is not None and all(st is not o for o in shown):
-            print("  " + describe_store(st, name))
-            shown.append(st)
-    print("  " + describe_path(choice))
-
-    t0 = time.perf_counter()
-    with progress_bar(progress=args.progress, total=len(source), desc="compensate",
+    job = FileSimulation(X, args.desired, args.output, args.simulate, path=args.path,
+                         matrix_free=args.matrix_free, terms=args.terms, clip=args.clip,
+                         batch=args.batch, bits=args.bits, cache_bytes=args.cache_bytes,
+                         scheduler=args.scheduler)
+    head, *rest = job.describe().splitlines()
+    print(f"bigT compensate: {head}")
+    for line in rest:
+        print("  " + line)
+    with progress_bar(progress=args.progress, total=len(job.source), desc="compensate",
                       unit="frame", leave=True) as bar:
-        def write(files, projector, seen):
-            sink.write(files, projector)
-            seen_sink.write(files, seen)
-            bar.update(len(files))
-
-        report = simulate_batches(
-            source.batches(args.batch), X, S, clip=args.clip, path=choice.path,
-            matrix_free=Tm, terms=choice.terms, cache_bytes=args.cache_bytes,
-            scheduler=args.scheduler, progress=args.progress, on_batch=write)
-    elapsed = time.perf_counter() - t0
-
-    print(f"  {report.frames} frame(s) in {report.seconds:.2f} s of products "
-          f"({report.frames_per_second:.1f} frames/s, batch {args.batch}); {elapsed:.2f} s "
-          "in all (the simulation's passes over T included)")
-    print(f"  wrote projector input -> {sink.path}")
-    print(f"  simulated camera (T l_in) -> {seen_sink.path}")
+        report = job.run(progress=args.progress, on_batch=bar.update)
     for line in report.describe().splitlines():
         print("  " + line)
-    tag = f" (frame {report.first.name})" if source.is_folder else ""
-    pic, plot = simulation_figures(report, *figures, tag=tag)
-    print(f"  figures -> {pic}, {plot}")
     return 0
 
 
@@ -244,33 +198,17 @@ def _run_stream(args, X, Tm) -> int:
 # --- relight ----------------------------------------------------------------------------
 
 def run_relight(args) -> int:
-    from ..compensation import relight
-    from ..compensation.files import describe_store, image_shape_of, store_paths
-    from ..schedule.stream import scheduler_runner
+    from ..compensation.files import describe_store, relight_files
     from ..storage import as_store
 
     T = as_store(args.T, "T")
-    source = ImageSource(args.input, image_shape_of(T))
-    sink = ImageSink(args.output, source, bits=args.bits, inputs=store_paths(T))
-    print(f"bigT relight: {len(source)} frame(s) from {args.input}")
+    print(f"bigT relight: {args.input}")
     print("  " + describe_store(T, "T"))
-    above = pixels = 0
-    t0 = time.perf_counter()
-    with scheduler_runner(args.scheduler) as runner:
-        if runner is not None:
-            print(f"  running on {runner.describe()}")
-        for files, frames in source.batches(args.batch):
-            seen = relight(T, frames, batch=args.batch, progress=args.progress,
-                           scheduler=runner)
-            above += int(np.count_nonzero(seen > 1))
-            pixels += seen.size
-            sink.write(files, seen)
-    dt = time.perf_counter() - t0
-    print(f"  {len(source)} frame(s) in {dt:.2f} s ({len(source) / dt:.1f} frames/s)")
-    print(f"  wrote -> {sink.path}")
-    if above and any(sink.target(f).suffix.lower() == ".png" for f in source.files[:1]):
-        print(f"  note: {100 * above / pixels:.2f} % of pixels exceed 1 and are clipped in the "
-              "PNG output; use .tif or .npy to keep them")
+    report = relight_files(T, args.input, args.output, batch=args.batch, bits=args.bits,
+                           scheduler=args.scheduler, progress=args.progress,
+                           on_start=lambda runner: print(f"  running on {runner}"))
+    for line in report.describe().splitlines():
+        print("  " + line)
     return 0
 
 

@@ -17,7 +17,15 @@ from .core import (  # noqa: F401
     separate_bounces,
 )
 from ..schedule.stream import stream_matmul  # noqa: F401
-from .files import FileCompensation, FileCompensationReport, compensate_files  # noqa: F401
+from .files import (  # noqa: F401
+    FileCompensation,
+    FileCompensationReport,
+    FileSimulation,
+    FileSimulationReport,
+    RelightReport,
+    compensate_files,
+    relight_files,
+)
 from .simulation import (  # noqa: F401
     Flatness,
     SimulatedFrame,
@@ -33,4 +41,5 @@ __all__ = ["compensate", "relight", "separate_bounces", "matrix_free_apply", "ch
            "first_bounce_from_inverse", "PathChoice", "CompensationReport",
            "simulate", "simulate_batches", "simulation_figures", "Simulation",
            "SimulationReport", "Flatness", "SimulatedFrame", "FileCompensation",
-           "FileCompensationReport", "compensate_files"]
+           "FileCompensationReport", "compensate_files", "RelightReport", "relight_files",
+           "FileSimulation", "FileSimulationReport"]

@@ -16,9 +16,12 @@ whole or not at all (:class:`~bigT.compensation.video.VideoSink`).
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 from .. import config
 from ..atomic import refuse_overwriting_inputs
@@ -26,10 +29,11 @@ from ..errors import ImageError
 from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
 from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
-from .core import CompensationReport, choose_path
+from .core import CompensationReport, choose_path, relight
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
                        video_batches)
-from .simulation import clipped_summary
+from .simulation import (SimulationReport, clipped_summary, simulate_batches,
+                         simulation_figures)
 from .video import DEFAULT_FPS, VideoSink, VideoSource, is_video_file
 
 
@@ -223,6 +227,183 @@ def check_same_images(shape, *stores) -> None:
         if store is not None and shape is not None and image_shape_of(store) not in (None, shape):
             raise ImageError(f"{name} maps images of shape {image_shape_of(store)} but the "
                              f"compensation store maps {shape}", store.path)
+
+
+@dataclass(frozen=True)
+class FileSimulationReport:
+    """What :meth:`FileSimulation.run` did: the simulation's numbers, where each
+    output went, and the wall time with the simulation's passes over T.
+
+    Attributes
+    ----------
+    simulation : SimulationReport
+    projector, seen : Path, the projector input and the camera's simulated view written
+    figures : (Path, Path), the side-by-side comparison and the scan lines (PNG)
+    batch : int
+    seconds : float, wall time of the whole run
+    """
+
+    simulation: SimulationReport
+    projector: Path
+    seen: Path
+    figures: tuple[Path, Path]
+    batch: int
+    seconds: float
+
+    def describe(self) -> str:
+        r = self.simulation
+        return "\n".join([
+            f"{r.frames} frame(s) in {r.seconds:.2f} s of products "
+            f"({r.frames_per_second:.1f} frames/s, batch {self.batch}); {self.seconds:.2f} s "
+            "in all (the simulation's passes over T included)",
+            f"wrote projector input -> {self.projector}",
+            f"simulated camera (T l_in) -> {self.seen}",
+            *r.describe().splitlines(),
+            f"figures -> {self.figures[0]}, {self.figures[1]}"])
+
+
+class FileSimulation:
+    """Compensation of an image or a folder of frames with what the camera then sees
+    simulated through T (what ``bigT compensate --simulate T`` runs), checked when made.
+
+    Parameters
+    ----------
+    X : BlockCSR, path, or None (with the matrix-free path)
+    desired : path, an image or a folder of frames (not a video)
+    output : path; the camera's view goes beside it (``out_seen.png``), and the figures
+        (``out_compare.png``, ``out_scanline.png``)
+    T : BlockCSR or path, the transport the camera's view is simulated with
+    path, matrix_free, terms : of the compensation (:func:`choose_path`); ``matrix_free``
+        is the transport the matrix-free path streams (default ``T``)
+    clip, batch, bits, cache_bytes, scheduler : as :class:`FileCompensation`
+    """
+
+    def __init__(self, X, desired, output, T, *, path: str = "auto", matrix_free=None,
+                 terms: int | None = None, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
+                 bits: int | None = None, cache_bytes: int | None = None, scheduler=None):
+        self.X = None if X is None else as_store(X, "X")
+        self.T = as_store(T, "T")
+        self.Tm = self.T if matrix_free is None else as_store(matrix_free, "T")
+        self.choice = choose_path(self.X, self.Tm if path != "explicit" else None, terms, path)
+        self.shape = image_shape_of(self.X if self.choice.path == "explicit" else self.Tm)
+        check_same_images(self.shape, (self.X, "X"), (self.Tm, "T"),
+                          (self.T, "T (--simulate)"))
+        if is_video_file(desired):
+            raise ImageError("--simulate takes an image or a folder of frames, not a video",
+                             desired)
+        self.source = ImageSource(desired, self.shape)
+        out = Path(output)
+        stores = store_paths(self.X, self.T, self.Tm)
+        self.figures = (sibling_path(out, "compare", ".png"), sibling_path(out, "scanline", ".png"))
+        refuse_overwriting_inputs(self.figures, [desired, *stores])
+        self._sink = ImageSink(out, self.source, bits=bits, inputs=stores)
+        self._seen = ImageSink(sibling_path(out, "seen"), self.source, bits=bits, inputs=stores)
+        self.clip, self.batch = clip, int(batch)
+        self._options = dict(cache_bytes=cache_bytes, scheduler=scheduler)
+
+    def describe(self) -> str:
+        """The input, the stores (each once) and the path."""
+        lines = [f"{len(self.source)} frame(s) from {self.source.path}"
+                 + (f", image {self.shape[0]}x{self.shape[1]}" if self.shape else "")]
+        shown = []
+        for st, name in ((self.X, "X"), (self.Tm if self.choice.path == "matrix-free"
+                                         else None, "T"), (self.T, "T")):
+            if st is not None and all(st is not o for o in shown):
+                lines.append(describe_store(st, name))
+                shown.append(st)
+        lines.append(describe_path(self.choice))
+        return "\n".join(lines)
+
+    def run(self, *, progress: bool = False,
+            on_batch: Callable[[int], None] | None = None) -> FileSimulationReport:
+        """Compensate and simulate every frame, write both and the figures."""
+        def write(files, projector, seen):
+            self._sink.write(files, projector)
+            self._seen.write(files, seen)
+            if on_batch is not None:
+                on_batch(len(files))
+
+        t0 = time.perf_counter()
+        report = simulate_batches(
+            self.source.batches(self.batch), self.X, self.T, clip=self.clip,
+            path=self.choice.path, matrix_free=self.Tm, terms=self.choice.terms,
+            progress=progress, on_batch=write, **self._options)
+        seconds = time.perf_counter() - t0
+        tag = f" (frame {report.first.name})" if self.source.is_folder else ""
+        figures = simulation_figures(report, *self.figures, tag=tag)
+        return FileSimulationReport(report, self._sink.path, self._seen.path, tuple(figures),
+                                    self.batch, seconds)
+
+
+def sibling_path(path: Path, tag: str, suffix: str | None = None) -> Path:
+    """``out.png`` -> ``out_<tag>.png`` (``suffix`` to change it); ``dir`` -> ``dir_<tag>``."""
+    if path.suffix:
+        return path.with_name(f"{path.stem}_{tag}{suffix or path.suffix}")
+    return path.with_name(f"{path.name}_{tag}{suffix or ''}")
+
+
+@dataclass(frozen=True)
+class RelightReport:
+    """What :func:`relight_files` did.
+
+    Attributes
+    ----------
+    output : Path, the image or folder written
+    frames : int
+    seconds : float, of the products
+    above_one : float
+        Share of the camera's pixels brighter than 1 (an 8/16-bit PNG clips them).
+    clipped_in_output : bool, the output is PNG, so those pixels were clipped in it
+    """
+
+    output: Path
+    frames: int
+    seconds: float
+    above_one: float
+    clipped_in_output: bool
+
+    def describe(self) -> str:
+        lines = [f"{self.frames} frame(s) in {self.seconds:.2f} s "
+                 f"({self.frames / max(self.seconds, 1e-9):.1f} frames/s)",
+                 f"wrote -> {self.output}"]
+        if self.above_one and self.clipped_in_output:
+            lines.append(f"note: {100 * self.above_one:.2f} % of pixels exceed 1 and are "
+                         "clipped in the PNG output; use .tif or .npy to keep them")
+        return "\n".join(lines)
+
+
+def relight_files(T, images, output, *, batch: int = config.DEFAULT_BATCH,
+                  bits: int | None = None, scheduler=None, progress: bool = False,
+                  on_start: Callable[[str], None] | None = None) -> RelightReport:
+    """What the camera sees, T l, for an image or a folder of them, written as images.
+
+    Parameters
+    ----------
+    T : BlockCSR or path
+    images : path, an image or a folder of them
+    output : path, an image, or a folder for a folder
+    batch : int, frames per pass over T
+    bits : int, optional, of the images written
+    scheduler : as :func:`bigT.schedule.runner.open_runner`, optional
+    on_start : callable, optional
+        Called with the runner's description once it runs on a cluster.
+    """
+    T = as_store(T, "T")
+    source = ImageSource(images, image_shape_of(T))
+    sink = ImageSink(output, source, bits=bits, inputs=store_paths(T))
+    above = pixels = 0
+    t0 = time.perf_counter()
+    with scheduler_runner(scheduler) as runner:
+        if runner is not None and on_start is not None:
+            on_start(runner.describe())
+        for files, frames in source.batches(batch):
+            seen = relight(T, frames, batch=batch, progress=progress, scheduler=runner)
+            above += int(np.count_nonzero(seen > 1))
+            pixels += seen.size
+            sink.write(files, seen)
+    png = any(sink.target(f).suffix.lower() == ".png" for f in source.files[:1])
+    return RelightReport(sink.path, len(source), time.perf_counter() - t0,
+                         above / max(pixels, 1), png)
 
 
 def describe_store(store, name: str) -> str:

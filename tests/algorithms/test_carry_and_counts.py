@@ -184,7 +184,7 @@ def test_residual_from_the_probes_carried_term_to_term_equals_reading_x(
     residual without reading X back: the same estimate as from X read (to float32
     rounding of the stored X)."""
     from bigT.algorithms.matvecs import MatVecs
-    from bigT.algorithms.term_residual import ProbedResidual
+    from bigT.algorithms.probes import ProbedResidual
 
     A = random_dominant(96, seed=9, density=0.3, margin=0.8)
     T = make_store(A, tile_size=32, dtype="float32")
