@@ -150,8 +150,22 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
 
 # --- compensation ---------------------------------------------------------------------
 
+class ClippedFrames:
+    """The rates every compensation report derives from its counts (``frames``,
+    ``seconds``, ``clipped_low``, ``clipped_high``, ``pixels``)."""
+
+    @property
+    def clipped_fraction(self) -> float:
+        """Projector pixels outside the clip range / all projector pixels."""
+        return (self.clipped_low + self.clipped_high) / max(self.pixels, 1)
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else float("inf")
+
+
 @dataclass
-class CompensationReport:
+class CompensationReport(ClippedFrames):
     """What :func:`compensate` did.
 
     Attributes
@@ -168,14 +182,6 @@ class CompensationReport:
     clipped_high: int = 0
     pixels: int = 0
     seconds: float = 0.0
-
-    @property
-    def clipped_fraction(self) -> float:
-        return (self.clipped_low + self.clipped_high) / max(self.pixels, 1)
-
-    @property
-    def frames_per_second(self) -> float:
-        return self.frames / self.seconds if self.seconds > 0 else float("inf")
 
 
 def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice, clip=(0, 1),

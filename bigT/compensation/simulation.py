@@ -27,6 +27,7 @@ from ..schedule.stream import (cache_budget, compute_dtype, forget_tiles, schedu
 from ..storage import as_store
 from ..storage.frames import as_frames, pixel_order_of, to_frames, to_vectors
 from .core import (
+    ClippedFrames,
     CompensationReport,
     PathChoice,
     choose_path,
@@ -84,7 +85,7 @@ class SimulatedFrame:
 
 
 @dataclass(frozen=True)
-class SimulationReport:
+class SimulationReport(ClippedFrames):
     """What :func:`simulate` found.
 
     Attributes
@@ -119,15 +120,6 @@ class SimulationReport:
     error_uncompensated: float
     flatness: Flatness | None
     first: SimulatedFrame
-
-    @property
-    def clipped_fraction(self) -> float:
-        """Projector pixels outside the clip range / all projector pixels."""
-        return (self.clipped_low + self.clipped_high) / max(self.pixels, 1)
-
-    @property
-    def frames_per_second(self) -> float:
-        return self.frames / self.seconds if self.seconds > 0 else float("inf")
 
     def describe(self) -> str:
         """The error, flatness and clipping, one fact a line (what the CLI prints)."""
