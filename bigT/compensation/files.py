@@ -287,9 +287,9 @@ class FileSimulation:
         self.choice = choose_path(self.X, self.Tm if path != "explicit" else None, terms, path)
         self.shape = image_shape_of(self.X if self.choice.path == "explicit" else self.Tm)
         check_same_images(self.shape, (self.X, "X"), (self.Tm, "T"),
-                          (self.T, "T (--simulate)"))
+                          (self.T, "T (the simulated camera's)"))
         if is_video_file(desired):
-            raise ImageError("--simulate takes an image or a folder of frames, not a video",
+            raise ImageError("a simulation takes an image or a folder of frames, not a video",
                              desired)
         self.source = ImageSource(desired, self.shape)
         out = Path(output)
