@@ -16,7 +16,7 @@ import os
 import shutil
 from pathlib import Path, PurePosixPath
 
-from ..atomic import atomic_write_json, dead_writers_siblings, hidden_sibling
+from ..atomic import atomic_write_json, dead_writers_siblings, fsync_dir, fsync_tree, hidden_sibling
 from ..errors import IncompleteStoreError, StoreError
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
@@ -65,9 +65,15 @@ def move_into_place(tmp: Path, path: Path) -> None:
     the two leaves ``path`` missing and the old store in a hidden ``.old`` sibling:
     :func:`recover_interrupted_replace` (run by every writer and by ``open``) puts it
     back.
+
+    Durably (``config.DURABILITY``): everything in ``tmp`` is fsynced before the
+    rename (a pass that costs little where its writers fsynced already, and covers
+    those that did not), the parent directory after it.
     """
+    fsync_tree(tmp)
     if not path.exists():
         os.replace(tmp, path)
+        fsync_dir(path.parent)
         return
     old = hidden_sibling(path, "old")
     os.replace(path, old)
@@ -76,6 +82,7 @@ def move_into_place(tmp: Path, path: Path) -> None:
     except BaseException:
         os.replace(old, path)
         raise
+    fsync_dir(path.parent)  # the new store in place before the old one is deleted
     # renamed again before the deletion: a ".old" is always whole (restorable), a
     # ".trash" may be half deleted (never restored)
     trash = old.with_name(old.name[:-len("old")] + "trash")
@@ -149,6 +156,13 @@ def set_redirect(path, target: str) -> None:
     bigt.update({"format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
                  "redirect": PurePosixPath(target).as_posix()})
     meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = bigt
+    # the target's files were fsynced when it was finalized; the names that lead to it
+    # (a term directory made by mkdir) are made durable here, before the flip points
+    # at them (config.DURABILITY)
+    for level in [dest.parent, *dest.parent.parents]:
+        fsync_dir(level)
+        if level == root:
+            break
     atomic_write_json(meta_path, meta)
 
 

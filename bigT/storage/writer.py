@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..atomic import atomic_write_json
+from ..atomic import atomic_write_json, fsync_dir, fsync_tree
 from ..errors import (
     BigTError,
     DiskFullError,
@@ -149,6 +149,7 @@ def create_store(path, attrs: StoreAttrs) -> None:
             tmp.mkdir()
             _write_header(tmp, attrs)
             os.rename(tmp, path)
+            fsync_dir(path.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -193,7 +194,9 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
 
     The row is built in a hidden sibling directory (``rows/.{i}.<hex>.partial``), its
     completion marker written last, and the directory then renamed to ``rows/{i}``: a
-    row is on disk complete or not at all. A row already complete is left alone, so a
+    row is on disk complete or not at all. Durably so (``config.DURABILITY``): the
+    row's files are fsynced in one pass before the marker, the marker before the
+    rename, ``rows/`` after it, so a power cut never leaves a marker over lost data. A row already complete is left alone, so a
     task run twice (a scheduler's retry after a worker loss, or two processes at once)
     writes it once; the loser of a race deletes its own copy.
 
@@ -229,6 +232,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
         if keep is not None:
             tiles.update(_link_kept_tiles(keep, attrs, i, tmp, path, set(tiles)))
         cols = sorted(tiles)
+        fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
         atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
             "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}))
         return _move_row_into_place(tmp, path, i)
@@ -284,6 +288,7 @@ def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
     when another writer got there first."""
     try:
         os.rename(tmp, path / fmt.row_path(i))  # replaces an empty directory only
+        fsync_dir(path / fmt.ROWS_GROUP)
         return True
     except OSError as exc:
         if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or fmt.row_marker(path, i) is None:
@@ -324,6 +329,7 @@ def clean_partial_rows(path, n_rows: int) -> int:
 def finalize_store(path, zstd_level=None) -> BlockCSR:
     """Write the tile index from the row markers on disk, mark the store complete and
     open it: whoever wrote the rows (threads, other processes), only the markers count.
+    The index is fsynced before the completion flag (``config.DURABILITY``).
 
     Raises
     ------
@@ -348,6 +354,8 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
     try:
         for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
             fmt.write_array_files(path, name, values, fmt.FILL_INT, zstd_level)
+            fsync_tree(path / name)
+        fsync_dir(path)  # the arrays' names, before the flag that says they are there
         write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
     except OSError as exc:
         raise (_wrap_oserror(exc, path, "the tile index") or exc) from exc
