@@ -291,3 +291,14 @@ class _held_in_another_process:
     def __exit__(self, *exc):
         self.child.stdin.close()
         self.child.wait(timeout=60)
+
+
+@needs_proc_fds
+@pytest.mark.parametrize("level, fsyncs", [("none", False), ("full", True)])
+def test_the_command_line_chooses_the_durability_for_its_run(
+        tmp_path, matrix_file, recorded, monkeypatch, level, fsyncs):
+    monkeypatch.setattr(config, "DURABILITY", "full")
+    assert main(["convert", str(matrix_file), "-o", str(tmp_path / "S.zarr"), "-q",
+                 "--durability", level]) == 0
+    assert any(e.op == "fsync" for e in recorded) == fsyncs
+    assert config.DURABILITY == "full"  # for this run only
