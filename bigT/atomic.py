@@ -111,24 +111,12 @@ def _fsync_path(path: Path, directory: bool = False) -> None:
 # cut the kernel may have written the rename and not the data it publishes: a row
 # marked complete over chunks that are zeros. So, as SQLite and LMDB order theirs:
 # every file is fsynced before the rename that publishes it, and the directory after
-# the rename (the rename itself is durable only then). config.DURABILITY decides
-# (``durable()``): "none" skips both, for scratch stores a power cut may lose.
-
-
-def durable() -> bool:
-    """Whether publishes fsync (``config.DURABILITY``, read at each call)."""
-    from . import config  # config imports nothing of bigT; at call time so tests can set it
-
-    return config.DURABILITY != "none"
+# the rename (the rename itself is durable only then). The store writers call these
+# when config.DURABILITY asks (bigT.storage.replace.durable decides).
 
 
 def fsync_file(path: str | os.PathLike) -> None:
-    """Flush the file ``path``'s data to disk (when :func:`durable`)."""
-    if durable():
-        _fsync_file(Path(os.fspath(path)))
-
-
-def _fsync_file(path: Path) -> None:
+    """Flush the file ``path``'s data to disk."""
     # read-only is enough on POSIX (and is no write for the crash harness to count);
     # Windows flushes only handles open for writing
     fd = os.open(path, os.O_RDWR if os.name == "nt" else os.O_RDONLY)
@@ -140,9 +128,9 @@ def _fsync_file(path: Path) -> None:
 
 def fsync_dir(path: str | os.PathLike) -> None:
     """Make the entries of directory ``path`` (names created, renamed or deleted in
-    it) durable (when :func:`durable`). A no-op where directories cannot be opened
+    it) durable. A no-op where directories cannot be opened
     (Windows) or the file system refuses (EINVAL, EBADF: some network file systems)."""
-    if durable() and os.name != "nt":
+    if os.name != "nt":
         with contextlib.suppress(OSError):
             _fsync_path(Path(os.fspath(path)), directory=True)
 
@@ -152,12 +140,10 @@ def fsync_tree(root: str | os.PathLike, include_root: bool = True) -> None:
     it, ``root`` last (left to the caller with ``include_root=False``, when a file it
     writes next fsyncs it): one pass over what was just written (a tile row's chunks),
     before the marker that says it is complete."""
-    if not durable():
-        return
     root = os.fspath(root)
     for dirpath, _, filenames in os.walk(root, topdown=False):
         for name in filenames:
-            _fsync_file(Path(dirpath, name))
+            fsync_file(os.path.join(dirpath, name))
         if include_root or dirpath != root:
             fsync_dir(dirpath)
 
@@ -215,13 +201,13 @@ def _discard(tmp: Path) -> None:
         tmp.unlink()
 
 
-def atomic_write_json(path: Path, obj: dict) -> None:
+def atomic_write_json(path: Path, obj: dict, durable: bool = True) -> None:
     """Write ``obj`` as JSON to ``path`` via a temporary file and ``os.replace``.
 
     A reader sees the old file or the new one, never a torn one; this is what makes
-    the tile-row completion markers and metadata updates atomic. The file is fsynced
-    before the rename and its directory after (:func:`durable`), so a power cut too
-    leaves the old file or the new one.
+    the tile-row completion markers and metadata updates atomic. With ``durable``
+    the file is fsynced before the rename and its directory after, so a power cut
+    too leaves the old file or the new one.
     """
     text = json.dumps(obj, indent=2, allow_nan=False)
     tmp = hidden_sibling(path, "tmp")
@@ -229,10 +215,11 @@ def atomic_write_json(path: Path, obj: dict) -> None:
         with io.open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()
-            if durable():
+            if durable:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
-        fsync_dir(path.parent)
+        if durable:
+            fsync_dir(path.parent)
     except BaseException:
         try:
             os.unlink(tmp)

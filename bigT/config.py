@@ -211,7 +211,7 @@ COMPENSATE_QUEUE_DEPTH = 1
 BACKGROUND_REMOVAL = True
 
 #: What a power cut (or a kernel crash) may not undo of a store being written
-#: (bigT.atomic.durable): "full" fsyncs every file before the rename that publishes it
+#: (bigT.storage.replace.durable): "full" fsyncs every file before the rename that publishes it
 #: (a tile row's chunks before its marker, a store's index before its completion flag)
 #: and the directory after, so a row marked complete, a finished store or a published
 #: term is on disk whole, as SQLite and LMDB order their writes; "none" skips the

@@ -31,8 +31,8 @@ from .attrs import StoreAttrs, read_raw_attrs
 from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .pixel_order import PIXEL_ORDERS, PixelOrder
-from .replace import (check_replaceable, move_into_place, remove_existing, temporary_sibling,
-                      write_root_attrs)
+from .replace import (check_replaceable, durable, move_into_place, remove_existing,
+                      temporary_sibling, write_root_attrs)
 
 
 def _check_dtype(dtype, where) -> np.dtype:
@@ -149,7 +149,8 @@ def create_store(path, attrs: StoreAttrs) -> None:
             tmp.mkdir()
             _write_header(tmp, attrs)
             os.rename(tmp, path)
-            fsync_dir(path.parent)
+            if durable():
+                fsync_dir(path.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -159,7 +160,7 @@ def create_store(path, attrs: StoreAttrs) -> None:
 
 def _write_header(path: Path, attrs: StoreAttrs) -> None:
     (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
-    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}))
+    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}), durable())
     write_root_attrs(path, attrs)
 
 
@@ -232,9 +233,11 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
         if keep is not None:
             tiles.update(_link_kept_tiles(keep, attrs, i, tmp, path, set(tiles)))
         cols = sorted(tiles)
-        fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
+        if durable():
+            fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
         atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
-            "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}))
+            "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}),
+            durable())
         return _move_row_into_place(tmp, path, i)
 
 
@@ -288,7 +291,8 @@ def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
     when another writer got there first."""
     try:
         os.rename(tmp, path / fmt.row_path(i))  # replaces an empty directory only
-        fsync_dir(path / fmt.ROWS_GROUP)
+        if durable():
+            fsync_dir(path / fmt.ROWS_GROUP)
         return True
     except OSError as exc:
         if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or fmt.row_marker(path, i) is None:
@@ -354,8 +358,10 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
     try:
         for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
             fmt.write_array_files(path, name, values, fmt.FILL_INT, zstd_level)
-            fsync_tree(path / name)
-        fsync_dir(path)  # the arrays' names, before the flag that says they are there
+            if durable():
+                fsync_tree(path / name)
+        if durable():
+            fsync_dir(path)  # the arrays' names, before the flag that says they are there
         write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
     except OSError as exc:
         raise (_wrap_oserror(exc, path, "the tile index") or exc) from exc
