@@ -216,6 +216,8 @@ BACKGROUND_REMOVAL = True
 #: and the directory after, so a row marked complete, a finished store or a published
 #: term is on disk whole, as SQLite and LMDB order their writes; "none" skips the
 #: fsyncs (a killed process still leaves every store whole or resumable, a power cut
-#: may not), for scratch stores on a disk where the fsyncs cost.
+#: may not), for scratch stores on a disk where the fsyncs cost. Measured (4 terms,
+#: ext4 on a virtual disk, best of 3): the dense 96x128 corner's inverse 5.9 s -> 7.4 s
+#: (+26 %, 8372 fsyncs), the sparse 384x512 corner's 3.8 s -> 4.5 s (+18 %, 10908).
 DURABILITY = "full"
 DURABILITY_LEVELS = ("none", "full")
