@@ -48,8 +48,8 @@ def dead_writers_siblings(parent: Path, kind: str, name: str | None = None) -> l
     when given) whose writer process is gone, newest first.
 
     A name made on another host is never reported (its writer may be alive there: no
-    PID says otherwise here); a name of bigT before 0.3 (``.NAME.PID.HEX.KIND``, no
-    host) is taken as this host's, as it was then.
+    PID says otherwise here); a name made before names carried the host
+    (``.NAME.PID.HEX.KIND``) is taken as this host's, as it was then.
     """
     pattern = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)(?:@(?P<host>[A-Za-z0-9-]+))?"
                          r"\.[0-9a-f]+\." + re.escape(kind))
@@ -128,8 +128,8 @@ def fsync_file(path: str | os.PathLike) -> None:
 
 def fsync_dir(path: str | os.PathLike) -> None:
     """Make the entries of directory ``path`` (names created, renamed or deleted in
-    it) durable. A no-op where directories cannot be opened
-    (Windows) or the file system refuses (EINVAL, EBADF: some network file systems)."""
+    it) durable. A no-op where directories cannot be opened (Windows) or the file
+    system refuses (EINVAL, EBADF: some network file systems)."""
     if os.name != "nt":
         with contextlib.suppress(OSError):
             _fsync_path(Path(os.fspath(path)), directory=True)
