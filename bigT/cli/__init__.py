@@ -136,9 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
         if command.prog in STORE_WRITERS:
             command.add_argument(
                 "--durability", choices=config.DURABILITY_LEVELS, default=None,
-                help=f"full: every tile row and store is fsynced before it is marked "
-                     f"complete, so a power cut loses no finished work; none: no fsync "
-                     f"(faster; a killed process still loses nothing, a power cut may) "
+                help="full: every tile row and store is fsynced before it is marked "
+                     "complete, so a power cut loses no finished work; none: no fsync "
+                     "(faster; a killed process still loses nothing, a power cut may) "
                      f"(default {config.DURABILITY})")
     return parser
 
