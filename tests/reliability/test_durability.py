@@ -236,7 +236,7 @@ def test_convert_is_refused_while_another_process_replaces_the_store(
         assert main(argv) == 0
         before = open_store(S).to_scipy().toarray()
     capsys.readouterr()
-    with _held_in_another_process(ReplaceLock, S):
+    with HeldElsewhere(ReplaceLock, S):
         status = main(argv)
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1, err
@@ -266,14 +266,14 @@ def test_scene_overwrite_is_refused_while_another_process_replaces_the_store(tmp
     assert main(argv) == 0
     before = open_store(S).to_scipy().toarray()
     capsys.readouterr()
-    with _held_in_another_process(ReplaceLock, S):
+    with HeldElsewhere(ReplaceLock, S):
         status = main(argv)
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1 and str(S) in err, err
     np.testing.assert_array_equal(open_store(S).to_scipy().toarray(), before)
 
 
-class _held_in_another_process:
+class HeldElsewhere:
     """A child process holding ``lock_class(path)`` until the block ends."""
 
     def __init__(self, lock_class, path: Path):
