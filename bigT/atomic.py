@@ -18,6 +18,7 @@ import io
 import json
 import os
 import re
+import socket
 import uuid
 from glob import escape as glob_escape
 from pathlib import Path
@@ -26,22 +27,38 @@ from typing import Iterable, Iterator
 from .errors import DiskFullError, OutputError
 
 
+def _host_tag() -> str:
+    """This machine's name as it goes into a hidden name: letters, digits and ``-``
+    only (a dot would split the name's fields)."""
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:63] or "host"
+
+
 def hidden_sibling(path: Path, kind: str, name: str | None = None) -> Path:
-    """A fresh hidden name beside ``path``: ``.NAME.PID.HEX.KIND``, NAME default
-    ``path``'s. The writer's PID in it tells a later run whether the writer is alive
-    (:func:`dead_writers_siblings`); every temporary name bigT makes has this form."""
+    """A fresh hidden name beside ``path``: ``.NAME.PID@HOST.HEX.KIND``, NAME default
+    ``path``'s. The writer's PID and host in it tell a later run whether the writer is
+    alive (:func:`dead_writers_siblings`); every temporary name bigT makes has this
+    form. The host matters on a shared file system: a PID is only meaningful on the
+    machine that issued it."""
     name = path.name if name is None else name
-    return path.with_name(f".{name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.{kind}")
+    return path.with_name(f".{name}.{os.getpid()}@{_host_tag()}.{uuid.uuid4().hex[:8]}.{kind}")
 
 
 def dead_writers_siblings(parent: Path, kind: str, name: str | None = None) -> list[Path]:
     """The :func:`hidden_sibling` names of ``kind`` in ``parent`` (of ``name`` only,
-    when given) whose writer process is gone, newest first."""
-    pattern = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]+\." + re.escape(kind))
+    when given) whose writer process is gone, newest first.
+
+    A name made on another host is never reported (its writer may be alive there: no
+    PID says otherwise here); a name made before names carried the host
+    (``.NAME.PID.HEX.KIND``) is taken as this host's, as it was then.
+    """
+    pattern = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)(?:@(?P<host>[A-Za-z0-9-]+))?"
+                         r"\.[0-9a-f]+\." + re.escape(kind))
+    here = _host_tag()
     found = []
     for entry in Path(parent).glob(f".{glob_escape(name) if name else '*'}.*.{glob_escape(kind)}"):
         match = pattern.fullmatch(entry.name)
         if (match and (name is None or match["name"] == name)
+                and match["host"] in (None, here)
                 and not pid_alive(int(match["pid"]))):
             found.append(entry)
     return sorted(found, key=lambda p: p.lstat().st_mtime, reverse=True)
@@ -85,6 +102,50 @@ def _fsync_path(path: Path, directory: bool = False) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+# --- durability: what a power cut may not undo --------------------------------------
+#
+# The store protocol publishes by rename (a tile row's directory, a store, a marker,
+# the redirect). A rename is atomic against a crash of the process, but after a power
+# cut the kernel may have written the rename and not the data it publishes: a row
+# marked complete over chunks that are zeros. So, as SQLite and LMDB order theirs:
+# every file is fsynced before the rename that publishes it, and the directory after
+# the rename (the rename itself is durable only then). The store writers call these
+# when config.DURABILITY asks (bigT.storage.replace.durable decides).
+
+
+def fsync_file(path: str | os.PathLike) -> None:
+    """Flush the file ``path``'s data to disk."""
+    # read-only is enough on POSIX (and is no write for the crash harness to count);
+    # Windows flushes only handles open for writing
+    fd = os.open(path, os.O_RDWR if os.name == "nt" else os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    """Make the entries of directory ``path`` (names created, renamed or deleted in
+    it) durable. A no-op where directories cannot be opened (Windows) or the file
+    system refuses (EINVAL, EBADF: some network file systems)."""
+    if os.name != "nt":
+        with contextlib.suppress(OSError):
+            _fsync_path(Path(os.fspath(path)), directory=True)
+
+
+def fsync_tree(root: str | os.PathLike, include_root: bool = True) -> None:
+    """fsync every file below ``root``, then every directory, each after everything in
+    it, ``root`` last (left to the caller with ``include_root=False``, when a file it
+    writes next fsyncs it): one pass over what was just written (a tile row's chunks),
+    before the marker that says it is complete."""
+    root = os.fspath(root)
+    for dirpath, _, filenames in os.walk(root, topdown=False):
+        for name in filenames:
+            fsync_file(os.path.join(dirpath, name))
+        if include_root or dirpath != root:
+            fsync_dir(dirpath)
 
 
 def _as_output_error(exc: OSError, path: Path, what: str) -> Exception:
@@ -140,11 +201,13 @@ def _discard(tmp: Path) -> None:
         tmp.unlink()
 
 
-def atomic_write_json(path: Path, obj: dict) -> None:
+def atomic_write_json(path: Path, obj: dict, durable: bool = True) -> None:
     """Write ``obj`` as JSON to ``path`` via a temporary file and ``os.replace``.
 
     A reader sees the old file or the new one, never a torn one; this is what makes
-    the tile-row completion markers and metadata updates atomic.
+    the tile-row completion markers and metadata updates atomic. With ``durable``
+    the file is fsynced before the rename and its directory after, so a power cut
+    too leaves the old file or the new one.
     """
     text = json.dumps(obj, indent=2, allow_nan=False)
     tmp = hidden_sibling(path, "tmp")
@@ -152,8 +215,11 @@ def atomic_write_json(path: Path, obj: dict) -> None:
         with io.open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
+        if durable:
+            fsync_dir(path.parent)
     except BaseException:
         try:
             os.unlink(tmp)

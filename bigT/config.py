@@ -209,3 +209,15 @@ COMPENSATE_QUEUE_DEPTH = 1
 #: The engine waits for these deletions before it returns; meanwhile the disk holds
 #: the dropped term too (set False when the disk is nearly full).
 BACKGROUND_REMOVAL = True
+
+#: What a power cut (or a kernel crash) may not undo of a store being written
+#: (bigT.storage.replace.durable): "full" fsyncs every file before the rename that publishes it
+#: (a tile row's chunks before its marker, a store's index before its completion flag)
+#: and the directory after, so a row marked complete, a finished store or a published
+#: term is on disk whole, as SQLite and LMDB order their writes; "none" skips the
+#: fsyncs (a killed process still leaves every store whole or resumable, a power cut
+#: may not), for scratch stores on a disk where the fsyncs cost. Measured (4 terms,
+#: ext4 on a virtual disk, best of 3): the dense 96x128 corner's inverse 5.9 s -> 7.4 s
+#: (+26 %, 8372 fsyncs), the sparse 384x512 corner's 3.8 s -> 4.5 s (+18 %, 10908).
+DURABILITY = "full"
+DURABILITY_LEVELS = ("none", "full")

@@ -23,6 +23,7 @@ import os
 import re
 import sys
 
+from .. import config
 from ..errors import BigTError
 
 #: A hidden sibling that a writer builds in and renames into place (bigT.storage's
@@ -104,6 +105,10 @@ COMMAND_MODULES = (
 )
 
 
+#: The commands that write stores take --durability (config.DURABILITY for the run).
+STORE_WRITERS = ("bigT convert", "bigT scene", "bigT invert", "bigT acquire build")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="bigT",
@@ -128,6 +133,13 @@ def build_parser() -> argparse.ArgumentParser:
                              "bars, no summary (the outputs are written as usual)")
     for command in _leaf_parsers(parser):
         command.set_defaults(_parser=command)
+        if command.prog in STORE_WRITERS:
+            command.add_argument(
+                "--durability", choices=config.DURABILITY_LEVELS, default=None,
+                help="full: every tile row and store is fsynced before it is marked "
+                     "complete, so a power cut loses no finished work; none: no fsync "
+                     "(faster; a killed process still loses nothing, a power cut may) "
+                     f"(default {config.DURABILITY})")
     return parser
 
 
@@ -148,6 +160,18 @@ def flag_of(parser: argparse.ArgumentParser | None, name: str) -> str | None:
         if action.dest == name and action.option_strings and action.help != argparse.SUPPRESS:
             return max(action.option_strings, key=len)
     return None
+
+
+@contextlib.contextmanager
+def _durability(args):
+    """With ``--durability``: ``config.DURABILITY`` set for the command's run."""
+    level = getattr(args, "durability", None)
+    saved = config.DURABILITY
+    config.DURABILITY = level or saved
+    try:
+        yield
+    finally:
+        config.DURABILITY = saved
 
 
 @contextlib.contextmanager
@@ -190,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        with _quieted(args):
+        with _quieted(args), _durability(args):
             return int(args.func(args) or 0)
     except BigTError as exc:
         parser_of_command = getattr(args, "_parser", None)

@@ -64,6 +64,7 @@ def register(subparsers) -> None:
 
 def scene_cmd(args) -> int:
     from ..scenes import make
+    from ..storage.locks import ReplaceLock
 
     kwargs = dict(overwrite=args.overwrite, preview=not args.no_preview)
     if args.dtype:
@@ -74,7 +75,9 @@ def scene_cmd(args) -> int:
                       blur=args.blur, seed=args.seed, tile_size=args.tile_size,
                       pixel_order=args.pixel_order, memory_limit=args.memory_limit,
                       progress=None if args.progress else False)
-    scene = make(args.name, args.size, args.output, **kwargs)
+    # a second scene (or convert, or invert) of the same store is refused here, at once
+    with ReplaceLock(args.output, "bigT scene"):
+        scene = make(args.name, args.size, args.output, **kwargs)
     if args.json:
         print(json.dumps(scene.summary, indent=1))
     else:

@@ -68,15 +68,18 @@ def register(subparsers) -> None:
 def convert_cmd(args) -> int:
     from ..storage import from_scipy
     from ..storage.convert import check_values, load_matrix
+    from ..storage.locks import ReplaceLock
 
     refuse_overwriting_inputs([args.output], [args.input])
-    A = load_matrix(args.input, var=args.var)
-    check_values(A, args.input, args.dtype)  # errors name IN, not the store
-    S = from_scipy(A, args.output, tile_size=args.tile_size, dtype=args.dtype,
-                   image_shape=args.image_shape, pixel_order=args.pixel_order,
-                   image_tile=args.image_tile,
-                   input_order="row-major", overwrite=args.overwrite,
-                   metadata={"source": str(args.input)})
+    # a second convert (or scene, or invert) of the same store is refused here, at once
+    with ReplaceLock(args.output, "bigT convert"):
+        A = load_matrix(args.input, var=args.var)
+        check_values(A, args.input, args.dtype)  # errors name IN, not the store
+        S = from_scipy(A, args.output, tile_size=args.tile_size, dtype=args.dtype,
+                       image_shape=args.image_shape, pixel_order=args.pixel_order,
+                       image_tile=args.image_tile,
+                       input_order="row-major", overwrite=args.overwrite,
+                       metadata={"source": str(args.input)})
     print(f"wrote {S.path}: {S.shape[0]} x {S.shape[1]} {S.dtype.name}, nnz {S.nnz}, "
           f"{S.n_tiles_stored} of {S.grid[0] * S.grid[1]} tiles stored")
     return 0

@@ -7,6 +7,10 @@ and no stale lock needs cleaning.
 * The **writer lock** (:class:`WriterLock`, file :data:`WRITER_LOCK` in the inverse
   store's root) is held exclusively by the one ``invert`` that extends the store; a
   second writer is refused at once with the first one's PID.
+* The **replace lock** (:class:`ReplaceLock`, a hidden file beside a store) is held
+  exclusively by the one ``convert`` or ``scene`` that writes the store whole and
+  renames it into place, with the writer lock inside it where it has one: two
+  commands never replace one store at once, nor one replace an inverse being extended.
 * A **reader lease** (:class:`ReaderLease`, file :data:`READER_LEASE` in a published
   term's X store) is held shared by every reader that opened that term; the writer
   deletes an old term only when it can take the lease exclusively, else it leaves
@@ -18,9 +22,11 @@ the user's to ensure.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import shutil
+import socket
 import threading
 import time
 import warnings
@@ -77,6 +83,27 @@ class _HeldFile:
         self.release()
 
 
+def _lock_exclusively(file: Path, command: str, store: Path) -> int:
+    """Open (creating) ``file`` and take its flock exclusively, without waiting; write
+    who holds it (``command``, PID, host, time) into it for the next one's message.
+    Returns the descriptor; StoreError naming ``store`` when another process holds it."""
+    fd = os.open(file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        _flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 200).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise StoreError(f"is being written by {holder}; wait for it to finish or stop "
+                         "it (a second writer would corrupt it)", store) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{command} (PID {os.getpid()} on {socket.gethostname()}, since "
+                 f"{time.strftime('%Y-%m-%d %H:%M:%S')})".encode())
+    return fd
+
+
 class WriterLock(_HeldFile):
     """An exclusive, non-blocking lock on ``root/WRITER_LOCK``.
 
@@ -94,26 +121,73 @@ class WriterLock(_HeldFile):
     def acquire(self) -> "WriterLock":
         if fcntl is None or self._fd is not None:
             return self
-        fd = os.open(self.file, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            _flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 200).decode(errors="replace").strip() or "another process"
-            os.close(fd)
-            raise StoreError(f"is being written by {holder}; wait for it to finish or stop "
-                             "it (a second writer would corrupt it)", self.file.parent) from None
-        except BaseException:
-            os.close(fd)
-            raise
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{self.command} (PID {os.getpid()}, since "
-                     f"{time.strftime('%Y-%m-%d %H:%M:%S')})".encode())
-        self._fd = fd
+        self._fd = _lock_exclusively(self.file, self.command, self.file.parent)
         return self
 
     # release() drops the lock; the file stays (unlinking it would race a waiting writer)
 
     def __enter__(self) -> "WriterLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+class ReplaceLock(_HeldFile):
+    """An exclusive, non-blocking lock on replacing the store at ``path`` whole, taken
+    by ``bigT convert`` and ``bigT scene`` for as long as they write.
+
+    Its file is the hidden sibling ``.NAME.bigT-writer.lock`` beside ``path``, not a
+    file inside it: the store may not exist yet, and the replace renames it away. The
+    file is deleted on release (a run killed leaves it to the next, which takes it
+    over). Where ``path`` holds a :class:`WriterLock` file (an inverse store), that
+    lock is taken too, so a replace never runs under an ``invert``.
+
+    Parameters
+    ----------
+    path : the store to replace (its parent must exist).
+    command : what holds it, for the message a second writer gets.
+    """
+
+    def __init__(self, path: str | os.PathLike, command: str):
+        self.path = Path(os.fspath(path))
+        self.file = self.path.with_name(f".{self.path.name}.bigT-writer.lock")
+        self.command = command
+        self._fd: int | None = None
+        self._inner = WriterLock(self.path, command)
+
+    def acquire(self) -> "ReplaceLock":
+        if fcntl is None or self._fd is not None:
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = _lock_exclusively(self.file, self.command, self.path)
+            # the holder before us deletes the file as it releases: a lock taken on
+            # the deleted file would lock nothing, so lock the file now at the name
+            try:
+                same = os.path.samestat(os.fstat(fd), os.stat(self.file))
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        self._fd = fd
+        try:
+            if (self.path / WRITER_LOCK).is_file():
+                self._inner.acquire()
+        except BaseException:
+            self.release()
+            raise
+        return self
+
+    def release(self) -> None:
+        self._inner.release()
+        if self._fd is not None:
+            with contextlib.suppress(OSError):  # deleted before the lock is dropped
+                os.unlink(self.file)
+        super().release()
+
+    def __enter__(self) -> "ReplaceLock":
         return self.acquire()
 
     def __exit__(self, *exc) -> None:

@@ -16,10 +16,18 @@ import os
 import shutil
 from pathlib import Path, PurePosixPath
 
-from ..atomic import atomic_write_json, dead_writers_siblings, hidden_sibling
+from .. import config
+from ..atomic import atomic_write_json, dead_writers_siblings, fsync_dir, fsync_tree, hidden_sibling
 from ..errors import IncompleteStoreError, StoreError
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
+
+
+def durable() -> bool:
+    """Whether the store writers fsync what they publish: ``config.DURABILITY`` (read
+    at each call, so a command's ``--durability`` holds for its run), the one place
+    that decides. Any value but "none" is "full": a misspelling never drops them."""
+    return config.DURABILITY != "none"
 
 
 def is_bigt_or_empty(path: Path) -> bool:
@@ -65,9 +73,17 @@ def move_into_place(tmp: Path, path: Path) -> None:
     the two leaves ``path`` missing and the old store in a hidden ``.old`` sibling:
     :func:`recover_interrupted_replace` (run by every writer and by ``open``) puts it
     back.
+
+    Durably (``config.DURABILITY``): everything in ``tmp`` is fsynced before the
+    rename (a pass that costs little where its writers fsynced already, and covers
+    those that did not), the parent directory after it.
     """
+    if durable():
+        fsync_tree(tmp)
     if not path.exists():
         os.replace(tmp, path)
+        if durable():
+            fsync_dir(path.parent)
         return
     old = hidden_sibling(path, "old")
     os.replace(path, old)
@@ -76,6 +92,8 @@ def move_into_place(tmp: Path, path: Path) -> None:
     except BaseException:
         os.replace(old, path)
         raise
+    if durable():
+        fsync_dir(path.parent)  # the new store in place before the old one is deleted
     # renamed again before the deletion: a ".old" is always whole (restorable), a
     # ".trash" may be half deleted (never restored)
     trash = old.with_name(old.name[:-len("old")] + "trash")
@@ -107,7 +125,7 @@ def write_root_attrs(path: Path, attrs: StoreAttrs) -> None:
     meta_path = Path(path) / "zarr.json"
     meta = fmt.read_json(meta_path) if meta_path.exists() else fmt.group_json({})
     meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = attrs.to_dict()
-    atomic_write_json(meta_path, meta)
+    atomic_write_json(meta_path, meta, durable())
 
 
 def set_redirect(path, target: str) -> None:
@@ -138,7 +156,7 @@ def set_redirect(path, target: str) -> None:
     for part in PurePosixPath(target).parts[:-1]:
         level = level / part
         if not (level / "zarr.json").exists():
-            atomic_write_json(level / "zarr.json", fmt.group_json({}))
+            atomic_write_json(level / "zarr.json", fmt.group_json({}), durable())
     meta_path = root / "zarr.json"
     meta = fmt.read_json(meta_path) if meta_path.exists() else fmt.group_json({})
     if meta.get("node_type") != "group":
@@ -149,7 +167,14 @@ def set_redirect(path, target: str) -> None:
     bigt.update({"format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
                  "redirect": PurePosixPath(target).as_posix()})
     meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = bigt
-    atomic_write_json(meta_path, meta)
+    # the target's files were fsynced when it was finalized; the names that lead to it
+    # (a term directory made by mkdir) are made durable here, before the flip points
+    # at them (config.DURABILITY)
+    for level in [dest.parent, *dest.parent.parents] if durable() else []:
+        fsync_dir(level)
+        if level == root:
+            break
+    atomic_write_json(meta_path, meta, durable())
 
 
 def write_group(path, attributes: dict) -> None:
@@ -158,4 +183,4 @@ def write_group(path, attributes: dict) -> None:
     as a scene's ``ground_truth/``."""
     path = Path(os.fspath(path))
     path.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(path / "zarr.json", fmt.group_json(attributes))
+    atomic_write_json(path / "zarr.json", fmt.group_json(attributes), durable())

@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..atomic import atomic_write_json
+from ..atomic import atomic_write_json, fsync_dir, fsync_tree
 from ..errors import (
     BigTError,
     DiskFullError,
@@ -31,8 +31,8 @@ from .attrs import StoreAttrs, read_raw_attrs
 from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .pixel_order import PIXEL_ORDERS, PixelOrder
-from .replace import (check_replaceable, move_into_place, remove_existing, temporary_sibling,
-                      write_root_attrs)
+from .replace import (check_replaceable, durable, move_into_place, remove_existing,
+                      temporary_sibling, write_root_attrs)
 
 
 def _check_dtype(dtype, where) -> np.dtype:
@@ -149,6 +149,8 @@ def create_store(path, attrs: StoreAttrs) -> None:
             tmp.mkdir()
             _write_header(tmp, attrs)
             os.rename(tmp, path)
+            if durable():
+                fsync_dir(path.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -158,7 +160,7 @@ def create_store(path, attrs: StoreAttrs) -> None:
 
 def _write_header(path: Path, attrs: StoreAttrs) -> None:
     (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
-    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}))
+    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}), durable())
     write_root_attrs(path, attrs)
 
 
@@ -193,7 +195,9 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
 
     The row is built in a hidden sibling directory (``rows/.{i}.<hex>.partial``), its
     completion marker written last, and the directory then renamed to ``rows/{i}``: a
-    row is on disk complete or not at all. A row already complete is left alone, so a
+    row is on disk complete or not at all. Durably so (``config.DURABILITY``): the
+    row's files are fsynced in one pass before the marker, the marker before the
+    rename, ``rows/`` after it, so a power cut never leaves a marker over lost data. A row already complete is left alone, so a
     task run twice (a scheduler's retry after a worker loss, or two processes at once)
     writes it once; the loser of a race deletes its own copy.
 
@@ -229,8 +233,11 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
         if keep is not None:
             tiles.update(_link_kept_tiles(keep, attrs, i, tmp, path, set(tiles)))
         cols = sorted(tiles)
+        if durable():
+            fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
         atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
-            "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}))
+            "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}),
+            durable())
         return _move_row_into_place(tmp, path, i)
 
 
@@ -284,6 +291,8 @@ def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
     when another writer got there first."""
     try:
         os.rename(tmp, path / fmt.row_path(i))  # replaces an empty directory only
+        if durable():
+            fsync_dir(path / fmt.ROWS_GROUP)
         return True
     except OSError as exc:
         if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or fmt.row_marker(path, i) is None:
@@ -324,6 +333,7 @@ def clean_partial_rows(path, n_rows: int) -> int:
 def finalize_store(path, zstd_level=None) -> BlockCSR:
     """Write the tile index from the row markers on disk, mark the store complete and
     open it: whoever wrote the rows (threads, other processes), only the markers count.
+    The index is fsynced before the completion flag (``config.DURABILITY``).
 
     Raises
     ------
@@ -348,6 +358,10 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
     try:
         for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
             fmt.write_array_files(path, name, values, fmt.FILL_INT, zstd_level)
+            if durable():
+                fsync_tree(path / name)
+        if durable():
+            fsync_dir(path)  # the arrays' names, before the flag that says they are there
         write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
     except OSError as exc:
         raise (_wrap_oserror(exc, path, "the tile index") or exc) from exc
