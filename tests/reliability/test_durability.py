@@ -226,6 +226,17 @@ def matrix_file(tmp_path) -> Path:
     return file
 
 
+def _refused_while_held(argv, store, capsys) -> str:
+    """Run ``argv`` while another process holds ``store``'s replace lock: exit 2 and
+    one line on stderr, which is returned."""
+    capsys.readouterr()
+    with HeldElsewhere(ReplaceLock, store):
+        status = main(argv)
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and str(store) in err, err
+    return err
+
+
 @needs_flock
 @pytest.mark.parametrize("exists", [True, False])
 def test_convert_is_refused_while_another_process_replaces_the_store(
@@ -235,12 +246,8 @@ def test_convert_is_refused_while_another_process_replaces_the_store(
     if exists:
         assert main(argv) == 0
         before = open_store(S).to_scipy().toarray()
-    capsys.readouterr()
-    with HeldElsewhere(ReplaceLock, S):
-        status = main(argv)
-    err = capsys.readouterr().err
-    assert status == 2 and err.count("\n") == 1, err
-    assert str(S) in err and "being written by" in err and "Traceback" not in err
+    err = _refused_while_held(argv, S, capsys)
+    assert "being written by" in err and "Traceback" not in err
     if exists:
         np.testing.assert_array_equal(open_store(S).to_scipy().toarray(), before)
     else:
@@ -265,11 +272,7 @@ def test_scene_overwrite_is_refused_while_another_process_replaces_the_store(tmp
     argv = ["scene", "dihedral4", "-o", str(S), "--overwrite", "--no-preview", "-q"]
     assert main(argv) == 0
     before = open_store(S).to_scipy().toarray()
-    capsys.readouterr()
-    with HeldElsewhere(ReplaceLock, S):
-        status = main(argv)
-    err = capsys.readouterr().err
-    assert status == 2 and err.count("\n") == 1 and str(S) in err, err
+    _refused_while_held(argv, S, capsys)
     np.testing.assert_array_equal(open_store(S).to_scipy().toarray(), before)
 
 
