@@ -127,6 +127,8 @@ class StoreAttrs:
             if not isinstance(metadata, Mapping):
                 raise TypeError("metadata is not an object")
             pixel_order = PixelOrder.from_attrs(dict(attrs))
+            if pixel_order is None and attrs.get("channels", 1) != 1:
+                raise ValueError("channels without image_shape (a colour store maps images)")
             version = fmt.check_count(attrs.get("version", fmt.FORMAT_VERSION), "version",
                                       path, low=1)
         except CorruptStoreError:

@@ -88,6 +88,19 @@ def test_reader_refuses_colour_store_with_straddling_tiles(tmp_path):
         open_store(tmp_path / "T.zarr")
 
 
+@pytest.mark.parametrize("change", [{"channels": 2}, {"channels": True}, {"channels": "3"},
+                                    {"image_shape": None}])
+def test_reader_refuses_bad_channel_attributes(tmp_path, change):
+    from_scipy(_colour_matrix(H * W), tmp_path / "T.zarr", image_shape=(H, W), channels=3,
+               tile_size=9)
+    meta_path = tmp_path / "T.zarr" / "zarr.json"
+    meta = json.loads(meta_path.read_text())
+    meta["attributes"]["bigT"].update(change)
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(CorruptStoreError):
+        open_store(tmp_path / "T.zarr")
+
+
 def test_images_of_the_wrong_kind_are_refused_in_one_line(tmp_path):
     colour = from_scipy(_colour_matrix(H * W), tmp_path / "C.zarr", image_shape=(H, W),
                         channels=3, tile_size=9)
