@@ -288,3 +288,27 @@ def test_the_colour_loop_on_the_command_line(colour_T, tmp_path, capsys):
     assert main(["acquire", "simulate", str(colour_T.path), str(pat), "-o", str(cap),
                  "--camera", "20x26", "--noise", "0.1,0.2"]) == 2
     assert "three (R,G,B)" in capsys.readouterr().err
+
+
+def test_the_readme_colour_walkthrough_runs(colour_T, tmp_path, monkeypatch):
+    """README "Acquisition in colour": its commands, as written, in a folder holding a
+    6x8 colour T and a mixing file."""
+    import re
+    import shlex
+    import shutil
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
+    start = text.index("### Acquisition in colour\n")
+    block = re.compile(r"```sh\n(.*?)```", re.S).search(text, start).group(1)
+    lines = [line for line in block.splitlines() if line.strip()]
+    assert len(lines) == 3
+    shutil.copytree(colour_T.path, tmp_path / "colour-T.zarr")
+    (tmp_path / "mixing.json").write_text(json.dumps({"camera": C.tolist(),
+                                                      "projector": P.tolist()}))
+    monkeypatch.chdir(tmp_path)
+    for line in lines:
+        words = shlex.split(line)
+        assert words[0] == "bigT"
+        assert main([*words[1:], "--no-progress"]) == 0, line
+    assert open_store(tmp_path / "T-rgb.zarr").metadata["mixing"]["camera"] == C.tolist()
