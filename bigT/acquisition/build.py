@@ -18,6 +18,12 @@ The steps, each reading one capture at a time:
    column stripe c, which holds the direct light of (r, c) and over-estimates the rest
    (both stripes' light reaches a pixel; the smaller is still more than (r, c)'s share).
 
+Colour (a pattern set of ``channels: 3``): T is 3 n x 3 n, column 3 q + j the capture of
+primary j lit on super-pixel q (less the black level), row 3 p + i camera channel i of
+camera super-pixel p, each row with the floor of its own channel's noise; stripes take
+the minimum primary by primary. A ``--mixing`` file's global 3x3 mixing is recorded in
+T's metadata (:mod:`.mixing`).
+
 A tile row is written whole by :class:`bigT.BlockCSRWriter` and only then marked done,
 so an interrupted build resumes with the tile rows not yet written -- when the settings
 and the capture files (names, sizes, modification times) are the same.
@@ -42,9 +48,10 @@ from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
                        read_store_attrs, temporary_sibling)
 from ..storage import open as open_store
-from .captures import Captures
+from .captures import Captures, grey_view
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
 from .manifest import Manifest, patterns_folder, read_manifest
+from .mixing import MIXING_KEY, Mixing, read_mixing
 
 ACQUISITION_KEY = "acquisition"
 CORRESPONDENCE = "correspondence.npy"
@@ -65,8 +72,12 @@ class BuildSettings:
         The highest floor of any row: ``--floor``, or by default that of the smallest
         camera super-pixel (every entry kept is at least its row's floor).
     floor_min : float, the lowest floor of any row (``floor`` with ``--floor``)
-    pixel_noise : float, a camera pixel's noise as estimated (quantisation not added)
+    pixel_noise : float, a camera pixel's noise as estimated (quantisation not added;
+        of colour captures, their grey view's)
     capture_files : str, a hash of the capture files' names, sizes and modification times
+    channels : {1, 3}, grey or colour (recorded for colour only)
+    channel_noise : (float, float, float) or None, the noise of each camera channel of
+        colour captures, as ``pixel_noise`` (recorded for colour only)
     """
 
     patterns: str
@@ -82,10 +93,17 @@ class BuildSettings:
     correspondence: str
     floor_min: float
     capture_files: str
+    channels: int = 1
+    channel_noise: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict:
+        """JSON-serialisable; a grey build's keys are those it always had."""
         d = dict(self.__dict__)
         d["projector"], d["camera"] = list(self.projector), list(self.camera)
+        if self.channels == 1:
+            del d["channels"], d["channel_noise"]
+        else:
+            d["channel_noise"] = list(self.channel_noise)
         return d
 
 
@@ -97,14 +115,15 @@ class BuildReport:
     ----------
     path : Path of the T store
     settings : BuildSettings
-    n : int, side of T (projector super-pixels)
-    seen : int, super-pixels with a camera super-pixel; n - seen are left out
+    n : int, side of T (projector super-pixels, times 3 for colour)
+    seen : int, super-pixels with a camera super-pixel; the others are left out
     nnz : int, stored entries of T
     passes : int, passes over the captures that filled tile rows (0: all were done)
     saturated_pixels : int, pixels at full scale over all captures read
     seconds : float
     black_level : float, mean of the black level subtracted (the black capture's or
         ``--black``'s)
+    mixing : Mixing or None, the global colour mixing recorded in T's metadata
     """
 
     path: Path
@@ -116,30 +135,44 @@ class BuildReport:
     saturated_pixels: int
     seconds: float
     black_level: float = 0.0
+    mixing: Mixing | None = None
+
+    @property
+    def superpixels(self) -> int:
+        """Projector super-pixels (T's side over the channels)."""
+        return self.n // self.settings.channels
 
     def describe(self) -> str:
         s = self.settings
-        return "\n".join([
+        colour = "" if s.channels == 1 else "colour, R G B per super-pixel; "
+        noise = (f"{s.pixel_noise:.3g} per camera pixel" if s.channels == 1 else
+                 "R {:.3g}, G {:.3g}, B {:.3g} per camera pixel".format(*s.channel_noise))
+        lines = [
             f"T from {s.method} captures: {self.n} x {self.n} "
-            f"({s.projector[0]}x{s.projector[1]} projector, {s.superpixel}x{s.superpixel} "
-            f"super-pixels; camera {s.camera[0]}x{s.camera[1]})",
-            f"correspondence: {s.correspondence}; {self.seen} of {self.n} super-pixels seen, "
-            f"{self.n - self.seen} left out",
+            f"({colour}{s.projector[0]}x{s.projector[1]} projector, {s.superpixel}x"
+            f"{s.superpixel} super-pixels; camera {s.camera[0]}x{s.camera[1]})",
+            f"correspondence: {s.correspondence}; {self.seen} of {self.superpixels} "
+            f"super-pixels seen, {self.superpixels - self.seen} left out",
             f"black level {self.black_level:.3g} (from "
             f"{'--black ' + Path(s.black).name if s.black else 'the black capture'}); "
-            f"noise: {s.pixel_noise:.3g} per camera pixel; floor "
+            f"noise: {noise}; floor "
             + (f"{s.floor:.3g}" if s.floor_min == s.floor else
                f"{s.floor_min:.3g} to {s.floor:.3g} (by camera super-pixel size)")
             + f"; {self.nnz} entries ({self.nnz / max(self.n, 1):.1f} per row)",
             f"{self.passes} pass(es) over the captures, {self.seconds:.1f} s"
             + (f"; {self.saturated_pixels} saturated pixels" if self.saturated_pixels else ""),
-        ])
+        ]
+        if self.mixing is not None:
+            lines.append(f"global colour mixing recorded in T's metadata ({MIXING_KEY}): "
+                         f"{self.mixing.describe()}")
+        return "\n".join(lines)
 
 
 def build_transport(patterns, captures, output, *, black=None, floor: float | None = None,
                     gamma: float = 1.0, tile_size: int | None = None,
                     pixel_order: str = "tile-major", memory_bytes: int | None = None,
-                    overwrite: bool = False, progress: bool | None = None) -> BuildReport:
+                    overwrite: bool = False, progress: bool | None = None,
+                    mixing=None) -> BuildReport:
     """Assemble T from a pattern folder and its captures into a bigT store.
 
     Parameters
@@ -158,6 +191,10 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     tile_size, pixel_order : the store's layout
     memory_bytes : budget for the entries gathered in one pass
     overwrite : replace a complete store (or an interrupted one of other captures)
+    mixing : path of a JSON file ``{"camera": 3x3, "projector": 3x3}``, or a
+        :class:`Mixing`, optional
+        The rig's global colour mixing (colour pattern sets only), recorded in T's
+        metadata as ``mixing`` for the engine's global path.
 
     Returns
     -------
@@ -175,6 +212,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     t0 = time.perf_counter()
     refuse_overwriting_inputs([output], [patterns, captures, black])
     manifest = read_manifest(patterns)
+    mixing = _checked_mixing(mixing, manifest)
     if manifest.method == "graycode":
         raise AcquisitionError(
             "Gray-code patterns give the correspondence, not T: acquire T with "
@@ -186,7 +224,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
             "the captures folder is the pattern folder: put the camera's captures in a "
             "folder of their own", Path(captures))
     cap = Captures(manifest, Path(captures), gamma=gamma, black_file=black and Path(black))
-    white = cap.signal(manifest.single("white"))
+    white = grey_view(cap.signal(manifest.single("white")))  # geometry: the grey view
     noise = cap.pixel_noise()
     if white.max() <= 2 * cap.pixel_floor() + 1e-12:  # no pixel clearly above the noise
         raise AcquisitionError("the captures are all black: the white pattern's capture is "
@@ -194,20 +232,25 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
                                cap.path(manifest.single("white")))
     bar = _bar(progress)
     corr = _correspondence(manifest, cap, white, bar)
-    order = PixelOrder(manifest.grid, pixel_order)
+    order = PixelOrder(manifest.grid, pixel_order, channels=manifest.channels)
     means = corr.reducer(order)
     if not means.seen.any():
         raise AcquisitionError("no camera pixel is lit directly by any super-pixel: is the "
                                "camera looking at the projected area?", Path(captures))
     if floor is None:
-        floors = superpixel_noise(cap.noise(), means.counts) * config.ACQUIRE_FLOOR_SIGMAS
+        # row 3 p + i (p + 0 for grey) has camera channel i's noise
+        row_noise = np.tile(cap.channel_noise(), order.pixels)
+        floors = superpixel_noise(row_noise, means.counts) * config.ACQUIRE_FLOOR_SIGMAS
     else:
         floors = np.full(order.n, float(floor))
+    channel_noise = (None if manifest.channels == 1 else
+                     tuple(cap.pixel_noise(c) for c in range(manifest.channels)))
     settings = BuildSettings(
         str(Path(patterns).resolve()), str(Path(captures).resolve()), manifest.method,
         manifest.projector, manifest.superpixel, cap.shape, float(gamma),
         str(Path(black).resolve()) if black else None, float(floors[means.seen].max()),
-        noise, corr.source, float(floors[means.seen].min()), cap.fingerprint())
+        noise, corr.source, float(floors[means.seen].min()), cap.fingerprint(),
+        manifest.channels, channel_noise)
     target = Path(output)
     # with overwrite, an existing store is replaced only by a complete one: a bad capture
     # first read while filling (Gray code reads T's captures only then) or an interrupt
@@ -217,7 +260,8 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         check_replaceable(target, True)
     where = temporary_sibling(target) if aside else target
     try:
-        writer = _open_writer(where, order, settings, tile_size, overwrite and not aside)
+        writer = _open_writer(where, order, settings, mixing, tile_size,
+                              overwrite and not aside)
         _save_correspondence(writer.path, corr)
         passes = _fill(writer, manifest, cap, means, floors,
                        memory_bytes or config.ACQUIRE_MEMORY_BYTES, progress)
@@ -232,16 +276,30 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     warning = cap.saturation_warning()
     if warning:
         warnings.warn(warning, AcquisitionWarning, stacklevel=2)
-    return BuildReport(T.path, settings, order.n, int(means.seen.sum()), int(T.nnz), passes,
+    return BuildReport(T.path, settings, order.n, means.seen_superpixels, int(T.nnz), passes,
                        sum(cap.saturated.values()), time.perf_counter() - t0,
-                       float(cap.black.mean()))
+                       float(cap.black.mean()), mixing)
 
 
-def superpixel_noise(pixel_noise: float, counts: np.ndarray) -> np.ndarray:
+def _checked_mixing(mixing, manifest: Manifest) -> Mixing | None:
+    """``mixing`` (a file or a Mixing) read, for a colour pattern set only."""
+    if mixing is None:
+        return None
+    if manifest.channels == 1:
+        raise AcquisitionError("a colour mixing ({option}) is for a colour pattern set; these "
+                               "patterns are grey (write them with --channels 3)",
+                               mixing if not isinstance(mixing, Mixing) else None,
+                               option="mixing")
+    return mixing if isinstance(mixing, Mixing) else read_mixing(mixing)
+
+
+def superpixel_noise(pixel_noise, counts: np.ndarray) -> np.ndarray:
     """Noise std of each camera super-pixel: a pixel's signal holds the noise of its
     capture and of the black capture (sqrt 2), averaged over the group's own ``counts``
     pixels (a group of 4 pixels is twice as noisy as one of 16, so one floor for all
     would keep the small groups' noise and drop the large groups' light).
+
+    ``pixel_noise``: a float, or an array of counts' shape (each row's channel's).
 
     Returns
     -------
@@ -261,15 +319,18 @@ def _bar(progress):
 def _correspondence(manifest, cap, white, bar) -> Correspondence:
     if manifest.graycode:
         return from_graycode(manifest, cap)
-    return from_maximum_response(manifest, cap, white, cap.pixel_floor(),
+    # a colour place's response sums its three primaries' captures
+    return from_maximum_response(manifest, cap, white, cap.pixel_floor(summed=manifest.channels),
                                  progress=lambda it: bar(it, "correspondence"))
 
 
-def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings, tile_size,
-                 overwrite: bool) -> BlockCSRWriter:
-    """A new store, or the interrupted build of the same settings resumed (refused,
-    naming the settings that differ, when they are not the same)."""
+def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings,
+                 mixing: Mixing | None, tile_size, overwrite: bool) -> BlockCSRWriter:
+    """A new store, or the interrupted build of the same settings (and mixing) resumed
+    (refused, naming the settings that differ, when they are not the same)."""
     meta = {ACQUISITION_KEY: settings.to_dict()}
+    if mixing is not None:
+        meta[MIXING_KEY] = mixing.to_metadata()
     shape = (order.n, order.n)
     if path.exists() and not overwrite:
         try:
@@ -279,6 +340,8 @@ def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings, tile_si
         if old is not None and not old.complete:
             differ = _differing(old.metadata.get(ACQUISITION_KEY),
                                 json.loads(json.dumps(meta[ACQUISITION_KEY])))
+            if old.metadata.get(MIXING_KEY) != meta.get(MIXING_KEY):
+                differ.append(MIXING_KEY)
             if differ:
                 raise AcquisitionError(
                     f"holds an interrupted build of other captures or settings "
@@ -324,7 +387,7 @@ def _fill(writer: BlockCSRWriter, manifest: Manifest, cap: Captures, means: Grou
     """Write every missing tile row; returns the number of passes over the captures.
 
     ``floors`` : (n,) the floor of each row of T (matrix order)."""
-    column = _column_of(manifest, writer.pixel_order, means.seen)
+    column = _column_of(writer.pixel_order, means.seen)
     gather = _gather_stripes if manifest.method == "stripes" else _gather_brute_force
     limit = _Budget(budget)
     passes = 0
@@ -338,9 +401,11 @@ def _fill(writer: BlockCSRWriter, manifest: Manifest, cap: Captures, means: Grou
     return passes
 
 
-def _column_of(manifest: Manifest, order: PixelOrder, seen_matrix: np.ndarray) -> np.ndarray:
-    """(n,) int64, grid index -> matrix column; -1 for unseen super-pixels (left out)."""
-    col = order.inverse_permutation.copy()
+def _column_of(order: PixelOrder, seen_matrix: np.ndarray) -> np.ndarray:
+    """(pixels, channels) int64: [grid index, primary] -> matrix column; -1 for unseen
+    super-pixels (left out)."""
+    # the row-major value index of (g, j) is channels g + j
+    col = order.inverse_permutation.reshape(order.pixels, order.channels).copy()
     col[~seen_matrix[col]] = -1
     return col
 
@@ -426,11 +491,12 @@ class _Entries:
 def _gather_brute_force(rows: _Rows, manifest: Manifest, cap: Captures, means: GroupMeans,
                         floors: np.ndarray, budget: _Budget, column: np.ndarray,
                         progress) -> _Entries:
-    """One pass of brute force: column p of T is the capture of super-pixel p."""
+    """One pass of brute force: column q of T is the capture of super-pixel q (3 q + j:
+    of super-pixel q lit in primary j)."""
     entries = _Entries()
     for p in progress_bar(manifest.of_kind("superpixel"), progress=progress, desc="T columns",
                           unit="image"):
-        col = column[p.index]
+        col = column[p.index, p.primary_index]
         if col < 0:
             continue  # unseen super-pixel: its column is left out
         y = means(cap.signal(p))
@@ -444,31 +510,35 @@ def _gather_stripes(rows: _Rows, manifest: Manifest, cap: Captures, means: Group
                     floors: np.ndarray, budget: _Budget, column: np.ndarray,
                     progress) -> _Entries:
     """One pass of stripes: row q of T at super-pixel (r, c) is min(H[q, r], V[q, c]),
-    H and V row q's responses to the row and column stripes. The responses of the
-    pass's rows are held first; the entries they make (up to n a row) count against
-    the budget with them as they are made."""
+    H and V row q's responses to the row and column stripes (of colour: primary by
+    primary, the stripes of primary j giving column 3 (r, c) + j). The responses of
+    the pass's rows are held first; the entries they make (up to n a row) count
+    against the budget with them as they are made."""
     gh, gw = manifest.grid
-    response_bytes = 8 * (gh + gw)  # a row of H and V
+    primaries = column.shape[1]
+    response_bytes = 8 * (gh + gw) * primaries  # a row of H and V
     while rows.mask.sum() * response_bytes > budget.nbytes and len(rows.tiles) > 1:
         rows.give_back_half()
     index = np.flatnonzero(rows.mask)
-    H = np.zeros((len(index), gh))
-    V = np.zeros((len(index), gw))
+    H = np.zeros((len(index), gh, primaries))
+    V = np.zeros((len(index), gw, primaries))
     stripes = manifest.of_kind("row-stripe") + manifest.of_kind("col-stripe")
     for p in progress_bar(stripes, progress=progress, desc="stripes", unit="image"):
         y = means(cap.signal(p))[index]
-        (H if p.kind == "row-stripe" else V)[:, p.band] = y
+        (H if p.kind == "row-stripe" else V)[:, p.band, p.primary_index] = y
     reserved = H.nbytes + V.nbytes
     entries = _Entries()
     for k, q in enumerate(index):
         if not rows.mask[q]:
             continue  # its tile row was given back to a later pass
         floor = floors[q]
-        r = np.flatnonzero((H[k] >= floor) & (H[k] > 0))
-        c = np.flatnonzero((V[k] >= floor) & (V[k] > 0))
-        vals = np.minimum.outer(H[k, r], V[k, c]).ravel()
-        cols = column[(r[:, None] * gw + c[None, :]).ravel()]
-        keep = (vals >= floor) & (cols >= 0)
-        entries.add(np.full(int(keep.sum()), q, dtype=np.int64), cols[keep], vals[keep])
+        for j in range(primaries):
+            h, v = H[k, :, j], V[k, :, j]
+            r = np.flatnonzero((h >= floor) & (h > 0))
+            c = np.flatnonzero((v >= floor) & (v > 0))
+            vals = np.minimum.outer(h[r], v[c]).ravel()
+            cols = column[(r[:, None] * gw + c[None, :]).ravel(), j]
+            keep = (vals >= floor) & (cols >= 0)
+            entries.add(np.full(int(keep.sum()), q, dtype=np.int64), cols[keep], vals[keep])
         budget.fit(rows, entries, reserved)
     return entries

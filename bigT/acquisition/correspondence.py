@@ -56,6 +56,9 @@ class Correspondence:
 class GroupMeans:
     """Camera image -> camera super-pixel values in matrix order (the mean of each group).
 
+    For a colour T (``order.channels == 3``) the image is (Hc, Wc, 3) and row 3 p + i
+    is the mean of camera channel i over super-pixel p's group.
+
     Parameters
     ----------
     correspondence : Correspondence
@@ -63,44 +66,73 @@ class GroupMeans:
 
     Attributes
     ----------
-    n : int
-    counts : ndarray, shape (n,), int64, matrix order: camera pixels of each group
-    seen : ndarray, shape (n,), bool, matrix order: groups with at least one pixel
+    n : int, T's side (super-pixels times channels)
+    counts : ndarray, shape (n,), int64, matrix order: camera pixels of each row's group
+    seen : ndarray, shape (n,), bool, matrix order: rows whose group has a pixel
+    seen_superpixels : int, super-pixels whose group has a pixel
     """
 
     def __init__(self, correspondence: Correspondence, order: PixelOrder):
         labels = correspondence.labels.ravel()
         self._pixels = np.flatnonzero(labels >= 0)
-        # matrix index of each grouped pixel: grid index -> matrix index
-        self._rows = order.inverse_permutation[labels[self._pixels]]
+        self._channels = c = order.channels
+        # T's pixel number of each grouped camera pixel: grid index g -> value 3 g (its
+        # first channel) -> matrix index 3 p -> p
+        self._rows = order.inverse_permutation[c * labels[self._pixels]] // c
         self.n = order.n
-        self.counts = np.bincount(self._rows, minlength=self.n)
+        per_pixel = np.bincount(self._rows, minlength=order.pixels)
+        self.counts = np.repeat(per_pixel, c)
         self.seen = self.counts > 0
-        self._scale = np.divide(1.0, self.counts, out=np.zeros(self.n), where=self.seen)
+        self.seen_superpixels = int(np.count_nonzero(per_pixel))
+        self._scale = np.divide(1.0, per_pixel, out=np.zeros(order.pixels),
+                                where=per_pixel > 0)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        """Returns ndarray, shape (n,), float64: 0 on unseen rows."""
-        sums = np.bincount(self._rows, weights=image.ravel()[self._pixels], minlength=self.n)
-        return sums * self._scale
+        """``image`` of shape (Hc, Wc), or (Hc, Wc, 3) for a colour T.
+
+        Returns ndarray, shape (n,), float64: 0 on unseen rows."""
+        values = image.reshape(-1, self._channels)[self._pixels]
+        means = np.empty((len(self._scale), self._channels))
+        for i in range(self._channels):
+            means[:, i] = np.bincount(self._rows, weights=values[:, i],
+                                      minlength=len(self._scale)) * self._scale
+        return means.ravel()
 
 
 def from_graycode(manifest: Manifest, captures: Captures) -> Correspondence:
     """Decode the Gray-code captures (thresholds relative to the camera's noise and each
     pixel's contrast, :func:`.patterns.decode_graycode`)."""
-    labels = decode_graycode(manifest, captures.linear, noise=captures.noise())
+    # geometry only: a colour capture's grey view, and that view's noise
+    labels = decode_graycode(manifest, captures.linear_grey, noise=captures.noise())
     return Correspondence(labels, manifest.grid, "graycode")
 
 
+def _responses(captures: Captures, patterns, key):
+    """(key, grey response) of each place ``key(pattern)`` lights, in order: a grey
+    pattern's signal, or the sum of its primaries' (consecutive in a colour set: the
+    place lit in white), each capture through the grey view. One capture in memory at
+    a time."""
+    current, total = None, None
+    for p in patterns:
+        k = key(p)
+        if k != current and total is not None:
+            yield current, total
+            total = None
+        s = captures.signal_grey(p)
+        current, total = k, s if total is None else total + s
+    if total is not None:
+        yield current, total
+
+
 def _strongest(captures: Captures, patterns, key) -> tuple[np.ndarray, np.ndarray]:
-    """Per camera pixel, the largest signal over ``patterns`` and ``key(pattern)`` of the
-    pattern giving it; one capture in memory at a time."""
+    """Per camera pixel, the largest response (:func:`_responses`) over ``patterns``
+    and the key of the place giving it."""
     best = np.zeros(captures.shape)
     which = np.full(captures.shape, -1, dtype=np.int64)
-    for p in patterns:
-        s = captures.signal(p)
+    for k, s in _responses(captures, patterns, key):
         larger = s > best
         best[larger] = s[larger]
-        which[larger] = key(p)
+        which[larger] = k
     return best, which
 
 
@@ -111,8 +143,9 @@ def from_maximum_response(manifest: Manifest, captures: Captures, white: np.ndar
 
     Parameters
     ----------
-    white : ndarray, shape (Hc, Wc), the white capture less the black level
-    pixel_floor : float, responses at or below it are noise
+    white : ndarray, shape (Hc, Wc), the white capture less the black level (grey view)
+    pixel_floor : float, responses at or below it are noise (of a colour set: of the sum
+        of a place's three primaries, :meth:`Captures.pixel_floor` of 3 summed)
     progress : wraps the iterable of patterns read
 
     Pixels whose largest response is below ``config.ACQUIRE_MIN_DIRECT_SHARE`` of their

@@ -22,6 +22,15 @@ Kinds of pattern
     Gray code with bit ``bit`` set (``bit`` 0 is the most significant, as OpenCV's
     ``structured_light.GrayCodePattern`` orders them) are lit, or the others when
     ``inverted``.
+
+Colour (``channels: 3``)
+------------------------
+Each ``superpixel``, ``row-stripe`` and ``col-stripe`` pattern is listed once per
+projector primary (``primary``: "R", "G" or "B"; the image is lit in that primary
+only, file ``sp_005_R.png``), so T's column 3 q + j is the light of primary j from
+super-pixel q. ``black``, ``white`` and the Gray code have no primary: they are lit in
+all three (white), the Gray code being geometry only. A grey manifest records no
+``channels`` (it reads as 1), so grey pattern sets are written as they always were.
 """
 
 from __future__ import annotations
@@ -44,6 +53,12 @@ METHODS = ("brute-force", "stripes", "graycode")
 MAX_PATTERNS = 1 << 23
 KINDS = ("black", "white", "superpixel", "row-stripe", "col-stripe", "graycode")
 AXES = ("col", "row")
+#: The projector primaries of a colour pattern set, in T's column order (3 q + j).
+PRIMARIES = ("R", "G", "B")
+#: Kinds measuring T's columns: listed once per primary in a colour set.
+TRANSPORT_KINDS = ("superpixel", "row-stripe", "col-stripe")
+#: Channels a pattern set may have: grey, or the three primaries.
+CHANNEL_COUNTS = (1, 3)
 
 
 @dataclass(frozen=True)
@@ -61,6 +76,8 @@ class Pattern:
     axis : {"col", "row"} or None, the coordinate a ``graycode`` pattern encodes
     bit : int or None, the Gray-code bit, 0 = most significant
     inverted : bool or None, a ``graycode`` pattern's complement
+    primary : {"R", "G", "B"} or None, the one primary lit (a colour set's
+        ``superpixel`` and stripe patterns); None: all lit (white) or a grey set
     """
 
     file: str
@@ -70,10 +87,16 @@ class Pattern:
     axis: str | None = None
     bit: int | None = None
     inverted: bool | None = None
+    primary: str | None = None
 
     @property
     def stem(self) -> str:
         return Path(self.file).stem
+
+    @property
+    def primary_index(self) -> int:
+        """T's column offset j of the primary lit (0 for a grey pattern)."""
+        return 0 if self.primary is None else PRIMARIES.index(self.primary)
 
     def to_dict(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if v is not None}
@@ -90,6 +113,7 @@ class Manifest:
     method : one of :data:`METHODS`, how T's columns are measured
     graycode : bool, Gray-code patterns included (the correspondence by decoding)
     patterns : tuple of Pattern
+    channels : {1, 3}, 3 for a colour set (each transport pattern once per primary)
     """
 
     projector: tuple[int, int]
@@ -97,15 +121,22 @@ class Manifest:
     method: str
     graycode: bool
     patterns: tuple[Pattern, ...]
+    channels: int = 1
 
     @property
     def grid(self) -> tuple[int, int]:
-        """(H/s, W/s): the super-pixel grid; T is n x n with n = its product."""
+        """(H/s, W/s): the super-pixel grid; T is n x n with n = its product (times the
+        channels for colour)."""
         return (self.projector[0] // self.superpixel, self.projector[1] // self.superpixel)
 
     @property
     def n(self) -> int:
+        """Super-pixels of the grid (T's side is ``channels`` times this)."""
         return self.grid[0] * self.grid[1]
+
+    def primaries(self) -> tuple[str | None, ...]:
+        """What each transport pattern is lit in: (None,) grey, ("R", "G", "B") colour."""
+        return (None,) if self.channels == 1 else PRIMARIES
 
     def of_kind(self, kind: str) -> list[Pattern]:
         return [p for p in self.patterns if p.kind == kind]
@@ -120,9 +151,10 @@ class Manifest:
         return graycode_bits(size)
 
     def to_dict(self) -> dict:
+        colour = {} if self.channels == 1 else {"channels": self.channels}
         return {"format": FORMAT, "version": VERSION, "projector": list(self.projector),
                 "superpixel": self.superpixel, "grid": list(self.grid),
-                "method": self.method, "graycode": self.graycode,
+                "method": self.method, "graycode": self.graycode, **colour,
                 "patterns": [p.to_dict() for p in self.patterns]}
 
     @classmethod
@@ -139,23 +171,28 @@ class Manifest:
             projector = tuple(_count(v, "projector") for v in d["projector"])
             superpixel = _count(d["superpixel"], "superpixel")
             method, graycode = d["method"], d["graycode"]
+            channels = d.get("channels", 1)
             patterns = tuple(_pattern(p) for p in d["patterns"])
         except (KeyError, TypeError, ValueError) as exc:
             raise bad(str(exc) if not isinstance(exc, KeyError) else f"no {exc}") from None
         if method not in METHODS or not isinstance(graycode, bool) or len(projector) != 2:
             raise bad("method, graycode or projector has a wrong value")
-        manifest = cls(projector, superpixel, method, graycode, patterns)
+        if isinstance(channels, bool) or channels not in CHANNEL_COUNTS:
+            raise bad(f"channels {channels!r:.40} is not 1 (grey) or 3 (R, G, B)")
+        manifest = cls(projector, superpixel, method, graycode, patterns, channels)
         try:
             check_geometry(projector, superpixel)
             # counted first: a huge projector is refused at once, not listed to compare
-            count = checked_pattern_count(method, projector, superpixel, graycode=graycode)
+            count = checked_pattern_count(method, projector, superpixel, graycode=graycode,
+                                          channels=channels)
         except AcquisitionError as exc:  # super-pixels not dividing it, too many patterns
             raise AcquisitionError(f"not a valid bigT pattern manifest: {exc.template}", path,
                                    option=exc.option) from None
         if count != len(patterns):
             raise bad(f"the pattern list is not the one bigT writes for its method and size "
                       f"({len(patterns)} patterns listed, {count} expected)")
-        expected = make_manifest(method, projector, superpixel, graycode=graycode)
+        expected = make_manifest(method, projector, superpixel, graycode=graycode,
+                                 channels=channels)
         if manifest != expected:
             raise bad("the pattern list is not the one bigT writes for its method and size")
         # the canonical one: equal is not identical (an index of 5.0 equals 5 but is no
@@ -190,19 +227,20 @@ def check_geometry(projector, superpixel: int) -> None:
 
 
 def pattern_count(method: str, projector, superpixel: int = 1, *,
-                  graycode: bool | None = None) -> int:
+                  graycode: bool | None = None, channels: int = 1) -> int:
     """How many patterns :func:`make_manifest` lists, without listing them."""
     gh, gw = int(projector[0]) // superpixel, int(projector[1]) // superpixel
-    count = 2 + {"brute-force": gh * gw, "stripes": gh + gw}.get(method, 0)
+    count = 2 + channels * {"brute-force": gh * gw, "stripes": gh + gw}.get(method, 0)
     if method == "graycode" or graycode:
         count += 2 * (graycode_bits(gw) + graycode_bits(gh))
     return count
 
 
 def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
-                          graycode: bool | None = None) -> int:
+                          graycode: bool | None = None, channels: int = 1) -> int:
     """:func:`pattern_count`, refused (AcquisitionError) above :data:`MAX_PATTERNS`."""
-    count = pattern_count(method, projector, superpixel, graycode=graycode)
+    count = pattern_count(method, projector, superpixel, graycode=graycode,
+                          channels=channels)
     if count > MAX_PATTERNS:
         raise AcquisitionError(
             f"{method} on a {projector[0]}x{projector[1]} projector in {superpixel}x"
@@ -213,7 +251,7 @@ def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
 
 
 def make_manifest(method: str, projector, superpixel: int = 1, *,
-                  graycode: bool | None = None) -> Manifest:
+                  graycode: bool | None = None, channels: int = 1) -> Manifest:
     """The patterns bigT projects for ``method``.
 
     Parameters
@@ -225,6 +263,9 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
         Add the Gray-code patterns (the ``graycode`` method always has them; brute
         force and stripes then take the correspondence from them rather than from the
         maximum response). Default: only for the ``graycode`` method.
+    channels : {1, 3}
+        3 for a colour set: each super-pixel or stripe pattern once per projector
+        primary (R, G, B, in that order, one after the other).
 
     Returns
     -------
@@ -236,25 +277,33 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
     ------
     AcquisitionError
         An unknown method, super-pixels not dividing the projector, more than
-        :data:`MAX_PATTERNS` patterns.
+        :data:`MAX_PATTERNS` patterns, channels other than 1 or 3.
     """
     if method not in METHODS:
         raise AcquisitionError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    if isinstance(channels, bool) or channels not in CHANNEL_COUNTS:
+        raise AcquisitionError(f"channels must be 1 (grey) or 3 (R, G, B), got {channels!r:.40}")
     projector = (int(projector[0]), int(projector[1]))
     check_geometry(projector, superpixel)
-    checked_pattern_count(method, projector, superpixel, graycode=graycode)
+    checked_pattern_count(method, projector, superpixel, graycode=graycode, channels=channels)
     graycode = method == "graycode" or bool(graycode)
     gh, gw = projector[0] // superpixel, projector[1] // superpixel
+    primaries = (None,) if channels == 1 else PRIMARIES
+
+    def per_primary(stem: str, kind: str, **where) -> list[Pattern]:
+        return [Pattern(f"{stem}{'' if j is None else '_' + j}.png", kind, primary=j, **where)
+                for j in primaries]
+
     patterns = [Pattern("black.png", "black"), Pattern("white.png", "white")]
     if method == "brute-force":
         width = len(str(gh * gw - 1))
-        patterns += [Pattern(f"sp_{k:0{width}d}.png", "superpixel", index=k)
-                     for k in range(gh * gw)]
+        for k in range(gh * gw):
+            patterns += per_primary(f"sp_{k:0{width}d}", "superpixel", index=k)
     elif method == "stripes":
-        patterns += [Pattern(f"row_{r:0{len(str(gh - 1))}d}.png", "row-stripe", band=r)
-                     for r in range(gh)]
-        patterns += [Pattern(f"col_{c:0{len(str(gw - 1))}d}.png", "col-stripe", band=c)
-                     for c in range(gw)]
+        for r in range(gh):
+            patterns += per_primary(f"row_{r:0{len(str(gh - 1))}d}", "row-stripe", band=r)
+        for c in range(gw):
+            patterns += per_primary(f"col_{c:0{len(str(gw - 1))}d}", "col-stripe", band=c)
     if graycode:
         for axis, size in (("col", gw), ("row", gh)):
             for bit in range(graycode_bits(size)):
@@ -262,7 +311,7 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
                     name = f"gray_{axis}_{bit:02d}{'_inv' if inverted else ''}.png"
                     patterns.append(Pattern(name, "graycode", axis=axis, bit=bit,
                                             inverted=inverted))
-    return Manifest(projector, int(superpixel), method, graycode, tuple(patterns))
+    return Manifest(projector, int(superpixel), method, graycode, tuple(patterns), channels)
 
 
 def write_manifest(folder: Path, manifest: Manifest) -> Path:

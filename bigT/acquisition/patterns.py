@@ -1,7 +1,8 @@
 """Pattern images (what the projector shows) and the Gray code (encode, decode).
 
 Every pattern is a binary image at the projector's resolution, lit where a super-pixel
-of the manifest's grid is lit. The Gray code follows OpenCV's
+of the manifest's grid is lit; in a colour set, an RGB image lit in the pattern's
+primary only (or in all three: black, white, the Gray code). The Gray code follows OpenCV's
 ``structured_light.GrayCodePattern``: the code of a grid coordinate x is
 ``x ^ (x >> 1)``, bits most significant first, every pattern followed by its inverse;
 a camera pixel reads bit b as 1 where the pattern is brighter than its inverse, and is
@@ -20,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..images import write_image
 from ..progress import progress_bar
+from . import rgb_files
 from .manifest import Manifest, Pattern, write_manifest
 
 #: A pixel is in shadow unless white - black exceeds this many standard deviations of
@@ -82,16 +83,22 @@ def pattern_image(manifest: Manifest, pattern: Pattern) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape manifest.projector, float64 in {0, 1}
+    ndarray, float64 in {0, 1}: shape manifest.projector (grey set), or
+        (*manifest.projector, 3) (colour set: lit in the pattern's primary only, or in all
+        three when it has none)
     """
     s = manifest.superpixel
     lit = lit_superpixels(manifest, pattern)
-    return np.repeat(np.repeat(lit, s, axis=0), s, axis=1).astype(np.float64)
+    image = np.repeat(np.repeat(lit, s, axis=0), s, axis=1).astype(np.float64)
+    if manifest.channels == 1:
+        return image
+    primaries = np.ones(3) if pattern.primary is None else np.eye(3)[pattern.primary_index]
+    return image[:, :, None] * primaries
 
 
 def write_patterns(folder, manifest: Manifest, *, progress: bool | None = None) -> Path:
-    """Write every pattern as an 8-bit PNG and ``manifest.json`` (last, so a folder with
-    a manifest is complete) into ``folder``.
+    """Write every pattern as an 8-bit PNG (RGB for a colour set) and ``manifest.json``
+    (last, so a folder with a manifest is complete) into ``folder``.
 
     Returns
     -------
@@ -101,7 +108,7 @@ def write_patterns(folder, manifest: Manifest, *, progress: bool | None = None) 
     folder.mkdir(parents=True, exist_ok=True)
     for pattern in progress_bar(manifest.patterns, progress=progress, desc="patterns",
                                 unit="image"):
-        write_image(folder / pattern.file, pattern_image(manifest, pattern), bits=8)
+        rgb_files.write(folder / pattern.file, pattern_image(manifest, pattern), bits=8)
     return write_manifest(folder, manifest)
 
 

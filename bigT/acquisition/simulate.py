@@ -1,7 +1,7 @@
 """A camera without a rig: ``bigT acquire simulate`` (:func:`simulate_captures`).
 
-Renders, from a synthetic scene's T, the image a camera of another resolution would
-capture for each pattern:
+Renders, from a synthetic scene's T (or any transport store with an image shape), the
+image a camera of another resolution would capture for each pattern:
 
 * the camera frames the projected area with a margin (:data:`MARGIN` of each side sees
   no projector light) and a smooth warp (lens and perspective), so each projector
@@ -10,6 +10,12 @@ capture for each pattern:
 * an exposure that puts the brightest pixel of the white pattern at :data:`PEAK`;
 * additive Gaussian noise, a black level, and optionally a gamma (stored = linear^(1/g)),
   then the file format's quantisation (16-bit PNG by default).
+
+A colour T (3 n x 3 n, index 3 p + c) with a colour pattern set renders RGB captures:
+the pattern images (H, W, 3), averaged over super-pixels, are T's input in matrix order,
+T l the camera super-pixels' R, G, B, each channel with its own noise (``noise`` one
+value or three). The rig's colour mixing is T's own (a colour scene's rig model), so the
+camera here adds no mixing of its own: gain and exposure are the same for its channels.
 
 The camera's model is written beside the captures as ``simulation.json`` (a file bigT
 acquire build ignores), so the T a build recovers can be compared with
@@ -26,9 +32,10 @@ import numpy as np
 
 from ..atomic import atomic_output
 from ..errors import AcquisitionError
-from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..storage import PixelOrder
+from ..storage import open as open_store
+from . import rgb_files
 from .correspondence import Correspondence
 from .manifest import Manifest, patterns_folder, read_manifest
 
@@ -49,13 +56,14 @@ class CameraModel:
     camera : (int, int), (Hc, Wc)
     grid : (int, int), the projector's super-pixel grid
     exposure : float, multiplies every capture's light
-    noise, black, gamma : float
+    noise : float, or (float, float, float) for R, G, B: the noise std of a pixel
+    black, gamma : float
     """
 
     camera: tuple[int, int]
     grid: tuple[int, int]
     exposure: float = 1.0
-    noise: float = 0.0
+    noise: float | tuple[float, ...] = 0.0
     black: float = 0.0
     gamma: float = 1.0
 
@@ -81,27 +89,37 @@ class CameraModel:
     def expected_scale(self, order: PixelOrder) -> np.ndarray:
         """(n,) float64, matrix order: exposure x mean gain of each super-pixel's camera
         pixels (0 for super-pixels no pixel sees) -- the row scale a noise-free build
-        recovers T_scene with."""
+        recovers T_scene with (of a colour T, the same for a pixel's three rows)."""
         # the same group means a build takes, over the true correspondence
         groups = Correspondence(self.superpixel_of(), self.grid, "simulation").reducer(order)
-        return self.exposure * groups(self.gain())
+        gain = self.gain()
+        if order.channels > 1:
+            gain = np.repeat(gain[:, :, None], order.channels, axis=2)
+        return self.exposure * groups(gain)
 
     def render(self, light: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Camera images of scene light.
 
         Parameters
         ----------
-        light : ndarray, shape (K, gh, gw), T l of K patterns as grid images
+        light : ndarray, shape (K, gh, gw), or (K, gh, gw, 3) for colour: T l of K
+            patterns as grid images
 
         Returns
         -------
-        ndarray, shape (K, Hc, Wc), float64, stored values (gamma-encoded, unclipped)
+        ndarray, shape (K, Hc, Wc) or (K, Hc, Wc, 3), float64, stored values
+        (gamma-encoded, unclipped)
         """
         sp = self.superpixel_of()
-        seen = np.where(sp >= 0, light.reshape(len(light), -1)[:, np.maximum(sp, 0)], 0.0)
-        linear = self.exposure * self.gain() * seen + self.black
-        if self.noise:
-            linear = linear + rng.normal(0.0, self.noise, size=linear.shape)
+        K, channels = len(light), light.shape[3] if light.ndim == 4 else 1
+        seen = light.reshape(K, -1, channels)[:, np.maximum(sp, 0)]  # (K, Hc, Wc, channels)
+        seen = np.where((sp >= 0)[None, :, :, None], seen, 0.0)
+        linear = self.exposure * self.gain()[:, :, None] * seen + self.black
+        if light.ndim == 3:
+            linear = linear[..., 0]
+        if np.any(self.noise):
+            # one std for all channels, or one for each (R, G, B: the last axis)
+            linear = linear + rng.normal(0.0, 1.0, size=linear.shape) * np.asarray(self.noise)
         if self.gamma != 1.0:
             linear = np.power(np.maximum(linear, 0.0), 1.0 / self.gamma)
         return linear
@@ -112,25 +130,40 @@ def _pattern_vectors(manifest: Manifest, folder: Path, patterns, order: PixelOrd
     (n, K)."""
     s = manifest.superpixel
     gh, gw = manifest.grid
-    images = np.stack([read_image(folder / p.file, manifest.projector)
-                       .reshape(gh, s, gw, s).mean(axis=(1, 3)) for p in patterns])
-    return order.to_matrix(images)
+    images = np.stack([_pattern_file(folder / p.file, manifest)
+                       .reshape(gh, s, gw, s, -1).mean(axis=(1, 3)) for p in patterns])
+    return order.to_matrix(images if manifest.channels > 1 else images[..., 0])
 
 
-def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.0,
+def _pattern_file(path: Path, manifest: Manifest) -> np.ndarray:
+    """A pattern image as written: (H, W) grey, (H, W, 3) colour; refused (naming it)
+    when it is not the projector's size or the set's channels."""
+    image = rgb_files.to_unit(rgb_files.read_raw(path), path)
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if image.shape[:2] != tuple(manifest.projector) or channels != manifest.channels:
+        raise AcquisitionError(
+            f"pattern image of shape {image.shape}, not the {manifest.projector[0]}x"
+            f"{manifest.projector[1]} {'grey' if manifest.channels == 1 else 'RGB'} image "
+            "its manifest lists", path)
+    return image
+
+
+def simulate_captures(scene_path, patterns, output, *, camera, noise=0.0,
                       black: float = 0.0, gamma: float = 1.0, fmt: str = "png16", seed: int = 0,
                       progress: bool | None = None) -> CameraModel:
     """Write the captures of every pattern of ``patterns`` for the scene at ``scene_path``.
 
     Parameters
     ----------
-    scene_path : a store written by ``bigT scene`` (its T maps the projector's
-        super-pixel grid, which must be the scene's image shape)
+    scene_path : a store written by ``bigT scene``, or any transport store with an image
+        shape (its T maps the projector's super-pixel grid, which must be the store's
+        image shape); a colour T (3 channels) for a colour pattern set
     patterns : the pattern folder
     output : the captures folder (created; existing captures of the same names replaced;
         not the pattern folder, whose patterns have the captures' names)
     camera : (int, int), the camera's (Hc, Wc)
-    noise, black, gamma : the camera's noise std, black level and gamma
+    noise : float, or three (R, G, B) for colour: the camera's noise std
+    black, gamma : the camera's black level and gamma
     fmt : one of :data:`FORMATS`
     seed : of the noise
 
@@ -138,30 +171,29 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     -------
     CameraModel
     """
-    from ..scenes import load  # scenes import the engine and dask (~0.5 s): only the
-    # simulated camera reads a scene
-
     manifest = read_manifest(patterns)
     if Path(output).resolve() == patterns_folder(patterns).resolve():
         raise AcquisitionError(
             "the captures folder is the pattern folder: the captures, named as the "
             "patterns, would overwrite them; write the captures to a folder of their own",
             Path(output))
-    scene = load(scene_path)
-    order = scene.pixel_order
+    T = open_store(scene_path)  # only T and its pixel order: a scene's ground truth unread
+    order = T.pixel_order
     if order is None or tuple(order.image_shape) != manifest.grid:
         shape = None if order is None else order.image_shape
         raise AcquisitionError(
             f"the patterns are for a {manifest.grid[0]}x{manifest.grid[1]} super-pixel grid "
             f"but the scene is {shape[0]}x{shape[1]} pixels" if shape else
             "the scene records no image shape", Path(patterns))
+    _check_channels(order.channels, manifest.channels, Path(scene_path))
     if fmt not in FORMATS:
         raise AcquisitionError(f"unknown capture format {fmt!r} (one of {', '.join(FORMATS)})")
+    noise = _checked_noise(noise, order.channels)
     model = CameraModel(tuple(camera), manifest.grid, noise=noise, black=black, gamma=gamma)
-    white = scene.T.matmul(np.ones(order.n), order="matrix")
-    peak = (model.gain() * np.where(model.superpixel_of() >= 0,
-                                    order.to_images(white).ravel()[np.maximum(model.superpixel_of(), 0)],
-                                    0)).max()
+    white = T.matmul(np.ones(order.n), order="matrix")
+    sp = model.superpixel_of()
+    brightest = order.to_images(white).reshape(order.pixels, -1).max(axis=1)  # of R, G, B
+    peak = (model.gain() * np.where(sp >= 0, brightest[np.maximum(sp, 0)], 0)).max()
     model = CameraModel(model.camera, model.grid, PEAK / peak, noise, black, gamma)
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
@@ -169,11 +201,11 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     folder, suffix = Path(patterns), FORMATS[fmt]
     batches = [manifest.patterns[k:k + BATCH] for k in range(0, len(manifest.patterns), BATCH)]
     for batch in progress_bar(batches, progress=progress, desc="captures", unit="batch"):
-        light = order.to_images(scene.T.matmul(_pattern_vectors(manifest, folder, batch, order),
-                                                order="matrix"))
-        light = light.reshape(len(batch), *manifest.grid)
+        light = order.to_images(T.matmul(_pattern_vectors(manifest, folder, batch, order),
+                                          order="matrix"))
+        light = light.reshape(len(batch), *order.frame_shape)
         for p, image in zip(batch, model.render(light, rng)):
-            write_image(out / (p.stem + suffix), image, bits=8 if fmt == "png8" else 16)
+            rgb_files.write(out / (p.stem + suffix), image, bits=8 if fmt == "png8" else 16)
     with atomic_output(out / SIMULATION, "the simulation's camera model") as tmp:
         with open(tmp, "w") as f:
             json.dump({"scene": str(Path(scene_path).resolve()), "format": fmt, "seed": seed,
@@ -181,12 +213,34 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise: float = 0.
     return model
 
 
+def _check_channels(store_channels: int, pattern_channels: int, path: Path) -> None:
+    """A colour T needs a colour pattern set and a grey T a grey one."""
+    if store_channels == pattern_channels:
+        return
+    if store_channels == 3:
+        raise AcquisitionError("a colour transport (3 channels) and grey patterns: write the "
+                               "patterns with --channels 3", path)
+    raise AcquisitionError("a grey transport and colour patterns (channels 3): write the "
+                           "patterns without --channels, or simulate a colour transport", path)
+
+
+def _checked_noise(noise, channels: int) -> float | tuple[float, ...]:
+    """``noise`` as a float, or a tuple of one std per channel of a colour T."""
+    values = np.atleast_1d(np.asarray(noise, dtype=np.float64))
+    if values.ndim != 1 or len(values) not in (1, channels) or (values < 0).any() or not \
+            np.isfinite(values).all():
+        raise AcquisitionError(f"noise must be one std >= 0 or one for each of the "
+                               f"{channels} channels, got {noise!r:.60}", option="noise")
+    return float(values[0]) if len(values) == 1 else tuple(float(v) for v in values)
+
+
 def read_camera_model(captures) -> CameraModel:
     """The camera model a simulation wrote beside its captures."""
     path = Path(captures) / SIMULATION
     try:
         d = json.loads(path.read_text())
-        return CameraModel(tuple(d["camera"]), tuple(d["grid"]), d["exposure"], d["noise"],
+        noise = tuple(d["noise"]) if isinstance(d["noise"], list) else d["noise"]
+        return CameraModel(tuple(d["camera"]), tuple(d["grid"]), d["exposure"], noise,
                            d["black"], d["gamma"])
     except (OSError, ValueError, KeyError) as exc:
         raise AcquisitionError(f"no readable simulation record ({exc})", path) from None

@@ -2,7 +2,9 @@
 
 T 1 (what T predicts the camera sees under an all-white pattern) against the captured
 white image reduced to camera super-pixels, with three horizontal scan lines of both
-plotted, and the correspondence map drawn as the paper's Fig. 7b.
+plotted, and the correspondence map drawn as the paper's Fig. 7b. For a colour T, T 1
+(every primary lit) against the white capture's R, G and B: the error is over all
+three, the scan lines are of their mean.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from ..figures import pyplot, save_figure
 from ..scenes.preview import distinct_rows
 from ..storage import open as open_store
 from .build import ACQUISITION_KEY, load_correspondence
-from .captures import Captures
+from .captures import Captures, grey_view
 from .correspondence import Correspondence
 from .manifest import read_manifest
 
@@ -27,8 +29,9 @@ class WhiteCheck:
 
     Attributes
     ----------
-    relative_error : float, ||T 1 - w|| / ||w||
-    predicted, captured : ndarray, shape grid, the two images (0 where unseen)
+    relative_error : float, ||T 1 - w|| / ||w|| (over R, G and B for colour)
+    predicted, captured : ndarray, shape grid (grid + (3,) for colour), the two images
+        (0 where unseen)
     rows : list of int, the scan lines drawn
     """
 
@@ -54,24 +57,31 @@ def check_white(store) -> WhiteCheck:
     t1 = T.matmul(np.ones(T.shape[1]), order="matrix") * means.seen
     err = float(np.linalg.norm(t1 - w) / max(np.linalg.norm(w), 1e-300))
     captured, predicted = order.to_images(w), order.to_images(t1)
-    return WhiteCheck(err, predicted, captured, distinct_rows(captured, 3))
+    return WhiteCheck(err, predicted, captured, distinct_rows(grey_view(captured), 3))
 
 
 def plot_white_check(check: WhiteCheck, path) -> Path:
-    """Scan lines of T 1 (dashed) and the captured white (solid), as in paper Fig. 8."""
+    """Scan lines of T 1 (dashed) and the captured white (solid), as in paper Fig. 8
+    (of colour: the image in colour, the scan lines of the mean of R, G, B)."""
     plt = pyplot()
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
-    ax0.imshow(check.captured, cmap="gray", vmin=0, interpolation="nearest")
+    colour = check.captured.ndim == 3
+    if colour:  # imshow takes RGB in [0, 1]
+        ax0.imshow(np.clip(check.captured / max(check.captured.max(), 1e-300), 0, 1),
+                   interpolation="nearest")
+    else:
+        ax0.imshow(check.captured, cmap="gray", vmin=0, interpolation="nearest")
+    captured, predicted = grey_view(check.captured), grey_view(check.predicted)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for k, r in enumerate(check.rows):
         ax0.axhline(r, color=colours[k], lw=1)
-        ax1.plot(check.captured[r], color=colours[k], lw=1.3, label=f"row {r}, captured")
-        ax1.plot(check.predicted[r], color=colours[k], lw=1.1, ls="--", label=f"row {r}, T 1")
+        ax1.plot(captured[r], color=colours[k], lw=1.3, label=f"row {r}, captured")
+        ax1.plot(predicted[r], color=colours[k], lw=1.1, ls="--", label=f"row {r}, T 1")
     ax0.set_title("captured white (camera super-pixels)", fontsize=9)
     ax0.set_xticks([])
     ax0.set_yticks([])
     ax1.set_xlabel("super-pixel column")
-    ax1.set_ylabel("intensity")
+    ax1.set_ylabel("intensity (mean of R, G, B)" if colour else "intensity")
     ax1.grid(alpha=0.3)
     ax1.legend(fontsize=7, ncol=2)
     fig.suptitle(f"T 1 against the captured white image: relative error "

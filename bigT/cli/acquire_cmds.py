@@ -3,6 +3,7 @@ camera to try it without a rig (bigT.acquisition)."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import sys
@@ -56,6 +57,10 @@ def _register_patterns(sub) -> None:
     p.add_argument("--graycode", action="store_true",
                    help="add Gray-code patterns: the correspondence by decoding rather than "
                         "by each camera pixel's maximum response")
+    p.add_argument("--channels", type=int, choices=(1, 3), default=1,
+                   help="3 for a colour T: every super-pixel or stripe pattern once per "
+                        "projector primary (R, G, B; RGB PNGs), black, white and the Gray "
+                        "code in white (default %(default)s: grey)")
     p.add_argument("-o", "--output", required=True, metavar="DIR",
                    help="folder of the pattern images and manifest.json")
     _common(p)
@@ -81,7 +86,13 @@ def _register_build(sub) -> None:
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
                    help="undo a camera gamma: linear = stored ** gamma (default 1: linear)")
     p.add_argument("--tile-size", type=integer(1), default=None,
-                   help=f"rows/cols of one matrix tile of T (default {config.DEFAULT_TILE_SIZE})")
+                   help=f"rows/cols of one matrix tile of T (default {config.DEFAULT_TILE_SIZE}; "
+                        f"of a colour T a multiple of 3, default "
+                        f"{config.DEFAULT_COLOUR_TILE_SIZE})")
+    p.add_argument("--mixing", default=None, metavar="FILE",
+                   help='colour: the rig\'s global colour mixing, a JSON file {"camera": 3x3, '
+                        '"projector": 3x3}, recorded in T\'s metadata ("mixing") for the '
+                        "engine's global path")
     add_memory_limit(p, default=config.ACQUIRE_MEMORY_BYTES,
                      bounds="memory the build may hold of T's entries gathered in one pass "
                      "over the captures; more passes when they do not fit")
@@ -99,16 +110,19 @@ def _register_simulate(sub) -> None:
     p = sub.add_parser(
         "simulate", help="render the captures of a pattern set from a synthetic scene",
         description="Stand in for a rig: the camera image each pattern would produce on a "
-                    "scene made by bigT scene, at another resolution, each projector "
-                    "super-pixel seen by an uneven patch of camera pixels, with noise, a black "
-                    "level and a gamma. The camera model goes to CAPTURES_DIR/simulation.json.")
+                    "scene made by bigT scene (or any T store with an image shape; a colour "
+                    "T with colour patterns gives RGB captures), at another resolution, each "
+                    "projector super-pixel seen by an uneven patch of camera pixels, with "
+                    "noise, a black level and a gamma. The camera model goes to "
+                    "CAPTURES_DIR/simulation.json.")
     p.add_argument("scene", metavar="SCENE.zarr")
     p.add_argument("patterns", metavar="PATTERNS_DIR")
     p.add_argument("-o", "--output", required=True, metavar="CAPTURES_DIR",
                    help="folder of the captures to write")
     p.add_argument("--camera", type=image_size, required=True, metavar="HxW",
                    help="the camera's resolution (any: it need not match the projector's)")
-    p.add_argument("--noise", type=number(0), default=0.0, help="noise std (default 0)")
+    p.add_argument("--noise", type=noise_levels, default=0.0, metavar="STD[,STD,STD]",
+                   help="noise std, or one for each of R, G, B of a colour T (default 0)")
     p.add_argument("--black", type=number(0, 1), default=0.0, help="black level (default 0)")
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
                    help="camera gamma: stored = linear ** (1 / gamma) (default 1)")
@@ -120,6 +134,16 @@ def _register_simulate(sub) -> None:
     p.set_defaults(func=simulate_cmd, command="acquire simulate")
 
 
+def noise_levels(text: str) -> float | tuple[float, ...]:
+    """An argparse type: one noise std >= 0, or three (R, G, B) separated by commas."""
+    parts = text.split(",")
+    parse = number(0)
+    if len(parts) not in (1, 3):
+        raise argparse.ArgumentTypeError(f"must be one std >= 0 or three (R,G,B), got {text!r}")
+    values = tuple(parse(part) for part in parts)
+    return values[0] if len(values) == 1 else values
+
+
 def _progress(args):
     return None if args.progress else False
 
@@ -127,11 +151,14 @@ def _progress(args):
 def patterns_cmd(args) -> int:
     from ..acquisition import make_manifest, write_patterns
 
-    manifest = make_manifest(args.method, args.projector, args.superpixel, graycode=args.graycode)
+    manifest = make_manifest(args.method, args.projector, args.superpixel, graycode=args.graycode,
+                             channels=args.channels)
     path = write_patterns(args.output, manifest, progress=_progress(args))
     print(f"{len(manifest.patterns)} patterns ({args.method}"
-          f"{', Gray code' if manifest.graycode else ''}) for a {manifest.projector[0]}x"
-          f"{manifest.projector[1]} projector, {manifest.grid[0]}x{manifest.grid[1]} super-pixels")
+          f"{', Gray code' if manifest.graycode else ''}"
+          f"{', colour: R, G, B each' if manifest.channels == 3 else ''}) for a "
+          f"{manifest.projector[0]}x{manifest.projector[1]} projector, "
+          f"{manifest.grid[0]}x{manifest.grid[1]} super-pixels")
     print(f"-> {path}")
     return 0
 
@@ -146,13 +173,13 @@ def build_cmd(args) -> int:
     )
 
     planned = () if args.no_figures else figure_paths(args.output)
-    refuse_overwriting_inputs(planned, [args.patterns, args.captures, args.black])
+    refuse_overwriting_inputs(planned, [args.patterns, args.captures, args.black, args.mixing])
 
     with _own_warnings("bigT acquire build"):
         report = build_transport(args.patterns, args.captures, args.output, black=args.black,
                                  floor=args.floor, gamma=args.gamma, tile_size=args.tile_size,
                                  memory_bytes=args.memory_limit, overwrite=args.overwrite,
-                                 progress=_progress(args))
+                                 progress=_progress(args), mixing=args.mixing)
     check = check_white(report.path)
     figures = []
     if not args.no_figures:
@@ -167,10 +194,12 @@ def build_cmd(args) -> int:
                           "saturated_pixels": report.saturated_pixels,
                           "seconds": report.seconds,
                           "white_relative_error": check.relative_error,
+                          "mixing": None if report.mixing is None else report.mixing.to_metadata(),
                           "figures": [str(f) for f in figures]}, indent=1))
         return 0
     print(report.describe())
-    print(f"validation: T 1 against the captured white image, relative error "
+    print(f"validation: T 1 against the captured white image"
+          f"{' (R, G, B)' if report.settings.channels == 3 else ''}, relative error "
           f"{check.relative_error:.3g}")
     for f in figures:
         print(f"-> {f}")
@@ -198,6 +227,13 @@ def _own_warnings(command: str):
                                    source=w.source)
 
 
+def _noise_text(noise) -> str:
+    """``0.002``, or ``R 0.001 G 0.002 B 0.003``."""
+    if isinstance(noise, tuple):
+        return " ".join(f"{c} {v:g}" for c, v in zip("RGB", noise))
+    return f"{noise:g}"
+
+
 def _grid(report) -> tuple[int, int]:
     s = report.settings
     return (s.projector[0] // s.superpixel, s.projector[1] // s.superpixel)
@@ -213,7 +249,8 @@ def simulate_cmd(args) -> int:
                               fmt=args.format, seed=args.seed, progress=_progress(args))
     count = len(read_manifest(args.patterns).patterns)
     print(f"{count} captures of {args.scene} by a {model.camera[0]}x{model.camera[1]} camera "
-          f"(exposure {model.exposure:.3g}, noise {model.noise:g}, black {model.black:g}, "
+          f"(exposure {model.exposure:.3g}, noise {_noise_text(model.noise)}, black "
+          f"{model.black:g}, "
           f"gamma {model.gamma:g})")
     print(f"-> {args.output}")
     return 0
