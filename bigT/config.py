@@ -9,6 +9,9 @@ from __future__ import annotations
 # --- storage -----------------------------------------------------------------------
 #: Rows (and columns) of one square tile of the block-CSR grid.
 DEFAULT_TILE_SIZE = 8192
+#: The same for a colour store (3 values per pixel): 4096 pixels, so whole default image
+#: tiles (8x8) and a multiple of 3 (a pixel's 3x3 block never straddles two tiles).
+DEFAULT_COLOUR_TILE_SIZE = 12288
 #: Elements per zarr chunk of a tile's indices/data arrays (4 MiB of float32).
 CHUNK_ELEMENTS = 1 << 20
 #: zstd level for the tile arrays: level 1 is close to the best ratio on index

@@ -36,6 +36,9 @@ def register(subparsers) -> None:
                    help="the matrix maps HxW images (numbered row-major in IN)")
     p.add_argument("--pixel-order", choices=("row-major", "tile-major"), default="row-major",
                    help="pixel order of the store (needs --image-shape for tile-major)")
+    p.add_argument("--channels", type=int, choices=(1, 3), default=1,
+                   help="3 for a colour transport: IN is 3HW x 3HW with index 3(yW+x)+c, "
+                        "c = 0, 1, 2 for R, G, B (needs --image-shape; default 1, grey)")
     p.add_argument("--image-tile", type=image_size, default=None, metavar="HxW",
                    help="image tile of the tile-major order (default "
                         f"{config.DEFAULT_IMAGE_TILE[0]}x{config.DEFAULT_IMAGE_TILE[1]})")
@@ -77,7 +80,7 @@ def convert_cmd(args) -> int:
         check_values(A, args.input, args.dtype)  # errors name IN, not the store
         S = from_scipy(A, args.output, tile_size=args.tile_size, dtype=args.dtype,
                        image_shape=args.image_shape, pixel_order=args.pixel_order,
-                       image_tile=args.image_tile,
+                       image_tile=args.image_tile, channels=args.channels,
                        input_order="row-major", overwrite=args.overwrite,
                        metadata={"source": str(args.input)})
     print(f"wrote {S.path}: {S.shape[0]} x {S.shape[1]} {S.dtype.name}, nnz {S.nnz}, "
@@ -133,7 +136,9 @@ def info_cmd(args) -> int:
         lines.append(f"pixel order  {po['pixel_order']}, image {po['image_shape'][0]} x "
                      f"{po['image_shape'][1]}" + (f", image tile {po['image_tile'][0]} x "
                                                    f"{po['image_tile'][1]}"
-                                                   if po["pixel_order"] == "tile-major" else ""))
+                                                   if po["pixel_order"] == "tile-major" else "")
+                     + (", colour (3 channels, index 3p+c)" if po.get("channels", 1) == 3
+                        else ""))
     else:
         lines.append("pixel order  none (the matrix maps no image)")
     if not info["complete"]:

@@ -67,6 +67,11 @@ class StoreAttrs:
         object.__setattr__(self, "metadata", _frozen(self.metadata))
 
     @property
+    def channels(self) -> int:
+        """Values per pixel: 1 (grey), or 3 (R, G, B; index 3 p + c) for a colour store."""
+        return 1 if self.pixel_order is None else self.pixel_order.channels
+
+    @property
     def grid(self) -> tuple[int, int]:
         """(n_tile_rows, n_tile_cols)."""
         ts = self.tile_size
@@ -122,6 +127,8 @@ class StoreAttrs:
             if not isinstance(metadata, Mapping):
                 raise TypeError("metadata is not an object")
             pixel_order = PixelOrder.from_attrs(dict(attrs))
+            if pixel_order is None and attrs.get("channels", 1) != 1:
+                raise ValueError("channels without image_shape (a colour store maps images)")
             version = fmt.check_count(attrs.get("version", fmt.FORMAT_VERSION), "version",
                                       path, low=1)
         except CorruptStoreError:
@@ -132,8 +139,11 @@ class StoreAttrs:
             raise CorruptStoreError(f"unsupported dtype {dtype.name}", path)
         if pixel_order is not None and not pixel_order.n == shape[0] == shape[1]:
             raise CorruptStoreError(f"image_shape {list(pixel_order.image_shape)} has "
-                                    f"{pixel_order.n} pixels, the matrix is {shape[0]}x{shape[1]}",
+                                    f"{pixel_order.n} values, the matrix is {shape[0]}x{shape[1]}",
                                     path)
+        if pixel_order is not None and tile_size % pixel_order.channels:
+            raise CorruptStoreError(f"tile_size {tile_size} of a colour store is not a multiple "
+                                    f"of its {pixel_order.channels} channels", path)
         inner = attrs.get("inner_format", "csr")
         if inner not in fmt.INNER_FORMATS:
             raise StoreError(f"inner_format {inner!r:.60} is not supported by this bigT "

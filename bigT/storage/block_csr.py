@@ -124,6 +124,9 @@ class BlockCSR:
         How image pixels are numbered in the stored matrix. Vectors of ``A @ x``,
         ``matmul``, ``to_scipy`` and ``diagonal`` are row-major image vectors unless
         asked for in ``"matrix"`` order; tiles and rows are always in matrix order.
+    channels : int
+        1 for grey; 3 for colour, where index 3 p + c is channel c (R, G, B) of the
+        pixel numbered p (the vector of an (H, W, 3) image is its row-major ravel).
     metadata : dict
         Free JSON metadata (the inverse engine records term, prune, residual there).
     tile_indptr : (n_tile_rows + 1,) int64
@@ -145,6 +148,7 @@ class BlockCSR:
         self.complete = attrs.complete
         self.grid = attrs.grid
         self.pixel_order = attrs.pixel_order
+        self.channels = attrs.channels
         self.metadata = dict(attrs.metadata)
         self._index = read_tile_index(self.path, attrs, allow_incomplete=allow_incomplete)
         self.tile_indptr = self._index.indptr

@@ -14,6 +14,12 @@ pixel depends on the *pixel order* recorded in the store:
 
 The permutation stored with a matrix is ``perm`` with ``matrix_index k <-> row-major
 pixel perm[k]``; it is derived from the image shape and tile, never stored twice.
+
+Colour (``channels = 3``): the matrix index of channel c (0, 1, 2 = R, G, B) of the
+pixel numbered p in the order above is 3·p + c, so a pixel's three channels are
+adjacent and its 3×3 colour-mixing block is a diagonal block of T. An (H, W, 3) image
+raveled row-major is exactly the row-major order's numbering, 3·(y·W + x) + c, and
+:attr:`PixelOrder.permutation` numbers *values* (pixel and channel) rather than pixels.
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ from ..config import DEFAULT_IMAGE_TILE
 from ..errors import ImageError, ShapeMismatchError
 
 PIXEL_ORDERS = ("row-major", "tile-major")
+#: Values per pixel a transport may have: grey, or R, G, B.
+CHANNEL_COUNTS = (1, 3)
 
 
 @dataclass(frozen=True)
@@ -40,11 +48,14 @@ class PixelOrder:
     order : {"row-major", "tile-major"}
     image_tile : (int, int)
         (th, tw) of one image tile; used by "tile-major" only.
+    channels : {1, 3}
+        Values per pixel: 1 for grey, 3 for R, G, B (the matrix side is then 3 H W).
     """
 
     image_shape: tuple[int, int]
     order: str = "row-major"
     image_tile: tuple[int, int] = field(default=DEFAULT_IMAGE_TILE)
+    channels: int = 1
 
     def __post_init__(self):
         shape = tuple(int(s) for s in self.image_shape)
@@ -55,17 +66,30 @@ class PixelOrder:
             raise ValueError(f"pixel_order must be one of {PIXEL_ORDERS}, got {self.order!r}")
         if len(tile) != 2 or min(tile) < 1:
             raise ShapeMismatchError(f"image_tile must be (th, tw) with th, tw >= 1, got {self.image_tile}")
+        if isinstance(self.channels, bool) or self.channels not in CHANNEL_COUNTS:
+            raise ShapeMismatchError(f"channels must be 1 (grey) or 3 (R, G, B), got "
+                                     f"{self.channels!r:.60}")
         object.__setattr__(self, "image_shape", shape)
         object.__setattr__(self, "image_tile", tile)
 
     @property
-    def n(self) -> int:
-        """Number of pixels, the matrix side."""
+    def pixels(self) -> int:
+        """Number of pixels, H * W."""
         return self.image_shape[0] * self.image_shape[1]
 
+    @property
+    def n(self) -> int:
+        """Number of values (pixels times channels), the matrix side."""
+        return self.pixels * self.channels
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        """Shape of one image: (H, W) for grey, (H, W, 3) for colour."""
+        return self.image_shape if self.channels == 1 else (*self.image_shape, self.channels)
+
     @cached_property
-    def permutation(self) -> np.ndarray:
-        """(n,) int64: row-major pixel index of each matrix index."""
+    def pixel_permutation(self) -> np.ndarray:
+        """(H W,) int64: row-major pixel index of each pixel number."""
         H, W = self.image_shape
         if self.order == "row-major":
             return np.arange(H * W, dtype=np.int64)
@@ -74,6 +98,15 @@ class PixelOrder:
         # Sort pixels by (tile row, tile col, row in tile, col in tile).
         key = np.lexsort((cols % tw, rows % th, cols // tw, rows // th))
         return key.astype(np.int64)
+
+    @cached_property
+    def permutation(self) -> np.ndarray:
+        """(n,) int64: row-major value index (of the raveled (H, W) or (H, W, C)
+        image) of each matrix index."""
+        if self.channels == 1:
+            return self.pixel_permutation
+        c = self.channels  # 3 p + k <- 3 perm[p] + k: a pixel's channels stay adjacent
+        return (c * self.pixel_permutation[:, None] + np.arange(c)).ravel()
 
     @cached_property
     def inverse_permutation(self) -> np.ndarray:
@@ -87,18 +120,21 @@ class PixelOrder:
 
         Parameters
         ----------
-        images : ndarray, shape (H, W) or (K, H, W)
+        images : ndarray, shape ``frame_shape`` or (K, *frame_shape)
+            (H, W) / (K, H, W) grey, (H, W, 3) / (K, H, W, 3) colour.
 
         Returns
         -------
         ndarray, shape (n,) or (n, K)
         """
         images = np.asarray(images)
-        H, W = self.image_shape
-        if images.shape[-2:] != (H, W) or images.ndim not in (2, 3):
-            raise ImageError(f"image of shape {images.shape} does not match the matrix's image shape {(H, W)}")
-        flat = images.reshape(-1, H * W)[:, self.permutation]
-        return flat[0] if images.ndim == 2 else np.ascontiguousarray(flat.T)
+        fs = self.frame_shape
+        single = images.ndim == len(fs)
+        if images.shape[images.ndim - len(fs):] != fs or images.ndim not in (len(fs), len(fs) + 1):
+            raise ImageError(f"image of shape {images.shape} does not match the matrix's "
+                             f"image shape {fs}")
+        flat = images.reshape(-1, self.n)[:, self.permutation]
+        return flat[0] if single else np.ascontiguousarray(flat.T)
 
     def to_images(self, vectors: np.ndarray) -> np.ndarray:
         """Matrix-ordered vectors back to images.
@@ -109,19 +145,23 @@ class PixelOrder:
 
         Returns
         -------
-        ndarray, shape (H, W) or (K, H, W)
+        ndarray, shape ``frame_shape`` or (K, *frame_shape)
         """
         vectors = np.asarray(vectors)
         if vectors.shape[0] != self.n or vectors.ndim not in (1, 2):
             raise ShapeMismatchError(f"vectors of shape {vectors.shape} do not have n = {self.n} rows")
         cols = vectors.reshape(self.n, -1).T
-        images = cols[:, self.inverse_permutation].reshape(-1, *self.image_shape)
+        images = cols[:, self.inverse_permutation].reshape(-1, *self.frame_shape)
         return images[0] if vectors.ndim == 1 else images
 
     def to_attrs(self) -> dict:
-        """JSON-serialisable description stored in the zarr attributes."""
-        return {"image_shape": list(self.image_shape), "pixel_order": self.order,
-                "image_tile": list(self.image_tile)}
+        """JSON-serialisable description stored in the zarr attributes (``channels``
+        only for colour, so a grey store's attributes are as they always were)."""
+        out = {"image_shape": list(self.image_shape), "pixel_order": self.order,
+               "image_tile": list(self.image_tile)}
+        if self.channels != 1:
+            out["channels"] = self.channels
+        return out
 
     @classmethod
     def from_attrs(cls, attrs: dict) -> "PixelOrder | None":
@@ -139,7 +179,8 @@ class PixelOrder:
         if not isinstance(order, str) or order not in PIXEL_ORDERS:
             raise ShapeMismatchError(f"pixel_order must be one of {PIXEL_ORDERS}, got {order!r:.60}")
         return cls(_int_pair(attrs["image_shape"], "image_shape"), order,
-                   _int_pair(attrs.get("image_tile") or list(DEFAULT_IMAGE_TILE), "image_tile"))
+                   _int_pair(attrs.get("image_tile") or list(DEFAULT_IMAGE_TILE), "image_tile"),
+                   attrs.get("channels", 1))
 
 
 def _int_pair(value, name: str) -> tuple[int, int]:

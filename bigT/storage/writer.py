@@ -368,6 +368,25 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
     return open_store(path)
 
 
+def default_tile_size(channels: int = 1) -> int:
+    """The tile size a store of ``channels`` values per pixel gets when none is asked for."""
+    return config.DEFAULT_TILE_SIZE if channels == 1 else config.DEFAULT_COLOUR_TILE_SIZE
+
+
+def checked_tile_size(tile_size, channels: int, path) -> int:
+    """``tile_size`` (the default for ``channels`` when None) once it is >= 1 and, for a
+    colour store, a multiple of 3 (a pixel's 3x3 block within one tile);
+    ShapeMismatchError naming ``path`` otherwise."""
+    tile_size = int(default_tile_size(channels) if tile_size is None else tile_size)
+    if tile_size < 1:
+        raise ShapeMismatchError(f"tile_size must be >= 1, got {tile_size}", path)
+    if tile_size % channels:
+        raise ShapeMismatchError(f"tile_size {tile_size} is not a multiple of {channels}: a "
+                                 f"colour store keeps each pixel's {channels} channels in one "
+                                 f"tile (e.g. {channels * max(1, tile_size // channels)})", path)
+    return tile_size
+
+
 class BlockCSRWriter:
     """Write a block-CSR store tile row by tile row.
 
@@ -408,16 +427,14 @@ class BlockCSRWriter:
             raise ShapeMismatchError(f"shape must be (n_rows, n_cols), got {shape!r}", self.path) from None
         if len(shape) != 2 or min(shape) < 0:
             raise ShapeMismatchError(f"shape must be (n_rows, n_cols) >= 0, got {shape}", self.path)
-        tile_size = int(config.DEFAULT_TILE_SIZE if tile_size is None else tile_size)
-        if tile_size < 1:
-            raise ShapeMismatchError(f"tile_size must be >= 1, got {tile_size}", self.path)
+        if pixel_order is not None and not isinstance(pixel_order, PixelOrder):
+            raise TypeError("pixel_order must be a PixelOrder or None")
+        channels = 1 if pixel_order is None else pixel_order.channels
+        tile_size = checked_tile_size(tile_size, channels, self.path)
         dt = _check_dtype(dtype, self.path)
-        if pixel_order is not None:
-            if not isinstance(pixel_order, PixelOrder):
-                raise TypeError("pixel_order must be a PixelOrder or None")
-            if shape != (pixel_order.n, pixel_order.n):
-                raise ShapeMismatchError(f"image shape {pixel_order.image_shape} has {pixel_order.n} "
-                                         f"pixels, the matrix is {shape}", self.path)
+        if pixel_order is not None and shape != (pixel_order.n, pixel_order.n):
+            raise ShapeMismatchError(f"image shape {pixel_order.frame_shape} has {pixel_order.n} "
+                                     f"values, the matrix is {shape}", self.path)
         self.zstd_level = zstd_level
         attrs = StoreAttrs(shape, tile_size, dt, metadata=metadata or {},
                            pixel_order=pixel_order)
@@ -553,7 +570,7 @@ def _as_checked_csr(A, path, require_square: bool) -> sp.csr_array:
 def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape=None,
                pixel_order: str = "row-major", image_tile=None, input_order: str = "row-major",
                metadata: dict | None = None, overwrite: bool = False,
-               require_square: bool = False) -> BlockCSR:
+               require_square: bool = False, channels: int = 1) -> BlockCSR:
     """Store a scipy sparse matrix (or 2-D ndarray) as a bigT block-CSR store.
 
     The store is written to a temporary sibling directory and moved into place only
@@ -564,12 +581,13 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     A : scipy sparse matrix/array or ndarray, shape (n_rows, n_cols)
     path : str or os.PathLike
     tile_size : int, optional
-        Default ``config.DEFAULT_TILE_SIZE``.
+        Default ``config.DEFAULT_TILE_SIZE`` (``config.DEFAULT_COLOUR_TILE_SIZE`` for
+        colour); a multiple of 3 for colour.
     dtype : {"float32", "float64"}, optional
         Default: A's own float dtype (float32 for integer or boolean values), so float64
         is never rounded unless asked for.
     image_shape : (H, W), optional
-        The matrix maps H x W images (then it must be square with n = H W).
+        The matrix maps H x W images (then it must be square with n = H W channels).
     pixel_order : {"row-major", "tile-major"}
         Pixel order of the store.
     image_tile : (th, tw), optional
@@ -582,6 +600,9 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
         Replace an existing bigT store at ``path``.
     require_square : bool
         Raise NotSquareError for a non-square A.
+    channels : {1, 3}
+        3 for a colour transport: index 3 p + c (docs/FORMAT.md, "Colour"); needs
+        ``image_shape``.
 
     Returns
     -------
@@ -597,12 +618,16 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     po = None
     if image_shape is not None:
         kw = {} if image_tile is None else {"image_tile": tuple(image_tile)}
-        po = PixelOrder(tuple(image_shape), pixel_order, **kw)
+        po = PixelOrder(tuple(image_shape), pixel_order, channels=channels, **kw)
         if A.shape != (po.n, po.n):
-            raise ShapeMismatchError(f"image shape {po.image_shape} has {po.n} pixels, the matrix "
-                                     f"is {A.shape}", path)
+            raise ShapeMismatchError(f"image shape {po.frame_shape} has {po.n} values, the "
+                                     f"matrix is {A.shape}", path)
     elif pixel_order != "row-major":
         raise ShapeMismatchError(f"pixel_order {pixel_order!r} needs image_shape", path)
+    elif channels != 1:
+        raise ShapeMismatchError(f"a colour matrix (channels={channels}) needs image_shape",
+                                 path)
+    tile_size = checked_tile_size(tile_size, channels, path)
     check_replaceable(path, overwrite)
 
     with np.errstate(over="ignore"):

@@ -105,10 +105,10 @@ def stores(tmp_path_factory):
     from bigT import scenes
 
     tmp = tmp_path_factory.mktemp("format")
-    A = sp.random(48, 48, density=0.1, random_state=0, format="csr") + sp.eye(48)
-    plain = tmp / "plain.zarr"
-    bigT.from_scipy(A, plain, tile_size=16, image_shape=(6, 8), pixel_order="tile-major",
-                    image_tile=(2, 4), metadata={"note": "free JSON"})
+    A = sp.random(144, 144, density=0.05, random_state=0, format="csr") + sp.eye(144)
+    plain = tmp / "plain.zarr"  # a colour one: it writes every key a plain store can have
+    bigT.from_scipy(A, plain, tile_size=48, image_shape=(6, 8), pixel_order="tile-major",
+                    image_tile=(2, 4), metadata={"note": "free JSON"}, channels=3)
     scene = tmp / "T.zarr"
     scenes.corner(size=(4, 6), path=scene, preview=False)
     inverse = tmp / "X.zarr"
