@@ -44,12 +44,13 @@ class ColourMetrics:
     relative_error : float
         ||seen - desired|| / ||desired|| over every value (nan when desired is 0).
     psnr_db : float
-        Peak signal-to-noise ratio in dB, data range 1 (inf for identical images).
+        Peak signal-to-noise ratio in dB, data range 1, of the mean squared error over
+        every value (of every frame of a batch); inf for identical images.
     ssim : float or None
         Structural similarity in [-1, 1], mean over the frames (None for images smaller
         than 3 x 3, where it has no window).
     delta_e_mean : float
-        CIEDE2000 ΔE, mean over pixels.
+        CIEDE2000 ΔE, mean over pixels (of every frame of a batch).
     delta_e_p95 : float
         Its 95th percentile (:data:`DELTA_E_PERCENTILE`).
     """
