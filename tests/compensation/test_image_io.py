@@ -9,6 +9,8 @@ from bigT.errors import ImageError
 from bigT.images import (ImageSink, ImageSource, check_image, list_frames, read_image,
                          write_image)
 
+from comp_helpers import make_store, random_transport
+
 
 @pytest.fixture
 def img():
@@ -74,12 +76,16 @@ def test_folder_batches_sorted(tmp_path, img):
                                read_image(tmp_path / "in" / "f11.png"), atol=0.5 / 255 + 1e-12)
 
 
-def test_colour_refused_naming_file_and_channels(tmp_path):
+def test_colour_refused_by_a_grey_transport_naming_file_and_channels(tmp_path):
+    """A grey transport (channels=1, what ImageSource assumes when not told) refuses a
+    colour image; read_image without channels= reads it (tests/test_colour_images.py)."""
     import imageio.v3 as iio
 
     iio.imwrite(tmp_path / "rgb.png", np.zeros((4, 5, 3), np.uint8))
-    with pytest.raises(ImageError, match=r"rgb\.png.*3 channels"):
-        read_image(tmp_path / "rgb.png")
+    with pytest.raises(ImageError, match=r"rgb\.png.*3 channels.*grey transport"):
+        read_image(tmp_path / "rgb.png", channels=1)
+    with pytest.raises(ImageError, match=r"rgb\.png.*3 channels.*grey transport"):
+        ImageSource(tmp_path / "rgb.png").read_all()
     np.save(tmp_path / "one.npy", np.zeros((4, 5, 1)))
     assert read_image(tmp_path / "one.npy").shape == (4, 5)
 
@@ -111,3 +117,21 @@ def test_unknown_and_missing(tmp_path):
         ImageSource(tmp_path / "empty")
     with pytest.raises(ImageError, match="pixel type"):
         check_image(np.zeros((2, 2), np.complex64))
+
+
+def test_compensate_writes_nothing_for_a_folder_with_one_colour_frame(tmp_path, capsys):
+    """A grey X and a folder whose last frame is colour: refused, naming the frame, from
+    the frames' headers before the first projector image is written."""
+    from bigT.cli import main
+
+    H, W = 6, 8
+    _, X, _, _ = random_transport(H, W, seed=5)
+    make_store(X, tmp_path / "X.zarr", image_shape=(H, W), tile_size=16)
+    for i in range(3):
+        write_image(tmp_path / "in" / f"f{i}.png", np.full((H, W), 0.3))
+    write_image(tmp_path / "in" / "f9.png", np.full((H, W, 3), 0.3))
+    assert main(["compensate", str(tmp_path / "X.zarr"), str(tmp_path / "in"), "-o",
+                 str(tmp_path / "out"), "--batch", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "f9.png: colour image (6, 8, 3)" in err, err
+    assert not (tmp_path / "out").exists()
