@@ -1,7 +1,8 @@
-"""Grayscale image I/O for compensation, relighting and bounce separation.
+"""Image I/O for compensation, relighting and bounce separation: grey and RGB.
 
 Every image is handled as a float64 array of values in [0, 1] (more where a simulated
-camera image exceeds 1):
+camera image exceeds 1), of shape (H, W) for a grey image and (H, W, 3) for a colour
+one (R, G, B):
 
 =========================  =====================  ===================================
 format                     read                   write
@@ -13,30 +14,38 @@ TIFF (``.tif``/``.tiff``)  uint8/uint16 scaled,   float32, unclipped
 ``.npy``                   floats as they are     float32, unclipped
 =========================  =====================  ===================================
 
-A *folder* of such files (sorted by name, other files ignored) is a batch of frames.
+the same for grey and colour. These are the file's values, in its own encoding:
+:mod:`bigT.colour` names the encoding (an 8-bit colour image is sRGB-encoded unless the
+user says otherwise, :func:`image_encoding`) and turns values into linear light and
+back. A 16-bit colour PNG is read and written through imageio-ffmpeg's ffmpeg, because
+Pillow reads one as 8 bits without a word.
 
-Colour: the transport is grayscale, as in the paper (§6.1), so a colour image is refused
-with an :class:`~bigT.errors.ImageError` that names the file and its channel count; an
-(H, W, 1) image is accepted as (H, W). Convert colour frames to grayscale (or split the
-channels into three frames and process them as a batch) before calling bigT.
+Colour: a transport has 1 (grey) or 3 (RGB) channels, and an image given to it must
+have as many (``channels=``): a grey image given to a colour transport, or a colour image
+to a grey one, is an :class:`~bigT.errors.ImageError` naming the file, what it holds
+and what to do. An (H, W, 1) image is grey; an alpha channel (grey + alpha, RGBA) is
+dropped when the image is fully opaque, and refused otherwise (bigT does not guess the
+background a transparent pixel shows).
 
 NaN or Inf values, and a size that does not match the transport's image shape, are
 :class:`~bigT.errors.ImageError` s naming the file. A file's header is read before its
-pixels: one declaring more values than an image of the transport's shape can hold (or,
-where no shape is known, more than :data:`bigT.config.IMAGE_MAX_VALUES`) is refused
-before anything is decoded, so a small forged file never costs gigabytes.
+pixels: one declaring more values than an image of the transport's shape can hold (H W
+x :data:`MAX_CHANNELS`, RGBA; or, where no shape is known, more than
+:data:`bigT.config.IMAGE_MAX_VALUES`) is refused before anything is decoded, so a small
+forged file never costs gigabytes.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
 import warnings
 from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
 
-from . import config
+from . import colour, config
 from .atomic import atomic_output, refuse_overwriting_inputs
 from .errors import ImageError, short_reason
 
@@ -44,9 +53,11 @@ from .errors import ImageError, short_reason
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 #: Bit depth of PNG files written when none is asked for.
 DEFAULT_PNG_BITS = 16
-#: Most channels a readable image may have per pixel (RGBA): an image of the transport's
-#: (H, W) holds at most this many values per pixel before it is refused as colour.
+#: Most channels a readable image may have per pixel (RGBA): an image file of the
+#: transport's (H, W) declaring more values than H W x this is refused from its header.
 MAX_CHANNELS = 4
+#: Channels of a transport and of the images it takes: grey or RGB.
+TRANSPORT_CHANNELS = (1, 3)
 
 
 def is_image_file(path: str | os.PathLike) -> bool:
@@ -93,39 +104,96 @@ def _to_unit(raw: np.ndarray, path) -> np.ndarray:
     raise ImageError(f"unsupported pixel type {raw.dtype} (use 8/16-bit integers or floats)", path)
 
 
-def check_image(image: np.ndarray, path="<array>", shape: Sequence[int] | None = None) -> np.ndarray:
-    """Validate one grayscale image already in memory.
+def check_image(image: np.ndarray, path="<array>", shape: Sequence[int] | None = None,
+                channels: int | None = None) -> np.ndarray:
+    """Validate one image already in memory.
 
     Parameters
     ----------
-    image : ndarray, shape (H, W) or (H, W, 1)
+    image : ndarray, shape (H, W), (H, W, 1), (H, W, 3), or with an alpha channel
+        (H, W, 2) or (H, W, 4), which must be fully opaque and is dropped.
     path : str
         Name used in error messages.
     shape : (int, int), optional
         The (H, W) the image must have.
+    channels : {1, 3}, optional
+        The transport's channels, which the image must have (any, when None).
 
     Returns
     -------
-    ndarray, shape (H, W), float64
+    ndarray, shape (H, W) (grey) or (H, W, 3) (colour), float64
     """
-    image = np.asarray(image)
+    image = _without_alpha(np.asarray(image), path)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
-    if image.ndim == 3:
-        raise ImageError(
-            f"image with {image.shape[2]} channels (colour or alpha); bigT's transport is "
-            "grayscale: convert it to one channel first", path)
-    if image.ndim != 2:
-        raise ImageError(f"expected a 2-D grayscale image, got an array of shape {image.shape}", path)
+    if image.ndim == 3 and image.shape[2] != 3:
+        raise ImageError(f"image with {image.shape[2]} channels; bigT reads grey (1 channel) "
+                         "or RGB (3 channels) images", path)
+    if image.ndim not in (2, 3):
+        raise ImageError(f"expected a grey image (H, W) or a colour image (H, W, 3), got an "
+                         f"array of shape {image.shape}", path)
+    if channels is not None:
+        check_channels(image.shape, channels, path)
     image = _to_unit(image, path)
     if not np.isfinite(image).all():
         bad = int(np.size(image) - np.count_nonzero(np.isfinite(image)))
-        raise ImageError(f"{bad} pixel(s) are NaN or Inf", path)
-    if shape is not None and tuple(image.shape) != tuple(shape):
+        raise ImageError(f"{bad} value(s) are NaN or Inf" if image.ndim == 3
+                         else f"{bad} pixel(s) are NaN or Inf", path)
+    if shape is not None and tuple(image.shape[:2]) != tuple(shape):
         raise ImageError(
-            f"image of shape {tuple(image.shape)} does not match the transport's image shape "
-            f"{tuple(shape)}", path)
+            f"image of shape {tuple(image.shape[:2])} does not match the transport's image "
+            f"shape {tuple(shape)}", path)
     return image
+
+
+def image_channels(image_shape: Sequence[int]) -> int:
+    """1 for an (H, W) image, the last axis for an (H, W, C) one."""
+    return 1 if len(image_shape) == 2 else int(image_shape[2])
+
+
+def check_channels(image_shape: Sequence[int], channels: int, path="<array>") -> None:
+    """Refuse an image of shape ``image_shape`` ((H, W) or (H, W, 3)) given to a
+    transport of ``channels`` (1 or 3), in one line saying what to do.
+
+    Raises
+    ------
+    ImageError
+        A grey image given to a colour transport, or the reverse; ``channels`` not 1 or 3.
+    """
+    if channels not in TRANSPORT_CHANNELS:
+        raise ImageError(f"a transport has 1 (grey) or 3 (RGB) channels, not {channels!r}", path)
+    found = image_channels(image_shape)
+    if found == channels:
+        return
+    size = tuple(int(s) for s in image_shape[:2])
+    if channels == 3:
+        raise ImageError(
+            f"grey image {size} given to a colour transport (3 channels): give an RGB image "
+            f"of shape {(*size, 3)}, or use a grey transport", path)
+    raise ImageError(
+        f"colour image {(*size, found)} ({found} channels) given to a grey transport "
+        "(1 channel): convert it to grey, or use a colour transport", path)
+
+
+def _without_alpha(image: np.ndarray, path) -> np.ndarray:
+    """``image`` without its alpha channel ((H, W, 2): grey + alpha, (H, W, 4): RGBA)
+    when every pixel is opaque; other arrays as they are.
+
+    Raises
+    ------
+    ImageError
+        Some pixel is not fully opaque.
+    """
+    if image.ndim != 3 or image.shape[2] not in (2, 4):
+        return image
+    alpha = image[:, :, -1]
+    opaque = (np.iinfo(image.dtype).max if np.issubdtype(image.dtype, np.integer)
+              else True if image.dtype == np.bool_ else 1.0)
+    see_through = int(np.count_nonzero(alpha != opaque))
+    if see_through:
+        raise ImageError(f"image with transparency ({see_through} pixel(s) not fully opaque); "
+                         "bigT reads grey or RGB: flatten it onto its background first", path)
+    return image[:, :, :-1]
 
 
 def declared_shape(path: str | os.PathLike) -> tuple[int, ...] | None:
@@ -152,18 +220,32 @@ def declared_shape(path: str | os.PathLike) -> tuple[int, ...] | None:
     except FileNotFoundError:
         raise ImageError("no such file", path) from None
     except Exception:  # not a parsable header: the decoder reports it
-        return None
+        return _tiff_shape(path) if suffix in (".tif", ".tiff") else None
     return (H, W) if channels == 1 else (H, W, channels)
+
+
+def _tiff_shape(path: Path) -> tuple[int, ...] | None:
+    """The shape in a TIFF's header by tifffile, which reads the sample layouts Pillow
+    cannot (an RGB image of floats), from its tags only."""
+    try:
+        return tuple(int(d) for d in _iio_call("improps", path).shape)
+    except Exception:  # not a parsable header: the decoder reports it
+        return None
 
 
 def _npy_shape(path: Path) -> tuple[int, ...]:
     """The shape in a ``.npy`` header (whatever the file's length: a short file that
     declares a huge array must not be allocated by np.load before it fails)."""
+    return tuple(int(d) for d in _npy_header(path)[0])
+
+
+def _npy_header(path: Path) -> tuple:
+    """A ``.npy`` header: (shape, fortran_order, dtype)."""
     with open(path, "rb") as f:
         version = np.lib.format.read_magic(f)
         read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                 else np.lib.format.read_array_header_2_0)
-        return tuple(int(d) for d in read(f)[0])
+        return read(f)
 
 
 def check_declared_size(path: str | os.PathLike, shape: Sequence[int] | None = None) -> None:
@@ -197,20 +279,25 @@ def check_declared_size(path: str | os.PathLike, shape: Sequence[int] | None = N
             "refused before decoding it", path)
 
 
-def read_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> np.ndarray:
-    """Read one grayscale image as floats in [0, 1].
+def read_image(path: str | os.PathLike, shape: Sequence[int] | None = None,
+               channels: int | None = None) -> np.ndarray:
+    """Read one image as floats in [0, 1], in the file's own encoding (see
+    :func:`image_encoding` and :func:`bigT.colour.decode` for linear light).
 
     Parameters
     ----------
     path : path to a ``.png``, ``.tif``/``.tiff`` or ``.npy`` file.
     shape : (int, int), optional
         The (H, W) the image must have (the store's image shape).
+    channels : {1, 3}, optional
+        The transport's channels: a grey image where 3 are needed, or a colour one
+        where 1 is, is refused (:func:`check_channels`). Any, when None.
 
     Returns
     -------
-    ndarray, shape (H, W), float64
+    ndarray, shape (H, W) (grey) or (H, W, 3) (colour), float64
     """
-    return check_image(read_raw_image(path, shape), path, shape)
+    return check_image(read_raw_image(path, shape), path, shape, channels)
 
 
 def read_raw_image(path: str | os.PathLike, shape: Sequence[int] | None = None) -> np.ndarray:
@@ -226,6 +313,8 @@ def read_raw_image(path: str | os.PathLike, shape: Sequence[int] | None = None) 
     try:
         if suffix == ".npy":
             return np.load(path, allow_pickle=False)
+        if _deep_colour_png(path):
+            return _read_deep_colour_png(path)
         return _iio_call("imread", path)
     except FileNotFoundError:
         raise ImageError("no such file", path) from None
@@ -234,19 +323,21 @@ def read_raw_image(path: str | os.PathLike, shape: Sequence[int] | None = None) 
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None = None) -> Path:
-    """Write one grayscale image; the format follows the suffix (see the module table).
+    """Write one grey or RGB image; the format follows the suffix (see the module table).
 
     Parameters
     ----------
     path : destination; its folder is created when missing.
-    image : ndarray, shape (H, W), float
+    image : ndarray, shape (H, W) (grey) or (H, W, 3) (RGB), float
+        Values in the encoding the file is to hold (:func:`bigT.colour.encode`).
     bits : {8, 16}, optional
         PNG bit depth (default :data:`DEFAULT_PNG_BITS`); ignored for other formats.
     """
     path = Path(path)
     image = np.asarray(image, dtype=np.float64)
-    if image.ndim != 2:
-        raise ImageError(f"write_image takes one (H, W) image, got shape {image.shape}", path)
+    if not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
+        raise ImageError("write_image takes one grey (H, W) or RGB (H, W, 3) image, got "
+                         f"shape {image.shape}", path)
     suffix = path.suffix.lower()
     if suffix == ".npy":
         pixels = image.astype(np.float32)
@@ -265,9 +356,64 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None 
         if suffix == ".npy":
             with open(tmp, "wb") as f:  # given a name, numpy appends ".npy" to ".NPY"
                 np.save(f, pixels)
+        elif suffix == ".png" and pixels.ndim == 3 and pixels.dtype == np.uint16:
+            Path(tmp).write_bytes(_deep_colour_png_bytes(pixels, path))
         else:
             _iio_call("imwrite", tmp, pixels)
     return path
+
+
+#: PNG colour types (the IHDR's) with more than one sample per pixel, and the ffmpeg
+#: pixel format that keeps all 16 bits of each: grey + alpha, RGB, RGBA.
+_DEEP_PNG_FORMATS = {4: ("ya16le", 2), 2: ("rgb48le", 3), 6: ("rgba64le", 4)}
+
+
+def _png_header(path: Path) -> tuple[int, int] | None:
+    """(bit depth, colour type) of a PNG's IHDR, None when the file has none."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return head[24], head[25]
+
+
+def _deep_colour_png(path: Path) -> bool:
+    """A PNG of 16 bits per sample and more than one sample per pixel: Pillow reads
+    those as 8 bits (silently), so ffmpeg reads them."""
+    header = _png_header(path) if path.suffix.lower() == ".png" else None
+    return header is not None and header[0] == 16 and header[1] in _DEEP_PNG_FORMATS
+
+
+def _ffmpeg(args: list[str], path, stdin: bytes | None = None) -> bytes:
+    """ffmpeg's stdout for ``args``; its complaint as a one-line ImageError otherwise."""
+    import imageio_ffmpeg  # locates its ffmpeg binary: only for a 16-bit colour PNG
+
+    run = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", *args],
+                         input=stdin, capture_output=True)
+    if run.returncode != 0:
+        why = " ".join(run.stderr.decode("utf-8", "replace").split())[-200:]
+        raise ImageError(f"ffmpeg cannot convert the 16-bit PNG ({why or run.returncode})", path)
+    return run.stdout
+
+
+def _read_deep_colour_png(path: Path) -> np.ndarray:
+    """A 16-bit grey + alpha, RGB or RGBA PNG, all its bits: (H, W, C) uint16."""
+    pix_fmt, samples = _DEEP_PNG_FORMATS[_png_header(path)[1]]
+    H, W = declared_shape(path)[:2]
+    raw = _ffmpeg(["-i", os.fspath(path), "-frames:v", "1", "-f", "rawvideo",
+                   "-pix_fmt", pix_fmt, "-"], path)
+    if len(raw) != H * W * samples * 2:
+        raise ImageError(f"ffmpeg decoded {len(raw)} bytes, not the {H}x{W} image the "
+                         "header declares", path)
+    return np.frombuffer(raw, "<u2").reshape(H, W, samples).astype(np.uint16)
+
+
+def _deep_colour_png_bytes(pixels: np.ndarray, path) -> bytes:
+    """The PNG file of an (H, W, 3) uint16 image (Pillow cannot write one)."""
+    H, W, _ = pixels.shape
+    return _ffmpeg(["-f", "rawvideo", "-pix_fmt", "rgb48le", "-s", f"{W}x{H}", "-i", "-",
+                    "-frames:v", "1", "-c:v", "png", "-pix_fmt", "rgb48be", "-f", "image2pipe",
+                    "-"], path, stdin=pixels.astype("<u2").tobytes())
 
 
 def png_bits(path: str | os.PathLike) -> int | None:
@@ -275,9 +421,43 @@ def png_bits(path: str | os.PathLike) -> int | None:
     path = Path(path)
     if path.suffix.lower() != ".png":
         return None
+    if _deep_colour_png(path):  # Pillow would say 8
+        return 16
     import imageio.v3 as iio  # ~0.2 s, only when a file is read
 
     return 8 if iio.improps(path).dtype == np.uint8 else 16
+
+
+def stored_type(path: str | os.PathLike) -> np.dtype | None:
+    """The pixel type an image file stores (uint8, uint16, a float type...), read from
+    its header; None when the header cannot be parsed."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return np.dtype(_npy_header(path)[2])
+        if suffix == ".png":
+            return np.dtype(np.uint8 if png_bits(path) == 8 else np.uint16)
+        return np.dtype(_iio_call("improps", path).dtype)
+    except FileNotFoundError:
+        raise ImageError("no such file", path) from None
+    except Exception:  # not a parsable header: the decoder reports it
+        return None
+
+
+def image_encoding(path: str | os.PathLike, channels: int, requested: str | None = None) -> str:
+    """The encoding of the image file ``path`` (:func:`bigT.colour.default_encoding`:
+    ``requested`` when given, sRGB for an 8-bit colour file, else linear).
+
+    Parameters
+    ----------
+    path : an image file.
+    channels : {1, 3}, the image's channels.
+    requested : one of :data:`bigT.colour.ENCODINGS`, optional (``--encoding``).
+    """
+    if requested is not None:
+        return colour.check_encoding(requested)
+    return colour.default_encoding(stored_type(path), channels)
 
 
 class ImageSource:
@@ -288,16 +468,24 @@ class ImageSource:
     path : an image file or a folder of image files.
     shape : (int, int), optional
         The (H, W) every frame must have.
+    channels : {1, 3}
+        The transport's channels, which every frame must have (grey by default, as
+        bigT's transports were before colour).
 
     Attributes
     ----------
     files : list of Path, the frames in order.
     is_folder : bool
+    frame_shape : (H, W) or (H, W, 3) when ``shape`` is known, else None.
     """
 
-    def __init__(self, path: str | os.PathLike, shape: Sequence[int] | None = None):
+    def __init__(self, path: str | os.PathLike, shape: Sequence[int] | None = None,
+                 channels: int = 1):
         self.path = Path(path)
         self.shape = None if shape is None else tuple(int(s) for s in shape)
+        if channels not in TRANSPORT_CHANNELS:
+            raise ImageError(f"a transport has 1 (grey) or 3 (RGB) channels, not {channels!r}")
+        self.channels = int(channels)
         if self.path.is_dir():
             self.is_folder = True
             self.files = list_frames(self.path)
@@ -313,16 +501,27 @@ class ImageSource:
     def __len__(self) -> int:
         return len(self.files)
 
+    @property
+    def frame_shape(self) -> tuple[int, ...] | None:
+        if self.shape is None:
+            return None
+        return self.shape if self.channels == 1 else (*self.shape, self.channels)
+
+    def read(self, file: Path) -> np.ndarray:
+        """One frame: (H, W) or (H, W, 3), float64, checked against shape and channels."""
+        return read_image(file, self.shape, self.channels)
+
     def batches(self, size: int) -> Iterator[tuple[list[Path], np.ndarray]]:
-        """Yield (files, frames) with frames of shape (k, H, W), float64, k <= size."""
+        """Yield (files, frames) with frames of shape (k, H, W) (grey) or (k, H, W, 3)
+        (colour), float64, k <= size."""
         size = max(1, int(size))
         for start in range(0, len(self.files), size):
             files = self.files[start:start + size]
-            yield files, np.stack([read_image(f, self.shape) for f in files])
+            yield files, np.stack([self.read(f) for f in files])
 
     def read_all(self) -> np.ndarray:
-        """All frames, shape (K, H, W)."""
-        return np.stack([read_image(f, self.shape) for f in self.files])
+        """All frames, shape (K, H, W) or (K, H, W, 3)."""
+        return np.stack([self.read(f) for f in self.files])
 
 
 class ImageSink:
@@ -342,6 +541,11 @@ class ImageSink:
         The other inputs of the command (stores, files), which no file written may
         destroy, as none may destroy the source (OutputError, before anything is
         written).
+
+    Attributes
+    ----------
+    channels : {1, 3}
+        The source's: each frame written is (H, W) or (H, W, 3) accordingly.
     """
 
     def __init__(self, path: str | os.PathLike, source: ImageSource, *, suffix: str | None = None,
@@ -350,6 +554,7 @@ class ImageSink:
         self.source = source
         self.suffix = suffix
         self.bits = bits
+        self.channels = int(getattr(source, "channels", 1))
         if source.is_folder:
             if self.path.exists() and not self.path.is_dir():
                 raise ImageError("the input is a folder, so the output must be a folder too", self.path)
@@ -373,6 +578,8 @@ class ImageSink:
         return dest.with_suffix(self.suffix) if self.suffix else dest
 
     def write(self, files: Sequence[Path], frames: np.ndarray) -> list[Path]:
+        """Write each frame (shape (k, H, W), or (k, H, W, 3) for a colour sink) where
+        its input frame's name says (:meth:`target`); returns the paths written."""
         out = []
         for src, frame in zip(files, frames):
             bits = self.bits if self.bits is not None else png_bits(src)

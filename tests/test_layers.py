@@ -22,8 +22,8 @@ LAYERS = [
     {"errors"},
     # the package root re-exports the API lazily (importlib, at first use): statically
     # it imports only errors, and the CLI reads its __version__
-    {"config", "atomic", "sizes", "progress", "__init__"},
-    {"images", "figures", "kernels"},
+    {"config", "atomic", "sizes", "progress", "colour", "__init__"},
+    {"images", "metrics", "figures", "kernels"},
     {"storage"},
     {"schedule", "spectral"},
     {"algorithms", "scenes"},

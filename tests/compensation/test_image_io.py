@@ -74,12 +74,16 @@ def test_folder_batches_sorted(tmp_path, img):
                                read_image(tmp_path / "in" / "f11.png"), atol=0.5 / 255 + 1e-12)
 
 
-def test_colour_refused_naming_file_and_channels(tmp_path):
+def test_colour_refused_by_a_grey_transport_naming_file_and_channels(tmp_path):
+    """A grey transport (channels=1, what ImageSource assumes when not told) refuses a
+    colour image; read_image without channels= reads it (tests/test_colour_images.py)."""
     import imageio.v3 as iio
 
     iio.imwrite(tmp_path / "rgb.png", np.zeros((4, 5, 3), np.uint8))
-    with pytest.raises(ImageError, match=r"rgb\.png.*3 channels"):
-        read_image(tmp_path / "rgb.png")
+    with pytest.raises(ImageError, match=r"rgb\.png.*3 channels.*grey transport"):
+        read_image(tmp_path / "rgb.png", channels=1)
+    with pytest.raises(ImageError, match=r"rgb\.png.*3 channels.*grey transport"):
+        ImageSource(tmp_path / "rgb.png").read_all()
     np.save(tmp_path / "one.npy", np.zeros((4, 5, 1)))
     assert read_image(tmp_path / "one.npy").shape == (4, 5)
 
