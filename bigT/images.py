@@ -461,7 +461,9 @@ def image_encoding(path: str | os.PathLike, channels: int, requested: str | None
 
 
 class ImageSource:
-    """One image file or a folder of frames, read in batches.
+    """One image file or a folder of frames, read in batches. A folder's frames are
+    checked from their headers when the source is made (size and channels), so a
+    folder with one bad frame is refused before any output is written.
 
     Parameters
     ----------
@@ -497,6 +499,22 @@ class ImageSource:
             self.files = [self.path]
         else:
             raise ImageError("no such file or folder", self.path)
+        if self.is_folder:
+            self._check_headers()
+
+    def _check_headers(self) -> None:
+        """Each frame's declared shape against the transport's; a frame whose header
+        does not settle it (unparsable, an alpha channel, a palette) is read, which
+        raises the one-line ImageError naming it if it does not fit."""
+        for file in self.files:
+            declared = declared_shape(file)
+            if declared is None or not self._fits(declared):
+                self.read(file)
+
+    def _fits(self, declared: tuple[int, ...]) -> bool:
+        size_fits = self.shape is None or tuple(declared[:2]) == self.shape
+        channels = 1 if declared[2:] in ((), (1,)) else declared[2]
+        return len(declared) in (2, 3) and size_fits and channels == self.channels
 
     def __len__(self) -> int:
         return len(self.files)

@@ -170,6 +170,22 @@ def test_grey_and_colour_folder_batches(tmp_path, rgb):
 
 # --- refusals ---------------------------------------------------------------------------
 
+def test_a_folder_with_one_frame_of_the_other_kind_is_refused_when_opened(tmp_path, rgb):
+    """From the headers, before any frame is read or output written (compensate writes
+    a folder frame by frame)."""
+    for i in range(3):
+        write_image(tmp_path / "grey" / f"f{i}.png", rgb[..., 0])
+        write_image(tmp_path / "colour" / f"f{i}.png", rgb)
+    write_image(tmp_path / "grey" / "f9.png", rgb)
+    write_image(tmp_path / "colour" / "f9.tif", rgb[..., 0])
+    with pytest.raises(ImageError, match=r"f9\.png: colour image .* given to a grey transport"):
+        ImageSource(tmp_path / "grey", (H, W))
+    with pytest.raises(ImageError, match=r"f9\.tif: grey image .* given to a colour transport"):
+        ImageSource(tmp_path / "colour", (H, W), channels=3)
+    with pytest.raises(ImageError, match=r"f9\.tif: grey image"):  # size unknown: channels
+        ImageSource(tmp_path / "colour", channels=3)
+
+
 def _one_line(exc_info) -> str:
     text = str(exc_info.value)
     assert "\n" not in text

@@ -1,24 +1,33 @@
 """Video files in and out of compensation, streamed frame by frame through ffmpeg.
 
 Reading and writing go through ``imageio-ffmpeg`` (imageio's ffmpeg plugin, which
-ships its own ffmpeg binary): one ffmpeg process decodes the input into raw grayscale
-frames on a pipe (``imageio_ffmpeg.read_frames``), another encodes the projector
-frames from a pipe; neither the video nor its frames are ever all in memory.
+ships its own ffmpeg binary): one ffmpeg process decodes the input into raw frames on a
+pipe (``imageio_ffmpeg.read_frames``), another encodes the projector frames from a
+pipe; neither the video nor its frames are ever all in memory.
 
-Grayscale, as for images (:mod:`bigT.images`): a frame is read as its luma (ffmpeg's
-``gray``, or ``gray16le`` for a stream of more than 8 bits), as floats in [0, 1]. A
-video whose first frame has colour (its RGB channels differ by more than
-:data:`COLOUR_TOLERANCE` levels of 255) is refused like a colour image; an RGB stream
-of gray pictures, and the neutral chroma of a YUV stream, are accepted.
+A video is read for a transport of 1 (grey) or 3 (RGB) channels, as images are
+(:mod:`bigT.images`), as floats in [0, 1] in the stream's own encoding
+(:mod:`bigT.colour`: an 8-bit colour stream is sRGB-encoded by default):
+
+* grey (``channels=1``): a frame is read as its luma (ffmpeg's ``gray``, or
+  ``gray16le`` for a stream of more than 8 bits), shape (H, W). A video whose first
+  frame has colour (its RGB channels differ by more than :data:`COLOUR_TOLERANCE` levels
+  of 255) is refused; an RGB stream of grey pictures, and the neutral chroma of a YUV
+  stream, are accepted.
+* colour (``channels=3``): a frame is read as RGB (``rgb24``, or ``rgb48le`` for a
+  stream of more than 8 bits), shape (H, W, 3). A grey stream (a ``gray*`` pixel
+  format) is refused; a colour stream of grey pictures is colour that happens to be
+  neutral, and is accepted.
 
 Writing (whole or nothing, through :func:`bigT.atomic.atomic_output`) is lossless:
 
-==================  =========================================  ==================
-suffix              codec                                      bit depth
-==================  =========================================  ==================
-``.mkv``, ``.avi``  FFV1, gray / gray16le                      8 or 16
-``.mp4``, ``.mov``  H.264 (libx264) at ``-qp 0``, full range   8
-==================  =========================================  ==================
+==================  ==============================================  ===========
+suffix              codec, grey / colour                            bit depth
+==================  ==============================================  ===========
+``.mkv``, ``.avi``  FFV1, gray / gray16le; bgr0 / rgb48le           8 or 16
+``.mp4``, ``.mov``  H.264 at ``-qp 0``: libx264 gray, full range;   8
+                    libx264rgb (RGB planes, no YUV conversion)
+==================  ==============================================  ===========
 
 so a projector frame comes back exactly as it was quantised to 8 (or 16) bits.
 """
@@ -68,6 +77,10 @@ class VideoInfo:
     pix_fmt : str, the stream's pixel format ("yuv420p", "gray"...).
     bits : int, 8 or 16: how the frames are read (and written back by default).
     codec : str
+    channels : int, 1 for a stream of a grey pixel format (``gray``, ``gray16le``...),
+        3 for any other.
+    spread : int, the largest difference between two RGB channels of the first frame,
+        in levels of 255 (at most :data:`COLOUR_TOLERANCE` for grey pictures).
     """
 
     shape: tuple
@@ -76,6 +89,8 @@ class VideoInfo:
     pix_fmt: str
     bits: int
     codec: str
+    channels: int = 1
+    spread: int = 0
 
 
 #: Lines of ffmpeg's log that say nothing about the file: its version banner (version,
@@ -145,14 +160,20 @@ def _deep(pix_fmt: str) -> bool:
     return bool(re.search(r"(16|12|10|14|9)(le|be)\b|p(16|12|10|14|9)|48|64", pix_fmt))
 
 
+def _grey_pix_fmt(pix_fmt: str) -> bool:
+    """A pixel format of one luma plane (with alpha or not): a stream of grey pictures."""
+    return pix_fmt.startswith(("gray", "ya8", "ya16", "mono"))
+
+
 def probe_video(path: str | os.PathLike) -> VideoInfo:
     """Open ``path`` with ffmpeg and return its :class:`VideoInfo` (no frame decoded
-    but the first, for the colour check).
+    but the first, for its colour spread).
 
     Raises
     ------
     ImageError
-        Missing, unreadable, no video stream, or colour.
+        Missing, unreadable, or no video stream (colour is the reader's call:
+        :class:`VideoSource`).
     """
     import imageio_ffmpeg  # locates its ffmpeg binary on import: only for video
 
@@ -174,16 +195,33 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
     rgb = np.frombuffer(first, np.uint8).reshape(H, W, 3).astype(np.int16)
     spread = int(max(np.abs(rgb[..., 0] - rgb[..., 1]).max(),
                      np.abs(rgb[..., 1] - rgb[..., 2]).max()))
-    if spread > COLOUR_TOLERANCE:
-        raise ImageError(f"colour video (channels of the first frame differ by up to {spread} "
-                         "levels); bigT's transport is grayscale: convert it to gray first",
-                         path)
     pix_fmt = str(meta.get("pix_fmt", "")).split("(")[0].strip()
     fps = float(meta.get("fps") or DEFAULT_FPS)
     duration = float(meta.get("duration") or 0.0)
     frames = int(round(duration * fps)) if duration > 0 else None
     return VideoInfo((H, W), fps, frames, pix_fmt, 16 if _deep(pix_fmt) else 8,
-                     str(meta.get("codec", "")).strip(", "))
+                     str(meta.get("codec", "")).strip(", "),
+                     channels=1 if _grey_pix_fmt(pix_fmt) else 3, spread=spread)
+
+
+def check_video_channels(info: VideoInfo, channels: int, path) -> None:
+    """Refuse a colour video given to a grey transport, or a grey one to a colour
+    transport, in one line naming ``path``.
+
+    Raises
+    ------
+    ImageError
+    """
+    if channels not in (1, 3):
+        raise ImageError(f"a transport has 1 (grey) or 3 (RGB) channels, not {channels!r}", path)
+    if channels == 1 and info.spread > COLOUR_TOLERANCE:
+        raise ImageError(f"colour video (channels of the first frame differ by up to "
+                         f"{info.spread} levels) given to a grey transport (1 channel): "
+                         "convert it to grey first, or use a colour transport", path)
+    if channels == 3 and info.channels == 1:
+        raise ImageError(f"grey video (pixel format {info.pix_fmt}) given to a colour "
+                         "transport (3 channels): give a colour video, or use a grey "
+                         "transport", path)
 
 
 class VideoSource:
@@ -194,41 +232,60 @@ class VideoSource:
     path : the video file.
     shape : (H, W), optional, the size every frame must have (checked on the stream's
         header, before any frame is read).
+    channels : {1, 3}
+        The transport's: frames are read grey (H, W) or RGB (H, W, 3); a video of the
+        other kind is refused (:func:`check_video_channels`). Grey by default, as
+        bigT's transports were before colour.
 
     Attributes
     ----------
     info : VideoInfo
+    channels : int
     is_folder : False (a source for :class:`bigT.images.ImageSink` rules)
     """
 
     is_folder = False
 
-    def __init__(self, path: str | os.PathLike, shape: Sequence[int] | None = None):
+    def __init__(self, path: str | os.PathLike, shape: Sequence[int] | None = None,
+                 channels: int = 1):
         self.path = Path(path)
         self.info = probe_video(self.path)
         if shape is not None and tuple(self.info.shape) != tuple(shape):
             raise ImageError(f"frames of shape {self.info.shape} do not match the transport's "
                              f"image shape {tuple(shape)}", self.path)
+        check_video_channels(self.info, channels, self.path)
+        self.channels = int(channels)
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        """(H, W), or (H, W, 3) for colour."""
+        return self.info.shape if self.channels == 1 else (*self.info.shape, 3)
 
     def __len__(self) -> int:
         return self.info.frames or 0
 
     def frames(self) -> Iterator[np.ndarray]:
-        """Yield each frame, shape (H, W), float32 in [0, 1]."""
+        """Yield each frame, shape (H, W) (grey) or (H, W, 3) (colour), float32 in
+        [0, 1]."""
         import imageio_ffmpeg  # finds its ffmpeg binary on import: only for video
 
-        H, W = self.info.shape
         deep = self.info.bits == 16
         dtype, top = (np.uint16, 65535.0) if deep else (np.uint8, 255.0)
-        gen = imageio_ffmpeg.read_frames(str(self.path), pix_fmt="gray16le" if deep else "gray",
-                                         bits_per_pixel=16 if deep else 8)
+        pix_fmt = _RAW_FORMATS[self.channels, 16 if deep else 8]
+        gen = imageio_ffmpeg.read_frames(str(self.path), pix_fmt=pix_fmt,
+                                         bits_per_pixel=self.channels * (16 if deep else 8))
         try:
             next(gen)  # the metadata, read by probe_video
             for raw in _checked(gen, self.path):
-                frame = np.frombuffer(raw, dtype).reshape(H, W)
+                frame = np.frombuffer(raw, dtype).reshape(self.frame_shape)
                 yield frame.astype(np.float32) * np.float32(1.0 / top)
         finally:
             gen.close()
+
+
+#: ffmpeg's raw pixel format of a frame on a pipe, by (channels, bits): native order
+#: (little-endian) so numpy reads it as it comes.
+_RAW_FORMATS = {(1, 8): "gray", (1, 16): "gray16le", (3, 8): "rgb24", (3, 16): "rgb48le"}
 
 
 def _checked(gen, path):
@@ -257,10 +314,11 @@ class VideoSink:
     shape : (H, W)
     fps : float
     bits : {8, 16}, 16 only for :data:`FFV1_SUFFIXES`.
+    channels : {1, 3}, grey or RGB frames.
     """
 
     def __init__(self, path: str | os.PathLike, shape: Sequence[int], fps: float,
-                 bits: int = 8):
+                 bits: int = 8, channels: int = 1):
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in VIDEO_SUFFIXES:
@@ -273,7 +331,12 @@ class VideoSink:
         if bits not in (8, 16) or (bits == 16 and suffix not in FFV1_SUFFIXES):
             raise ImageError(f"{bits}-bit video is written as {', '.join(FFV1_SUFFIXES)} "
                              "(FFV1); .mp4/.mov hold 8 bits", self.path)
+        if channels not in (1, 3):
+            raise ImageError(f"a video has 1 (grey) or 3 (RGB) channels, not {channels!r}",
+                             self.path)
         self.shape = tuple(int(s) for s in shape)
+        self.channels = int(channels)
+        self.frame_shape = self.shape if channels == 1 else (*self.shape, 3)
         self.fps = float(fps)
         self.bits = int(bits)
         self.frames_written = 0
@@ -285,11 +348,17 @@ class VideoSink:
         import imageio_ffmpeg  # finds its ffmpeg binary on import: only for video
 
         H, W = self.shape
-        fmt = "gray16le" if self.bits == 16 else "gray"
-        if self.path.suffix.lower() in FFV1_SUFFIXES:
+        fmt = _RAW_FORMATS[self.channels, self.bits]
+        ffv1 = self.path.suffix.lower() in FFV1_SUFFIXES
+        if ffv1 and self.channels == 1:
             codec = ["-c:v", "ffv1", "-pix_fmt", fmt]
-        else:  # qp 0: lossless H.264; gray in and out keeps the full range (no 16-235)
+        elif ffv1:  # FFV1's RGB layouts: 8 bits padded to 32, or 16 bits as they come
+            codec = ["-c:v", "ffv1", "-pix_fmt", "bgr0" if self.bits == 8 else "rgb48le"]
+        elif self.channels == 1:  # qp 0: lossless H.264; gray keeps the full range
             codec = ["-c:v", "libx264", "-qp", "0", "-preset", "ultrafast", "-pix_fmt", "gray"]
+        else:  # libx264rgb codes the RGB planes themselves: no lossy RGB -> YUV step
+            codec = ["-c:v", "libx264rgb", "-qp", "0", "-preset", "ultrafast",
+                     "-pix_fmt", "rgb24"]
         return [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "rawvideo",
                 "-pix_fmt", fmt, "-s", f"{W}x{H}", "-r", f"{self.fps:.6g}", "-i", "-", "-an",
                 *codec, str(tmp)]
@@ -307,12 +376,12 @@ class VideoSink:
         return self
 
     def write(self, frames: np.ndarray) -> None:
-        """Append frames, shape (K, H, W) or (H, W), values in [0, 1] (clipped and
-        rounded to the sink's bit depth)."""
+        """Append frames, shape (K, H, W) or (H, W) (grey), (K, H, W, 3) or (H, W, 3)
+        (colour), values in [0, 1] (clipped and rounded to the sink's bit depth)."""
         top = 65535 if self.bits == 16 else 255
         dtype = np.uint16 if self.bits == 16 else np.uint8
         # one pass of float32 arithmetic over the batch (float32 keeps 65535 levels)
-        scaled = np.clip(np.asarray(frames, np.float32).reshape(-1, *self.shape), 0.0, 1.0)
+        scaled = np.clip(np.asarray(frames, np.float32).reshape(-1, *self.frame_shape), 0.0, 1.0)
         scaled *= np.float32(top)
         pixels = np.rint(scaled, out=scaled).astype(dtype)
         for frame in pixels:

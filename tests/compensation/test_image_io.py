@@ -9,6 +9,8 @@ from bigT.errors import ImageError
 from bigT.images import (ImageSink, ImageSource, check_image, list_frames, read_image,
                          write_image)
 
+from comp_helpers import make_store, random_transport
+
 
 @pytest.fixture
 def img():
@@ -115,3 +117,21 @@ def test_unknown_and_missing(tmp_path):
         ImageSource(tmp_path / "empty")
     with pytest.raises(ImageError, match="pixel type"):
         check_image(np.zeros((2, 2), np.complex64))
+
+
+def test_compensate_writes_nothing_for_a_folder_with_one_colour_frame(tmp_path, capsys):
+    """A grey X and a folder whose last frame is colour: refused, naming the frame, from
+    the frames' headers before the first projector image is written."""
+    from bigT.cli import main
+
+    H, W = 6, 8
+    _, X, _, _ = random_transport(H, W, seed=5)
+    make_store(X, tmp_path / "X.zarr", image_shape=(H, W), tile_size=16)
+    for i in range(3):
+        write_image(tmp_path / "in" / f"f{i}.png", np.full((H, W), 0.3))
+    write_image(tmp_path / "in" / "f9.png", np.full((H, W, 3), 0.3))
+    assert main(["compensate", str(tmp_path / "X.zarr"), str(tmp_path / "in"), "-o",
+                 str(tmp_path / "out"), "--batch", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "f9.png: colour image (6, 8, 3)" in err, err
+    assert not (tmp_path / "out").exists()

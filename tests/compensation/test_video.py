@@ -10,6 +10,7 @@ import pytest
 from bigT.cli import main
 from bigT.compensation.realtime import run_stream
 from bigT.compensation.video import VideoSink, VideoSource
+from bigT.errors import ImageError
 from bigT.images import read_image, write_image
 
 from comp_helpers import make_store, random_transport
@@ -172,7 +173,7 @@ def test_colour_video_refused(scene, tmp_path, capsys):
     gen.close()
     line = _refused(["compensate", str(scene[0] / "X.zarr"), str(tmp_path / "red.mkv"), "-o",
                      str(tmp_path / "out.mkv")], capsys, "red.mkv")
-    assert "colour video" in line
+    assert "colour video" in line and "given to a grey transport (1 channel)" in line
     assert not (tmp_path / "out.mkv").exists()
 
 
@@ -236,3 +237,74 @@ def test_pixel_reordering_on_threads_matches_one_thread(clip):
     back2 = matrix_to_frames(one, order, clip, dtype=np.float32, n_threads=2)
     np.testing.assert_array_equal(back1[0].astype(np.float32), back2[0])
     assert back1[1:] == back2[1:] and (clip is None) == (back1[1] + back1[2] == 0)
+
+
+# --- colour (issue #28) ---------------------------------------------------------------
+
+def _levels(shape, bits, seed=0):
+    """Frames of exact levels k / top, so a lossless round trip is an equality."""
+    top = 2 ** bits - 1
+    return np.random.default_rng(seed).integers(0, top + 1, shape) / top
+
+
+@pytest.mark.parametrize("suffix, bits", [(".mkv", 8), (".mkv", 16), (".avi", 16),
+                                          (".mp4", 8), (".mov", 8)])
+def test_colour_video_round_trip_is_exact(tmp_path, suffix, bits):
+    """FFV1 (bgr0 / rgb48le) and libx264rgb at qp 0 give back every level of every
+    channel; a colour source reads (H, W, 3) frames as RGB in order."""
+    frames = _levels((K, H, W, 3), bits)
+    path = tmp_path / f"c{suffix}"
+    with VideoSink(path, (H, W), 25, bits, channels=3) as sink:
+        sink.write(frames[:3])
+        sink.write(frames[3])  # one (H, W, 3) frame
+        sink.write(frames[4:])
+    source = VideoSource(path, (H, W), channels=3)
+    assert source.info.channels == 3 and source.info.bits == bits
+    assert source.frame_shape == (H, W, 3)
+    got = np.stack(list(source.frames()))
+    assert got.shape == (K, H, W, 3) and got.dtype == np.float32
+    top = 2 ** bits - 1
+    np.testing.assert_array_equal(np.rint(got.astype(np.float64) * top),
+                                  np.rint(frames * top))
+
+
+def test_grey_video_to_a_colour_transport_refused_in_one_line(tmp_path):
+    _write_video(tmp_path / "grey.mkv", np.full((2, H, W), 0.5))
+    with pytest.raises(ImageError) as e:
+        VideoSource(tmp_path / "grey.mkv", (H, W), channels=3)
+    line = str(e.value)
+    assert "\n" not in line and "grey.mkv: grey video (pixel format gray) given to a colour " \
+        "transport (3 channels): give a colour video, or use a grey transport" in line
+
+
+def test_colour_video_to_a_grey_transport_refused_in_one_line(tmp_path):
+    frames = np.zeros((2, H, W, 3))
+    frames[..., 0] = 0.8  # red
+    with VideoSink(tmp_path / "red.mp4", (H, W), 25, channels=3) as sink:
+        sink.write(frames)
+    with pytest.raises(ImageError) as e:
+        VideoSource(tmp_path / "red.mp4", (H, W))
+    line = str(e.value)
+    assert "\n" not in line and "red.mp4: colour video (channels of the first frame differ " \
+        "by up to 204 levels) given to a grey transport (1 channel)" in line
+
+
+def test_colour_stream_of_grey_pictures_is_either(tmp_path):
+    """An RGB stream whose pictures are neutral is read by a grey transport (as before
+    colour) and by a colour one (colour that happens to be grey): the same levels."""
+    grey = _levels((2, H, W), 8, seed=4)
+    with VideoSink(tmp_path / "n.mkv", (H, W), 25, channels=3) as sink:
+        sink.write(np.repeat(grey[..., None], 3, axis=-1))
+    as_grey = np.stack(list(VideoSource(tmp_path / "n.mkv", (H, W)).frames()))
+    as_colour = np.stack(list(VideoSource(tmp_path / "n.mkv", (H, W), channels=3).frames()))
+    np.testing.assert_array_equal(np.rint(as_grey * 255.0), np.rint(grey * 255))
+    for c in range(3):
+        np.testing.assert_array_equal(as_colour[..., c], as_grey)
+
+
+def test_channels_other_than_1_or_3_refused(tmp_path):
+    _write_video(tmp_path / "g.mkv", np.full((1, H, W), 0.5))
+    with pytest.raises(ImageError, match="1 \\(grey\\) or 3 \\(RGB\\) channels, not 4"):
+        VideoSource(tmp_path / "g.mkv", channels=4)
+    with pytest.raises(ImageError, match="1 \\(grey\\) or 3 \\(RGB\\) channels, not 2"):
+        VideoSink(tmp_path / "o.mkv", (H, W), 25, channels=2)
