@@ -146,8 +146,7 @@ class FileCompensation:
         self.video_in = is_video_file(desired)
         self.source = (VideoSource(desired, self.shape, channels=self.channels)
                        if self.video_in else ImageSource(desired, self.shape, self.channels))
-        if not self.video_in and self.source.is_folder:
-            # before anything is written
+        if not self.video_in:  # every frame, before X is read or anything written
             check_frame_shapes(self.source.files, self.shape, self.channels)
         self.encoding = source_encoding(self.source, self.channels, encoding)
         self.output = Path(output)
@@ -364,8 +363,7 @@ class FileSimulation:
             raise ImageError("a simulation takes an image or a folder of frames, not a video",
                              desired)
         self.source = ImageSource(desired, self.shape, self.channels)
-        if self.source.is_folder:
-            check_frame_shapes(self.source.files, self.shape, self.channels)
+        check_frame_shapes(self.source.files, self.shape, self.channels)
         self.encoding = source_encoding(self.source, self.channels, encoding)
         self.metrics = bool(metrics)
         out = Path(output)
@@ -479,8 +477,7 @@ def relight_files(T, images, output, *, batch: int = config.DEFAULT_BATCH,
     T = as_store(T, "T")
     channels = channels_of(T)
     source = ImageSource(images, image_shape_of(T), channels)
-    if source.is_folder:
-        check_frame_shapes(source.files, image_shape_of(T), channels)
+    check_frame_shapes(source.files, image_shape_of(T), channels)
     light = source_encoding(source, channels, encoding)
     sink = ImageSink(output, source, bits=bits, inputs=store_paths(T))
     above = pixels = 0
