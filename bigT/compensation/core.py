@@ -160,8 +160,9 @@ def refuse_colour_matrix_free(T) -> None:
     pixel, which the series here does not apply yet (the explicit inverse X does)."""
     if getattr(T, "channels", 1) != 1:
         raise BigTError("the matrix-free path does not take a colour transport yet (its "
-                        "first bounce F is a 3x3 block per pixel): compensate with the "
-                        "inverse X (bigT invert, then --path explicit)", getattr(T, "path", None))
+                        "first bounce F is a 3x3 block per pixel): compensate with its "
+                        "inverse X ({option})", getattr(T, "path", None),
+                        option=Option("path", "explicit"))
 
 
 # --- compensation ---------------------------------------------------------------------

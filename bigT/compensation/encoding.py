@@ -22,11 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import colour, config
-from ..errors import ImageError
+from ..errors import ImageError, Option
 from ..kernels.threads import run_on_threads, thread_count
 
 #: What ``--encoding`` takes: the encodings of :mod:`bigT.colour`, or "auto" (policy).
 ENCODING_CHOICES = ("auto", *colour.ENCODINGS)
+#: The argument that says an input's encoding, as errors name it.
+_ENCODING_OPTION = Option("encoding", "srgb", python="encoding='srgb' or 'linear'")
 #: Values below which the numpy functions run (no kernel compiled for a small frame).
 _KERNEL_MIN_VALUES = 1 << 16
 
@@ -93,8 +95,8 @@ def source_encoding(source, channels: int, requested: str = "auto") -> FrameEnco
         other = image_encoding(f, channels)
         if other != name:
             raise ImageError(f"this frame's encoding would be {other} but the first frame's "
-                             f"({first.name}) is {name} (they differ in bit depth): give "
-                             "--encoding srgb or linear", f)
+                             f"({first.name}) is {name} (they differ in bit depth): say "
+                             "which ({option})", f, option=_ENCODING_OPTION)
     stored = stored_type(first)
     kind = {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(
         None if stored is None else np.dtype(stored), "floating-point")
