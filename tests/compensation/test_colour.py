@@ -285,3 +285,16 @@ def test_srgb_kernel_matches_bigT_colour():
     np.testing.assert_allclose(light, colour.decode(values, "srgb"), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(e.from_light(values), colour.encode(values, "srgb"),
                                rtol=1e-6, atol=1e-7)
+
+
+def test_large_batches_count_clipped_values_per_channel_as_numpy():
+    from bigT.compensation.core import clipped_by_channel
+
+    Y = np.random.default_rng(11).normal(0.5, 0.5, (3 * 40_000, 9)).astype(np.float32)
+    assert Y.size > 1 << 18  # the kernel's side of the threshold
+    Y3 = Y.reshape(-1, 3, 9)
+    for clip in [(0, 1), (0.2, None), (None, 0.7)]:
+        low, high = clipped_by_channel(Y, clip, 3)
+        want_low = [0 if clip[0] is None else int((Y3[:, c] < clip[0]).sum()) for c in range(3)]
+        want_high = [0 if clip[1] is None else int((Y3[:, c] > clip[1]).sum()) for c in range(3)]
+        assert list(low) == want_low and list(high) == want_high
