@@ -42,7 +42,7 @@ def side_by_side(path, panels: Sequence[np.ndarray], titles: Sequence[str], *,
     plt = pyplot()
     if vmax is None:
         vmax = max(1.0, max(float(np.max(p)) for p in panels))
-    H, W = panels[0].shape
+    H, W = panels[0].shape[:2]  # an RGB (H, W, 3) panel is shown as it is
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.2 * H / W + 0.8),
                              squeeze=False)
     for ax, img, title in zip(axes[0], panels, titles):

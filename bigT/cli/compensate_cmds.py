@@ -5,24 +5,30 @@ a folder with the same names (or a video file), a video -> a video. Folders and 
 are read, processed and written one batch of frames at a time, so the frames never
 need to fit in memory; X is held in memory when it fits ``--memory-limit`` and streamed
 from disk tile row by tile row otherwise (:mod:`bigT.compensation.realtime`).
+
+A colour store takes RGB images and colour video (a grey one, grey: the other kind is
+refused in one line naming the file); ``--encoding`` says how the values relate to
+light (an 8-bit colour input is sRGB unless told ``linear``), and the outputs are
+written in the input's encoding.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 import time
 from pathlib import Path
 
-
-from .. import config
+from .. import colour, config
 from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError
 from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..sizes import format_size
 from ._argtypes import clip_range, integer, memory_size, number
-from ._options import add_progress, add_scheduler, add_size, deprecated
+from ._options import add_json, add_progress, add_scheduler, add_size, deprecated
 
 # The library's layers are imported inside each command's functions, where the
 # command runs: building the parser imports every command module, and a command
@@ -34,6 +40,17 @@ from ._options import add_progress, add_scheduler, add_size, deprecated
 #: paper separates 4-5; bounce k decays like rho^k, and rho^64 < 1e-6 for rho < 0.8)
 #: while keeping a mistyped K (100000: 10 GB and 100,000 files) from running away.
 MAX_BOUNCES = 64
+#: What --encoding takes: bigT.colour's encodings, or "auto" (its policy).
+ENCODING_CHOICES = ("auto", *colour.ENCODINGS)
+
+
+def add_encoding(p: argparse.ArgumentParser, what: str) -> None:
+    """``--encoding {auto,srgb,linear}``: how the input's values relate to light."""
+    p.add_argument("--encoding", choices=ENCODING_CHOICES, default="auto",
+                   help="how the input's values relate to light: srgb (decoded to linear "
+                   "light before the product) or linear; the outputs are written in the "
+                   f"same encoding. auto (default): srgb for an 8-bit colour {what}, "
+                   "linear for 16-bit, floating-point and grey ones")
 
 
 def register(sub) -> None:
@@ -93,6 +110,8 @@ def register(sub) -> None:
     p.add_argument("--fps", type=number(0, lo_open=True), default=None,
                    help="frames per second of a video written from a folder of frames "
                    "(default 30; a video input keeps its own)")
+    add_encoding(p, "image or video")
+    add_json(p, "the report (with --simulate: PSNR, SSIM, ΔE2000 too)")
     add_progress(p)
     p.set_defaults(func=run_compensate)
 
@@ -105,6 +124,7 @@ def register(sub) -> None:
                    help=f"frames per pass over T (default {config.DEFAULT_BATCH})")
     p.add_argument("--bits", type=int, choices=(8, 16), default=None,
                    help="PNG bit depth of the outputs (default: that of each input PNG)")
+    add_encoding(p, "image")
     add_scheduler(p)
     add_progress(p)
     p.set_defaults(func=run_relight)
@@ -132,6 +152,26 @@ def register(sub) -> None:
 
 # --- helpers ----------------------------------------------------------------------------
 
+def print_json(data: dict) -> None:
+    """``data`` as one JSON object on stdout; NaN and infinities (a PSNR of identical
+    images) as null, which JSON has."""
+    def finite(value):
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        if isinstance(value, dict):
+            return {k: finite(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [finite(v) for v in value]
+        return value
+
+    print(json.dumps(finite(data)))
+
+
+def say(args, text: str) -> None:
+    """Print the text report's lines (not with --json, whose object is the output)."""
+    if not getattr(args, "json", False):
+        print(text)
+
 # --- compensate -------------------------------------------------------------------------
 
 def run_compensate(args) -> int:
@@ -154,14 +194,17 @@ def _run_simulate(args, X) -> int:
     job = FileSimulation(X, args.desired, args.output, args.simulate, path=args.path,
                          matrix_free=args.matrix_free, terms=args.terms, clip=args.clip,
                          batch=args.batch, bits=args.bits, cache_bytes=args.cache_bytes,
-                         scheduler=args.scheduler)
+                         scheduler=args.scheduler, encoding=args.encoding)
     head, *rest = job.describe().splitlines()
-    print(f"bigT compensate: {head}")
+    say(args, f"bigT compensate: {head}")
     for line in rest:
-        print("  " + line)
+        say(args, "  " + line)
     with progress_bar(progress=args.progress, total=len(job.source), desc="compensate",
                       unit="frame", leave=True) as bar:
         report = job.run(progress=args.progress, on_batch=bar.update)
+    if args.json:
+        print_json(report.to_dict())
+        return 0
     for line in report.describe().splitlines():
         print("  " + line)
     return 0
@@ -177,19 +220,22 @@ def _run_stream(args, X, Tm) -> int:
         X, args.desired, args.output, T=Tm, path=args.path, terms=args.terms, clip=args.clip,
         batch=args.batch, bits=args.bits, fps=args.fps, resident=not args.stream,
         memory_limit=args.memory_limit, precision=args.precision,
-        cache_bytes=args.cache_bytes, scheduler=args.scheduler)
+        cache_bytes=args.cache_bytes, scheduler=args.scheduler, encoding=args.encoding)
     head, *rest = job.describe().splitlines()
-    print(f"bigT compensate: {head}")
+    say(args, f"bigT compensate: {head}")
     for line in rest:
-        print("  " + line)
+        say(args, "  " + line)
     with job:  # X read (into memory when it fits), the scheduler's runner opened
         if job.runner is not None:
-            print(f"  running on {job.runner.describe()}")
+            say(args, f"  running on {job.runner.describe()}")
         if not args.quiet:
             print(f"bigT compensate: {job.describe_residency()}", file=sys.stderr)
         with progress_bar(progress=args.progress, total=job.frames, desc="compensate",
                           unit="frame", leave=True) as bar:
             report = job.run(overlap=not args.serial, on_batch=bar.update)
+    if args.json:
+        print_json(report.to_dict())
+        return 0
     for line in report.describe().splitlines():
         print("  " + line)
     return 0
@@ -206,7 +252,8 @@ def run_relight(args) -> int:
     print("  " + describe_store(T, "T"))
     report = relight_files(T, args.input, args.output, batch=args.batch, bits=args.bits,
                            scheduler=args.scheduler, progress=args.progress,
-                           on_start=lambda runner: print(f"  running on {runner}"))
+                           on_start=lambda runner: print(f"  running on {runner}"),
+                           encoding=args.encoding)
     for line in report.describe().splitlines():
         print("  " + line)
     return 0
@@ -216,12 +263,14 @@ def run_relight(args) -> int:
 
 def run_bounces(args) -> int:
     from ..compensation import bounce_shares, separate_bounces
+    from ..compensation.core import refuse_colour_bounces
     from ..compensation.files import describe_store, image_shape_of, store_paths
     from ..figures import bounce_strip
     from ..storage import as_store
 
     T = as_store(args.T, "T")
     X = as_store(args.X, "X")
+    refuse_colour_bounces(T, X)  # before any image is read
     if Path(args.input).is_dir():
         raise ImageError("bounces takes one image, not a folder", args.input)
     out = Path(args.output)
@@ -232,7 +281,7 @@ def run_bounces(args) -> int:
     files = [out / f"{name}.{args.format}" for name in names + ["total"]]
     refuse_overwriting_inputs(files + [out / "bounces.png"], [args.input, *store_paths(T, X)],
                               folders=[out])
-    image = read_image(args.input, image_shape_of(T))
+    image = read_image(args.input, image_shape_of(T), channels=1)
     print(f"bigT bounces: {args.input}, K = {args.bounces}")
     print("  " + describe_store(T, "T"))
     print("  " + describe_store(X, "X"))

@@ -88,3 +88,20 @@ def kernel_for(vector: bool):
     """The kernel for a single column (``vector``) or a batch (any precision: numba
     specialises on the values' dtype)."""
     return spmv if vector else spmm
+
+
+@njit(nogil=True, cache=True)
+def count_clipped(Y, lo, hi, do_lo, do_hi, channels, r0, r1):
+    """(below, above) per channel of rows [r0, r1) of the (n, K) batch Y, row i holding
+    channel i % channels; counted as the pixel scatter clips (below lo, else above hi)."""
+    low = np.zeros(channels, np.int64)
+    high = np.zeros(channels, np.int64)
+    for i in range(r0, r1):
+        c = i % channels
+        for k in range(Y.shape[1]):
+            v = np.float64(Y[i, k])
+            if do_lo and v < lo:
+                low[c] += 1
+            elif do_hi and v > hi:
+                high[c] += 1
+    return low, high

@@ -3,9 +3,12 @@
 All three only stream the stored matrices against dense batches of frames; nothing is
 ever inverted or multiplied matrix-by-matrix here.
 
-Images are (H, W) or (K, H, W) float arrays; the store's :class:`PixelOrder` maps them to
-the matrix's pixel numbering and back, so a tile-major store takes and returns ordinary
-row-major images.
+Images are (H, W) or (K, H, W) float arrays, (H, W, 3) or (K, H, W, 3) for a colour store
+(``channels == 3``, index 3 p + c); the store's :class:`PixelOrder` maps them to the
+matrix's numbering and back, so a tile-major store takes and returns ordinary row-major
+images. The arrays are linear light: the products are linear in light, not in an
+encoding's values (:func:`bigT.colour.decode` turns sRGB-encoded values into light;
+:mod:`bigT.compensation.files` does that for files, ``--encoding``).
 """
 
 from __future__ import annotations
@@ -134,10 +137,14 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
         why = "asked for" if path == "explicit" else "no T given for the matrix-free path"
         return PathChoice("explicit", f"{why}: one pass over X, nnz(X) = {c_x:,} per frame",
                           None, c_x, c_t)
+    if path == "auto" and X is not None and getattr(T, "channels", 1) != 1:
+        return PathChoice("explicit", "a colour T has no matrix-free path yet: one pass over "
+                          f"X, nnz(X) = {c_x:,} per frame", None, c_x, c_t)
     if path == "matrix-free" or X is None:
         if T is None:
             raise BigTError("the matrix-free path needs the transport T ({option})",
                             option=_MATRIX_FREE_T)
+        refuse_colour_matrix_free(T)
         why = "asked for" if path == "matrix-free" else "no inverse X given"
         return PathChoice("matrix-free", f"{why}: {terms} passes over T, {terms} x nnz(T) = "
                           f"{c_t:,} per frame", terms, c_x, c_t)
@@ -148,16 +155,89 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
                       "multiply-adds per frame", terms, c_x, c_t)
 
 
+def refuse_colour_matrix_free(T) -> None:
+    """BigTError for a colour T on the matrix-free path: its F^-1 is a 3x3 block per
+    pixel, which the series here does not apply yet (the explicit inverse X does)."""
+    if getattr(T, "channels", 1) != 1:
+        raise BigTError("the matrix-free path does not take a colour transport yet (its "
+                        "first bounce F is a 3x3 block per pixel): compensate with its "
+                        "inverse X ({option})", getattr(T, "path", None),
+                        option=Option("path", "explicit"))
+
+
 # --- compensation ---------------------------------------------------------------------
+
+#: Names of the channels of a colour image, in index order (c of 3 p + c).
+CHANNEL_NAMES = ("R", "G", "B")
+
+
+def clipped_by_channel(Y: np.ndarray, clip, channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Values of a matrix-ordered batch outside the clip range, per channel.
+
+    Parameters
+    ----------
+    Y : ndarray, shape (n, K), matrix order: row 3 p + c holds channel c (colour)
+    clip : (lo, hi) or None; either may be None
+    channels : int, 1 or 3
+
+    Returns
+    -------
+    (low, high) : two int64 ndarrays of shape (channels,), the values below lo and above
+    hi of each channel (zeros where that side is not clipped).
+    """
+    Yc = Y.reshape(-1, channels, Y.shape[-1])
+    lo, hi = (None, None) if clip is None else clip
+    if Y.size > _COUNT_KERNEL_MIN_VALUES and Y.ndim == 2 and Y.flags.c_contiguous:
+        return _count_on_threads(Y, lo, hi, channels)
+    low = np.zeros(channels, np.int64)
+    high = np.zeros(channels, np.int64)
+    for c in range(channels):
+        # float64 bounds, as the pixel scatter compares (a float32 Y is promoted)
+        if lo is not None:
+            low[c] = np.count_nonzero(Yc[:, c] < np.float64(lo))
+        if hi is not None:
+            high[c] = np.count_nonzero(Yc[:, c] > np.float64(hi))
+    return low, high
+
+
+#: Values of a batch past which the clipped values are counted by a numba kernel on the
+#: kernel threads (numpy's six strided comparisons took 1/6 of a 64-frame batch).
+_COUNT_KERNEL_MIN_VALUES = 1 << 18
+
+
+def _count_on_threads(Y, lo, hi, channels):
+    """:func:`clipped_by_channel` of a large C-contiguous batch, by row ranges."""
+    from ..kernels.threads import run_on_threads, thread_count
+    from ._resident_kernels import count_clipped  # numba: ~0.5 s, only for large batches
+
+    threads = thread_count()
+    n = Y.shape[0]
+    step = -(-n // (threads * config.KERNEL_CHUNKS_PER_THREAD))
+    step += -step % channels  # whole pixels per range (any split counts right; this reads well)
+    ranges = [(a, min(a + step, n)) for a in range(0, n, step)]
+    bounds = (0.0 if lo is None else float(lo), 0.0 if hi is None else float(hi),
+              lo is not None, hi is not None, channels)
+    counts = run_on_threads(lambda a, b: count_clipped(Y, *bounds, a, b), ranges, threads)
+    return (np.sum([c[0] for c in counts], axis=0), np.sum([c[1] for c in counts], axis=0))
+
 
 class ClippedFrames:
     """The rates every compensation report derives from its counts (``frames``,
-    ``seconds``, ``clipped_low``, ``clipped_high``, ``pixels``)."""
+    ``seconds``, ``clipped_low``, ``clipped_high``, ``pixels``, and per channel
+    ``clipped_low_by_channel``, ``clipped_high_by_channel``)."""
 
     @property
     def clipped_fraction(self) -> float:
-        """Projector pixels outside the clip range / all projector pixels."""
+        """Projector values outside the clip range / all projector values."""
         return (self.clipped_low + self.clipped_high) / max(self.pixels, 1)
+
+    @property
+    def clipped_shares_by_channel(self) -> tuple[tuple[float, float], ...]:
+        """(share below lo, share above hi) of each channel's values, (R, G, B) for
+        colour, one pair for grey."""
+        per = max(self.pixels // max(len(self.clipped_low_by_channel), 1), 1)
+        return tuple((low / per, high / per) for low, high in
+                     zip(self.clipped_low_by_channel, self.clipped_high_by_channel))
 
     @property
     def frames_per_second(self) -> float:
@@ -172,7 +252,11 @@ class CompensationReport(ClippedFrames):
     ----------
     choice : PathChoice
     frames : int
-    clipped_fraction : float, pixels of X l_desired outside the clip range / all pixels
+    clipped_low, clipped_high : int, values of X l_desired below / above the clip range
+    pixels : int, all the values of X l_desired (H W per grey frame, 3 H W per colour one)
+    clipped_fraction : float, values outside the clip range / all values
+    clipped_low_by_channel, clipped_high_by_channel : tuple of int, the same per channel
+        (R, G, B for colour; one for grey)
     seconds : float, wall time of the products (reading included)
     """
 
@@ -182,12 +266,33 @@ class CompensationReport(ClippedFrames):
     clipped_high: int = 0
     pixels: int = 0
     seconds: float = 0.0
+    clipped_low_by_channel: tuple = ()
+    clipped_high_by_channel: tuple = ()
+
+    def add_clipped(self, Y: np.ndarray, clip, channels: int, below: int, above: int,
+                    values: int) -> None:
+        """Count one batch: ``below``/``above`` its totals (from the pixel scatter),
+        ``Y`` its (n, K) matrix-ordered values before clipping, counted per channel for
+        colour (grey: the totals are the channel's)."""
+        self.clipped_low += below
+        self.clipped_high += above
+        self.pixels += values
+        if channels == 1:
+            low, high = np.array([below]), np.array([above])
+        else:
+            low, high = clipped_by_channel(Y, clip, channels)
+        if self.clipped_low_by_channel:
+            low = low + np.asarray(self.clipped_low_by_channel)
+            high = high + np.asarray(self.clipped_high_by_channel)
+        self.clipped_low_by_channel = tuple(int(v) for v in low)
+        self.clipped_high_by_channel = tuple(int(v) for v in high)
 
 
 def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice, clip=(0, 1),
                       report: CompensationReport | None = None, progress: bool = False,
                       cache_bytes: int | None = None, runner=None):
-    """One batch: (K, H, W) desired frames -> (K, H, W) projector inputs, clipped."""
+    """One batch: (K, *frame_shape) desired frames (linear light) -> projector inputs of
+    the same shape, clipped."""
     store = X if choice.path == "explicit" else T
     order = pixel_order_of(store, frames.shape[1:])
     B = to_vectors(frames, order, compute_dtype(store))
@@ -199,9 +304,7 @@ def compensate_frames(frames: np.ndarray, *, X=None, T=None, choice: PathChoice,
                               runner=runner)
     frames_out, below, above = matrix_to_frames(Y, order, clip)
     if report is not None:
-        report.clipped_low += below
-        report.clipped_high += above
-        report.pixels += frames_out.size
+        report.add_clipped(Y, clip, order.channels, below, above, frames_out.size)
     return frames_out
 
 
@@ -217,7 +320,8 @@ def compensate(X, images, clip=(0, 1), batch: int = config.DEFAULT_BATCH, *, T=N
     ----------
     X : BlockCSR or path, shape (n, n), the (stratified) inverse of T; may be None for
         ``path="matrix-free"``.
-    images : ndarray, shape (H, W) or (K, H, W), desired camera images in [0, 1].
+    images : ndarray, shape (H, W) or (K, H, W), desired camera images in [0, 1], linear
+        light; (H, W, 3) or (K, H, W, 3) for a colour X (``X.channels == 3``).
     clip : (lo, hi) or None
         Projector range; ``(0, None)`` is the paper's f_+ = max(., 0); None: no clipping.
     batch : int, frames per pass.
@@ -269,7 +373,8 @@ def relight(T, images, batch: int = config.DEFAULT_BATCH, *, progress: bool = Fa
     Parameters
     ----------
     T : BlockCSR or path, shape (n, n)
-    images : ndarray, shape (H, W) or (K, H, W)
+    images : ndarray, shape (H, W) or (K, H, W); (H, W, 3) or (K, H, W, 3) for a colour
+        T. Linear light.
     scheduler : as :func:`compensate`'s
 
     Returns
@@ -334,6 +439,7 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     """
     T = as_store(T, "T")
     X = as_store(X, "X")
+    refuse_colour_bounces(T, X)
     bounces = int(bounces)
     if bounces < 0:
         raise BigTError(f"bounces must be >= 0, got {bounces}")
@@ -362,6 +468,17 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     out.append(seen - np.sum(out, axis=0))
     result = np.stack(out)
     return result[:, 0] if single else result
+
+
+def refuse_colour_bounces(*stores) -> None:
+    """BigTError for a colour store: bounce separation needs F recovered from X, for
+    colour a 3x3 block per pixel, which :func:`first_bounce_from_inverse` does not
+    return yet."""
+    for store in stores:
+        if getattr(store, "channels", 1) != 1:
+            raise BigTError("bounce separation does not take a colour transport yet (its "
+                            "first bounce F, recovered from X, is a 3x3 block per pixel)",
+                            getattr(store, "path", None))
 
 
 def bounce_shares(parts: np.ndarray) -> np.ndarray:

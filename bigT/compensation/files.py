@@ -11,6 +11,12 @@ that a caller can say what is about to happen before the long part starts::
 
 Nothing is written before every input check has passed; a video output is written
 whole or not at all (:class:`~bigT.compensation.video.VideoSink`).
+
+Colour: a colour store (``channels == 3``) takes RGB images and colour video, a grey one
+grey images; the other kind is refused in one line naming the file. The values read
+are decoded to linear light before the products and the results encoded back the same
+way (:mod:`bigT.compensation.encoding`, ``encoding=``: an 8-bit colour input is sRGB
+unless told ``"linear"``; grey inputs are linear, as they always were).
 """
 
 from __future__ import annotations
@@ -30,9 +36,10 @@ from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read
 from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
 from .core import CompensationReport, choose_path, relight
+from .encoding import FrameEncoding, source_encoding
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
                        video_batches)
-from .simulation import (SimulationReport, clipped_summary, simulate_batches,
+from .simulation import (SimulationReport, clipped_dict, clipped_summary, simulate_batches,
                          simulation_figures)
 from .video import DEFAULT_FPS, VideoSink, VideoSource, is_video_file
 
@@ -47,8 +54,10 @@ class FileCompensationReport:
     batch : int, frames per pass
     stream : StreamReport, frames, seconds and latency of the run
     residency : Residency, whether X was held in memory, and why
-    compensation : CompensationReport, the path taken and the clipped pixels
+    compensation : CompensationReport, the path taken and the clipped values (per
+        channel too)
     clip : (lo, hi) or None
+    encoding : FrameEncoding, of the input, and so of the projector input written
     """
 
     output: Path
@@ -57,6 +66,7 @@ class FileCompensationReport:
     residency: Residency
     compensation: CompensationReport
     clip: tuple | None
+    encoding: FrameEncoding = FrameEncoding("linear", "grey input")
 
     def describe(self) -> str:
         s = self.stream
@@ -66,9 +76,24 @@ class FileCompensationReport:
                  s.summary(self.residency)]
         if self.clip is not None:
             c = self.compensation
-            lines.append(clipped_summary(c.clipped_low, c.clipped_high, c.pixels, self.clip))
-        lines.append(f"wrote projector input -> {self.output}")
+            lines.append(clipped_summary(c.clipped_low, c.clipped_high, c.pixels, self.clip,
+                                         c.clipped_shares_by_channel))
+        encoded = "" if self.encoding.linear else f" ({self.encoding.name}-encoded, as the input)"
+        lines.append(f"wrote projector input{encoded} -> {self.output}")
         return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """The report as JSON-ready values (``compensate --json``)."""
+        s, c = self.stream, self.compensation
+        return {"output": str(self.output), "frames": s.frames, "batch": self.batch,
+                "seconds": s.seconds, "compute_seconds": s.compute_seconds,
+                "frames_per_second": s.frames_per_second,
+                "latency_ms": s.latency_ms(), "overlap": s.overlap,
+                "path": c.choice.path, "path_reason": c.choice.reason,
+                "resident": self.residency.resident, "precision": self.residency.precision,
+                "residency_reason": self.residency.reason,
+                "encoding": self.encoding.name, "encoding_reason": self.encoding.reason,
+                "clip": None if self.clip is None else list(self.clip), **clipped_dict(c)}
 
 
 class FileCompensation:
@@ -91,6 +116,10 @@ class FileCompensation:
     batch : int, frames per pass over X.
     bits : int, optional, of the images or video written (default the input's, else 8).
     fps : float, optional, of a video made from a folder (default 30).
+    encoding : {"auto", "srgb", "linear"}
+        Of the input's values, and so of the projector input written
+        (:func:`~bigT.compensation.encoding.source_encoding`; "auto": sRGB for an 8-bit
+        colour input, else linear).
     resident : bool
         Hold X in memory when it fits ``memory_limit`` (never on a cluster).
     memory_limit : int, optional
@@ -105,22 +134,25 @@ class FileCompensation:
                  terms: int | None = None, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
                  bits: int | None = None, fps: float | None = None, resident: bool = True,
                  memory_limit: int | None = None, precision: str = "float32",
-                 cache_bytes: int | None = None, scheduler=None):
+                 cache_bytes: int | None = None, scheduler=None, encoding: str = "auto"):
         self.X = None if X is None else as_store(X, "X")
         self.T = None if T is None else as_store(T, "T")
         self.choice = choose_path(self.X, self.T if path != "explicit" else None, terms, path)
         store = self.X if self.choice.path == "explicit" else self.T
         self.shape = image_shape_of(store)
+        self.channels = channels_of(store)
         check_same_images(self.shape, (self.X, "X"), (self.T, "T"))
         self.clip, self.batch = clip, int(batch)
         self.video_in = is_video_file(desired)
-        self.source = (VideoSource(desired, self.shape) if self.video_in
-                       else ImageSource(desired, self.shape))
-        if not self.video_in and self.source.is_folder:
-            check_frame_shapes(self.source.files, self.shape)  # before anything is written
+        self.source = (VideoSource(desired, self.shape, channels=self.channels)
+                       if self.video_in else ImageSource(desired, self.shape, self.channels))
+        if not self.video_in:  # every frame, before X is read or anything written
+            check_frame_shapes(self.source.files, self.shape, self.channels)
+        self.encoding = source_encoding(self.source, self.channels, encoding)
         self.output = Path(output)
         stores = store_paths(self.X, self.T)
-        self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores)
+        self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores,
+                               self.channels)
         self._options = dict(memory_limit=memory_limit, precision=precision,
                              resident=resident and scheduler is None,
                              cache_bytes=cache_budget(cache_bytes))
@@ -166,6 +198,8 @@ class FileCompensation:
             if st is not None:
                 lines.append(describe_store(st, name))
         lines.append(describe_path(self.choice))
+        if self.channels == 3 or not self.encoding.linear:
+            lines.append(self.encoding.describe())
         return "\n".join(lines)
 
     def describe_residency(self) -> str:
@@ -187,11 +221,14 @@ class FileCompensation:
         comp = self._entered()
         batches = (video_batches(self.source, self.batch) if self.video_in
                    else image_batches(self.source, self.batch))
+        encoding = self.encoding
         with self._sink as write:
-            stream = run_stream(batches, comp, write, batch=self.batch, overlap=overlap,
-                                on_batch=on_batch)
+            # decoded in the reader's thread, encoded in the writer's (beside the products)
+            stream = run_stream(in_light(batches, encoding), comp,
+                                lambda names, frames: write(names, encoding.from_light(frames)),
+                                batch=self.batch, overlap=overlap, on_batch=on_batch)
         return FileCompensationReport(self._sink.path, self.batch, stream, comp.residency,
-                                      comp.report, self.clip)
+                                      comp.report, self.clip, encoding)
 
     def _entered(self) -> Compensator:
         if self.compensator is None:
@@ -213,6 +250,23 @@ def image_shape_of(store) -> tuple[int, int] | None:
     return None if order is None else order.image_shape
 
 
+def channels_of(store) -> int:
+    """1 for a grey store (or one that maps no images), 3 for a colour one."""
+    return int(getattr(store, "channels", 1) or 1)
+
+
+def in_light(batches, encoding: FrameEncoding):
+    """(names, frames) batches with the frames decoded to linear light (closing this
+    generator closes ``batches``: a video's decoder stops)."""
+    try:
+        for names, frames in batches:
+            yield names, encoding.to_light(frames)
+    finally:
+        close = getattr(batches, "close", None)
+        if close is not None:
+            close()
+
+
 def store_paths(*stores) -> list:
     """The directories of the stores given (None skipped), each with the root it was
     opened through (a versioned store's redirect): what no output may destroy."""
@@ -222,11 +276,16 @@ def store_paths(*stores) -> list:
 
 def check_same_images(shape, *stores) -> None:
     """ImageError unless every ``(store, name)`` given maps images of ``shape`` (or
-    records none)."""
+    records none), all grey or all colour."""
+    kinds = {channels_of(store) for store, _ in stores if store is not None}
     for store, name in stores:
         if store is not None and shape is not None and image_shape_of(store) not in (None, shape):
             raise ImageError(f"{name} maps images of shape {image_shape_of(store)} but the "
                              f"compensation store maps {shape}", store.path)
+        if store is not None and len(kinds) > 1:
+            raise ImageError(f"{name} is a {'colour' if channels_of(store) == 3 else 'grey'} "
+                             "transport but the other store is not: give stores of one kind",
+                             store.path)
 
 
 @dataclass(frozen=True)
@@ -249,6 +308,12 @@ class FileSimulationReport:
     figures: tuple[Path, Path]
     batch: int
     seconds: float
+
+    def to_dict(self) -> dict:
+        """The report as JSON-ready values (``compensate --simulate --json``)."""
+        return {**self.simulation.to_dict(), "batch": self.batch,
+                "seconds_in_all": self.seconds, "projector": str(self.projector),
+                "seen": str(self.seen), "figures": [str(f) for f in self.figures]}
 
     def describe(self) -> str:
         r = self.simulation
@@ -275,23 +340,32 @@ class FileSimulation:
     T : BlockCSR or path, the transport the camera's view is simulated with
     path, matrix_free, terms : of the compensation (:func:`choose_path`); ``matrix_free``
         is the transport the matrix-free path streams (default ``T``)
-    clip, batch, bits, cache_bytes, scheduler : as :class:`FileCompensation`
+    clip, batch, bits, cache_bytes, scheduler, encoding : as :class:`FileCompensation`;
+        the camera's view is written in the input's encoding too, and the metrics are of
+        the images in it
+    metrics : bool, PSNR, SSIM and ΔE in the report (:func:`simulate_batches`)
     """
 
     def __init__(self, X, desired, output, T, *, path: str = "auto", matrix_free=None,
                  terms: int | None = None, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
-                 bits: int | None = None, cache_bytes: int | None = None, scheduler=None):
+                 bits: int | None = None, cache_bytes: int | None = None, scheduler=None,
+                 encoding: str = "auto", metrics: bool = True):
         self.X = None if X is None else as_store(X, "X")
         self.T = as_store(T, "T")
         self.Tm = self.T if matrix_free is None else as_store(matrix_free, "T")
         self.choice = choose_path(self.X, self.Tm if path != "explicit" else None, terms, path)
-        self.shape = image_shape_of(self.X if self.choice.path == "explicit" else self.Tm)
+        store = self.X if self.choice.path == "explicit" else self.Tm
+        self.shape = image_shape_of(store)
+        self.channels = channels_of(store)
         check_same_images(self.shape, (self.X, "X"), (self.Tm, "T"),
                           (self.T, "T (the simulated camera's)"))
         if is_video_file(desired):
             raise ImageError("a simulation takes an image or a folder of frames, not a video",
                              desired)
-        self.source = ImageSource(desired, self.shape)
+        self.source = ImageSource(desired, self.shape, self.channels)
+        check_frame_shapes(self.source.files, self.shape, self.channels)
+        self.encoding = source_encoding(self.source, self.channels, encoding)
+        self.metrics = bool(metrics)
         out = Path(output)
         stores = store_paths(self.X, self.T, self.Tm)
         self.figures = (sibling_path(out, "compare", ".png"), sibling_path(out, "scanline", ".png"))
@@ -312,22 +386,27 @@ class FileSimulation:
                 lines.append(describe_store(st, name))
                 shown.append(st)
         lines.append(describe_path(self.choice))
+        if self.channels == 3 or not self.encoding.linear:
+            lines.append(self.encoding.describe())
         return "\n".join(lines)
 
     def run(self, *, progress: bool = False,
             on_batch: Callable[[int], None] | None = None) -> FileSimulationReport:
         """Compensate and simulate every frame, write both and the figures."""
+        encoding = self.encoding
+
         def write(files, projector, seen):
-            self._sink.write(files, projector)
-            self._seen.write(files, seen)
+            self._sink.write(files, encoding.from_light(projector))
+            self._seen.write(files, encoding.from_light(seen))
             if on_batch is not None:
                 on_batch(len(files))
 
         t0 = time.perf_counter()
         report = simulate_batches(
-            self.source.batches(self.batch), self.X, self.T, clip=self.clip,
-            path=self.choice.path, matrix_free=self.Tm, terms=self.choice.terms,
-            progress=progress, on_batch=write, **self._options)
+            in_light(self.source.batches(self.batch), encoding), self.X, self.T,
+            clip=self.clip, path=self.choice.path, matrix_free=self.Tm,
+            terms=self.choice.terms, progress=progress, on_batch=write,
+            metrics=encoding.name if self.metrics else None, **self._options)
         seconds = time.perf_counter() - t0
         tag = f" (frame {report.first.name})" if self.source.is_folder else ""
         figures = simulation_figures(report, *self.figures, tag=tag)
@@ -352,8 +431,9 @@ class RelightReport:
     frames : int
     seconds : float, of the products
     above_one : float
-        Share of the camera's pixels brighter than 1 (an 8/16-bit PNG clips them).
-    clipped_in_output : bool, the output is PNG, so those pixels were clipped in it
+        Share of the camera's values brighter than 1 (an 8/16-bit PNG clips them).
+    clipped_in_output : bool, the output is PNG, so those values were clipped in it
+    encoding : FrameEncoding, of the input's values and of the camera's view written
     """
 
     output: Path
@@ -361,11 +441,13 @@ class RelightReport:
     seconds: float
     above_one: float
     clipped_in_output: bool
+    encoding: FrameEncoding = FrameEncoding("linear", "grey input")
 
     def describe(self) -> str:
+        encoded = "" if self.encoding.linear else f" ({self.encoding.name}-encoded, as the input)"
         lines = [f"{self.frames} frame(s) in {self.seconds:.2f} s "
                  f"({self.frames / max(self.seconds, 1e-9):.1f} frames/s)",
-                 f"wrote -> {self.output}"]
+                 f"wrote{encoded} -> {self.output}"]
         if self.above_one and self.clipped_in_output:
             lines.append(f"note: {100 * self.above_one:.2f} % of pixels exceed 1 and are "
                          "clipped in the PNG output; use .tif or .npy to keep them")
@@ -374,7 +456,8 @@ class RelightReport:
 
 def relight_files(T, images, output, *, batch: int = config.DEFAULT_BATCH,
                   bits: int | None = None, scheduler=None, progress: bool = False,
-                  on_start: Callable[[str], None] | None = None) -> RelightReport:
+                  on_start: Callable[[str], None] | None = None,
+                  encoding: str = "auto") -> RelightReport:
     """What the camera sees, T l, for an image or a folder of them, written as images.
 
     Parameters
@@ -387,9 +470,15 @@ def relight_files(T, images, output, *, batch: int = config.DEFAULT_BATCH,
     scheduler : as :func:`bigT.schedule.runner.open_runner`, optional
     on_start : callable, optional
         Called with the runner's description once it runs on a cluster.
+    encoding : {"auto", "srgb", "linear"}
+        Of the projector images' values (as :class:`FileCompensation`'s); the camera's
+        view is written in the same encoding.
     """
     T = as_store(T, "T")
-    source = ImageSource(images, image_shape_of(T))
+    channels = channels_of(T)
+    source = ImageSource(images, image_shape_of(T), channels)
+    check_frame_shapes(source.files, image_shape_of(T), channels)
+    light = source_encoding(source, channels, encoding)
     sink = ImageSink(output, source, bits=bits, inputs=store_paths(T))
     above = pixels = 0
     t0 = time.perf_counter()
@@ -397,13 +486,14 @@ def relight_files(T, images, output, *, batch: int = config.DEFAULT_BATCH,
         if runner is not None and on_start is not None:
             on_start(runner.describe())
         for files, frames in source.batches(batch):
-            seen = relight(T, frames, batch=batch, progress=progress, scheduler=runner)
+            seen = relight(T, light.to_light(frames), batch=batch, progress=progress,
+                           scheduler=runner)
             above += int(np.count_nonzero(seen > 1))
             pixels += seen.size
-            sink.write(files, seen)
+            sink.write(files, light.from_light(seen))
     png = any(sink.target(f).suffix.lower() == ".png" for f in source.files[:1])
     return RelightReport(sink.path, len(source), time.perf_counter() - t0,
-                         above / max(pixels, 1), png)
+                         above / max(pixels, 1), png, light)
 
 
 def describe_store(store, name: str) -> str:
@@ -418,16 +508,18 @@ def describe_path(choice) -> str:
                                       else "") + f" -- {choice.reason}")
 
 
-def check_frame_shapes(files, shape) -> None:
-    """Every frame of a folder has the transport's (H, W): read from the headers, so a
-    folder with one bad frame is refused before anything is written."""
+def check_frame_shapes(files, shape, channels: int = 1) -> None:
+    """Every frame of a folder has the transport's (H, W) and channels: read from the
+    headers, so a folder with one bad frame is refused before anything is written."""
     if shape is None:
         return
+    fine = ((), (1,)) if channels == 1 else ((3,),)
     for f in files:
         found = declared_shape(f)  # None when unreadable: read_image says why
         if (found is None or len(found) not in (2, 3) or tuple(found[:2]) != tuple(shape)
-                or found[2:] not in ((), (1,))):
-            read_image(f, shape)  # raises the one-line ImageError naming the file
+                or tuple(found[2:]) not in fine):
+            # the one-line ImageError naming the file (or an opaque alpha channel, fine)
+            read_image(f, shape, channels)
 
 
 class _Sink:
@@ -458,14 +550,16 @@ class _Sink:
         return False
 
 
-def _sink_for(source, out_path: Path, video_in: bool, bits, fps, stores=()) -> _Sink:
+def _sink_for(source, out_path: Path, video_in: bool, bits, fps, stores=(),
+              channels: int = 1) -> _Sink:
     """The output of a compensation, its kind and format checked before X is read, and
     refused where it would destroy the source or one of ``stores``."""
     if video_in or (source.is_folder and is_video_file(out_path)):
         fps = source.info.fps if video_in else (fps or DEFAULT_FPS)
         bits = bits or (source.info.bits if video_in else 8)
         shape = source.info.shape if video_in else _frame_shape(source)
-        return _Sink(source, out_path, VideoSink(out_path, shape, fps, bits), bits, stores)
+        video = VideoSink(out_path, shape, fps, bits, channels=channels)
+        return _Sink(source, out_path, video, bits, stores)
     if source.is_folder:
         if out_path.exists() and not out_path.is_dir():
             raise ImageError("the input is a folder, so the output must be a folder (or "
@@ -478,4 +572,4 @@ def _sink_for(source, out_path: Path, video_in: bool, bits, fps, stores=()) -> _
 
 def _frame_shape(source):
     """(H, W) of a folder's frames: the store's, else the first frame's."""
-    return source.shape or read_image(source.files[0]).shape
+    return source.shape or read_image(source.files[0]).shape[:2]

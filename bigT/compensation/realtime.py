@@ -137,8 +137,9 @@ class Compensator:
                          f"fits the memory limit of {limit / MIB:.0f} MiB")
 
     def __call__(self, frames: np.ndarray) -> np.ndarray:
-        """(K, H, W) desired frames -> (K, H, W) projector frames, clipped (float32
-        with X in memory, float64 streamed)."""
+        """(K, *frame_shape) desired frames, linear light ((K, H, W), or (K, H, W, 3)
+        for a colour X) -> projector frames of the same shape, clipped (float32 with X
+        in memory, float64 streamed)."""
         if self.matrix is None:
             return compensate_frames(frames, X=self.X, T=self.T, choice=self.choice,
                                      clip=self.clip, report=self.report, progress=False,
@@ -148,12 +149,10 @@ class Compensator:
         # float32 frames out: they are quantised to 8/16 bits or written as float32
         threads = self.threads
         B = frames_to_matrix(frames, self.order, np.float32, n_threads=threads)
-        out, below, above = matrix_to_frames(self.matrix.matmul(B, n_threads=threads),
-                                             self.order, self.clip, dtype=np.float32,
+        Y = self.matrix.matmul(B, n_threads=threads)
+        out, below, above = matrix_to_frames(Y, self.order, self.clip, dtype=np.float32,
                                              n_threads=threads)
-        self.report.clipped_low += below
-        self.report.clipped_high += above
-        self.report.pixels += out.size
+        self.report.add_clipped(Y, self.clip, self.order.channels, below, above, out.size)
         return out
 
 

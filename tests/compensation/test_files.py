@@ -72,10 +72,9 @@ def test_inputs_are_checked_before_anything_is_written(tmp_path, stores):
     np.save(tmp_path / "ok.npy", _desired(s, 1)[0])
     with pytest.raises(ImageError, match="unknown output format '.xyz'"):
         FileCompensation(X, tmp_path / "ok.npy", tmp_path / "out.xyz")
-    np.save(tmp_path / "small.npy", np.zeros((3, 4)))
-    with FileCompensation(X, tmp_path / "small.npy", tmp_path / "out.npy") as job:
-        with pytest.raises(ImageError, match="small.npy"):
-            job.run()
+    np.save(tmp_path / "small.npy", np.zeros((3, 4)))  # one image: refused from its header
+    with pytest.raises(ImageError, match="small.npy"):
+        FileCompensation(X, tmp_path / "small.npy", tmp_path / "out.npy")
     assert not any((tmp_path / name).exists() for name in ("out", "out.xyz", "out.npy"))
 
 
