@@ -54,8 +54,8 @@ def read_document(path: str | os.PathLike, kind: str, version: int) -> dict:
         raise CalibrationError(f"not a {kind} file (its \"format\" is "
                                f"{str(doc.get('format'))[:40]!r})", path)
     if not isinstance(doc.get("version"), int) or not 1 <= doc["version"] <= version:
-        raise CalibrationError(f"{kind} version {str(doc.get('version'))[:20]!r} is not one "
-                               f"this bigT reads (1 to {version})", path)
+        raise CalibrationError(f"{kind} version {json.dumps(doc.get('version'))[:20]} is "
+                               f"not one this bigT reads (1 to {version})", path)
     return doc
 
 

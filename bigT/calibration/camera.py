@@ -111,7 +111,8 @@ class CameraResponse:
         if self.kind == "table":
             where = f" ({self.source})" if self.source else ""
             return f"table of {self.table.shape[0]} codes x {self.table.shape[1]} channels{where}"
-        return {"linear": "linear", "srgb": "sRGB", "gamma": f"gamma {self.gamma:g}"}[self.kind]
+        return f"gamma {self.gamma:g}" if self.kind == "gamma" else {
+            "linear": "linear", "srgb": "sRGB"}[self.kind]
 
     def to_linear(self, image) -> np.ndarray:
         """f^-1: the linear light of a capture's codes.
