@@ -100,6 +100,18 @@ class CameraResponse:
             table.setflags(write=False)
             object.__setattr__(self, "table", table)
 
+    def __eq__(self, other) -> bool:
+        # the same curve: kind, G and table (compared by value); the source is a label
+        if not isinstance(other, CameraResponse):
+            return NotImplemented
+        same_table = (self.table is None and other.table is None) or (
+            self.table is not None and other.table is not None
+            and np.array_equal(self.table, other.table))
+        return (self.kind, self.gamma) == (other.kind, other.gamma) and same_table
+
+    def __hash__(self) -> int:
+        return hash((self.kind, self.gamma, None if self.table is None else self.table.tobytes()))
+
     @property
     def n_channels(self) -> int:
         """Channels the response distinguishes: a table's columns, else 1 (any image)."""

@@ -234,4 +234,8 @@ def test_save_load_and_draw(response, tmp_path):
 
 
 def test_rig_camera_default_is_gamma():
-    assert NonlinearRig().camera.describe() == CameraResponse("gamma", gamma=2.2).describe()
+    assert NonlinearRig().camera == CameraResponse("gamma", gamma=2.2, source="any label")
+    assert NonlinearRig().camera != CameraResponse("gamma", gamma=2.4)
+    table = np.linspace(0, 1, 256)
+    assert CameraResponse("table", table=table) == CameraResponse("table", table=table.copy())
+    assert CameraResponse("table", table=table) != CameraResponse("table", table=table ** 2)
