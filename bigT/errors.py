@@ -177,6 +177,12 @@ class AcquisitionError(BigTError):
     captures that are all black."""
 
 
+class CalibrationError(BigTError):
+    """Calibration data that cannot be used: a projector ramp that is not monotone or
+    is flat, an exposure bracket with a missing exposure, exposures out of order or a
+    pixel saturated in every exposure, a response file that is not one."""
+
+
 class DiskFullError(BigTError):
     """The disk filled while writing; what was complete before is kept."""
 

@@ -24,6 +24,7 @@ LAYERS = [
     # it imports only errors, and the CLI reads its __version__
     {"config", "atomic", "sizes", "progress", "colour", "__init__"},
     {"images", "metrics", "figures", "kernels"},
+    {"calibration"},  # radiometric responses, HDR merge: draws through figures
     {"storage"},
     {"schedule", "spectral"},
     {"algorithms", "scenes"},
