@@ -313,7 +313,7 @@ def choose_colour_path(T, colour_path: str = "auto", mixing=None, *,
     colour_path = checked_colour_path(colour_path)
     if colour_path == "general":
         return ColourPathChoice("general", "general: asked for (--colour-path general)")
-    refusal = _global_path_refusal(first_bounce, on_term)
+    refusal, found = _global_path_refusal(first_bounce, on_term), None
     if refusal is None:
         try:
             found = (checked_mixing(mixing, "given by the caller") if mixing is not None
@@ -337,7 +337,7 @@ def choose_colour_path(T, colour_path: str = "auto", mixing=None, *,
     if colour_path == "global":
         raise BigTError(f"the global colour-mixing path does not apply: {refusal}; use "
                         "{option}", T.path, option=("colour_path", "general"))
-    return ColourPathChoice("general", f"general: {refusal}")
+    return ColourPathChoice("general", f"general: {refusal}", found)
 
 
 def _global_path_refusal(first_bounce, on_term) -> str | None:
