@@ -79,7 +79,8 @@ def with_colour_path(report: InverseReport, choice: ColourPathChoice,
 
 
 def global_mixing_inverse(T, out, choice: ColourPathChoice, options: Mapping[str, Any],
-                          grey_inverse: Callable[..., InverseReport]) -> ColourInverseReport:
+                          grey_inverse: Callable[..., InverseReport],
+                          t_start: float | None = None) -> ColourInverseReport:
     """The inverse of the colour store ``T`` into the inverse store ``out`` by three
     grey inverses between the un-mixings of ``choice.mixing``.
 
@@ -94,8 +95,11 @@ def global_mixing_inverse(T, out, choice: ColourPathChoice, options: Mapping[str
         ``prune``, ``method``, ``first_bounce``, ...), passed through.
     grey_inverse : callable
         The grey entry, ``grey_inverse(U, out, **options)``.
+    t_start : float, optional
+        ``time.perf_counter()`` when the call began (the mixing's detection and
+        verification then count in the report's ``seconds``); default now.
     """
-    t_start = time.perf_counter()
+    t_start = time.perf_counter() if t_start is None else t_start
     mixing = choice.mixing
     thresholds = Thresholds(options["prune"], options.get("prune_feed"),
                             options.get("prune_operator"))

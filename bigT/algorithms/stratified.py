@@ -166,7 +166,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                     force=force, workers=workers, seed=seed, scheduler=scheduler,
                     overwrite=overwrite, prune_feed=prune_feed,
                     prune_operator=prune_operator)
-        return global_mixing_inverse(T, out, choice, grey, grey_inverse=stratified_inverse)
+        return global_mixing_inverse(T, out, choice, grey, grey_inverse=stratified_inverse,
+                                     t_start=t_start)
     settings = SeriesSettings(int(terms), thresholds, tol, progress, force, seed,
                               overwrite, on_term)
     memory_limit = None if memory_limit is None else parse_size(memory_limit, "memory_limit")
