@@ -312,7 +312,7 @@ def choose_colour_path(T, colour_path: str = "auto", mixing=None, *,
     """
     colour_path = checked_colour_path(colour_path)
     if colour_path == "general":
-        return ColourPathChoice("general", "general: asked for (--colour-path general)")
+        return ColourPathChoice("general", "general: asked for")
     refusal, found = _global_path_refusal(first_bounce, on_term), None
     if refusal is None:
         try:
@@ -346,6 +346,6 @@ def _global_path_refusal(first_bounce, on_term) -> str | None:
         return "a given first bounce F is a colour F, which the global path's grey " \
                "inverses cannot take"
     if on_term is not None:
-        return "a per-term callback (on_term, as --target-error uses) measures the " \
-               "general path's terms"
+        return "a per-term callback (on_term, as the target-error search uses) " \
+               "measures the general path's terms"
     return None
