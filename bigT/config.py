@@ -76,6 +76,27 @@ SPECTRAL_RADIUS_CW_SHIFT = 0.1
 #: grow for a term or two, by 40 % measured; a diverging one grows without end.
 RESIDUAL_GROWTH = 2.0
 
+#: Global colour mixing (bigT.algorithms.mixing): T un-mixed by one 3x3 C and P is
+#: taken as channel-diagonal when its cross-channel entries are below this fraction of
+#: its in-channel ones (Frobenius). A float32 entry carries a relative rounding of
+#: 6e-8, which un-mixing amplifies by at most cond(C) cond(P) (a truly global T
+#: measures about 1e-7 with realistic cross-talk); 1e-5 leaves room for cond(C) cond(P)
+#: up to ~100, is the size of the default prune (what dropping the residue changes in
+#: T is below what the series drops), and a per-pixel variation of the mixing of 0.1 %
+#: already measures ~1e-3. For float64 stores the same reasoning gives 1e-10.
+GLOBAL_MIXING_RTOL = 1e-5
+GLOBAL_MIXING_RTOL_FLOAT64 = 1e-10
+#: A pixel's 3x3 block (or a given mixing) with a larger condition number is not used
+#: to estimate (or accepted as) a mixing: its inverse would amplify rounding beyond
+#: the tolerance above.
+GLOBAL_MIXING_MAX_COND = 1e4
+#: The estimate from T's diagonal blocks samples this many well-conditioned pixels and
+#: makes this many tries (another reference block and random combination each).
+GLOBAL_MIXING_CANDIDATES = 256
+GLOBAL_MIXING_TRIES = 4
+#: Entries of T (or of X) un-mixed (or composed) at once: ~25 bytes each in flight.
+GLOBAL_MIXING_CHUNK_ENTRIES = 1 << 21
+
 #: A pass has at least this many row blocks (tasks) per thread of the scheduler: the
 #: term stores' tile size is T's, halved until it gives that many (a cluster's threads
 #: all get work, and a slow block does not leave the others idle at the end)...

@@ -36,7 +36,9 @@ from ..schedule.runner import local_path, open_runner
 from ..sizes import parse_size
 from ..storage import InverseStore, as_store
 from .engine import InverseEngine
+from .global_mixing import global_mixing_inverse, with_colour_path
 from .methods import METHODS as SERIES_METHODS
+from .mixing import checked_colour_path, choose_colour_path
 from .report import InverseReport
 from .settings import SeriesSettings, checked_method, checked_thresholds
 
@@ -48,7 +50,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        first_bounce="diag", method="power", client=None, memory_limit=None,
                        progress=True, force=False, *, workers=2, seed=0,
                        scheduler=None, overwrite=False, prune_feed=None,
-                       prune_operator=None, on_term=None) -> InverseReport:
+                       prune_operator=None, on_term=None, colour_path="auto",
+                       mixing=None) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -109,10 +112,23 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         a string returned stops the run there, as its ``stopped`` reason. One run
         with it costs less than a run per term (one set-up, one spectral radius
         read): :func:`bigT.algorithms.target.invert_to_target` measures each term so.
+    colour_path : {"auto", "general", "global"}
+        For a colour T (channels 3; a grey T ignores it): ``"global"`` inverts three
+        grey transports between two 3x3 un-mixings when the rig's colour mixing is one
+        camera C and one projector P for every pixel (:mod:`bigT.algorithms.mixing`:
+        the mixing given, or recorded with T, or estimated from T's diagonal blocks,
+        verified over all of T; refused, saying why, when it does not hold);
+        ``"general"`` runs the colour engine (3x3 block-diagonal F); ``"auto"`` takes
+        the global path when the mixing holds, else the general one.
+    mixing : (camera, projector) pair of 3x3 arrays, optional
+        The rig's global mixing, when known (else the one recorded with T, or the
+        estimate); still verified.
 
     Returns
     -------
     InverseReport
+        For a colour T, a :class:`~bigT.algorithms.global_mixing.ColourInverseReport`:
+        ``colour_path`` and ``colour_reason`` say which path was taken and why.
 
     Raises
     ------
@@ -141,6 +157,17 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     fb_file = (first_bounce if isinstance(first_bounce, (str, os.PathLike))
                and str(first_bounce) not in ("diag", "identity") else None)  # a .npy read
     refuse_overwriting_inputs([out], [T.path, T.redirected_from, fb_file])
+    checked_colour_path(colour_path)
+    choice = (choose_colour_path(T, colour_path, mixing, first_bounce=first_bounce,
+                                 on_term=on_term, seed=seed) if T.channels == 3 else None)
+    if choice is not None and choice.path == "global":  # three grey inverses of U
+        grey = dict(terms=terms, prune=prune, tol=tol, first_bounce=first_bounce,
+                    method=method, memory_limit=memory_limit, progress=progress,
+                    force=force, workers=workers, seed=seed, scheduler=scheduler,
+                    overwrite=overwrite, prune_feed=prune_feed,
+                    prune_operator=prune_operator)
+        return global_mixing_inverse(T, out, choice, grey, grey_inverse=stratified_inverse,
+                                     t_start=t_start)
     settings = SeriesSettings(int(terms), thresholds, tol, progress, force, seed,
                               overwrite, on_term)
     memory_limit = None if memory_limit is None else parse_size(memory_limit, "memory_limit")
@@ -148,10 +175,11 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     store = InverseStore(out)
     try:
         engine = InverseEngine(T, store, series, runner, settings, first_bounce, memory_limit)
-        return engine.run(t_start)
+        report = engine.run(t_start)
     finally:
         _let_go(runner, T, out)
         store.close()  # the writer lock, whatever failed
+    return report if choice is None else with_colour_path(report, choice)
 
 
 def _let_go(runner, T, out) -> None:

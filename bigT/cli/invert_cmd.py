@@ -79,6 +79,15 @@ def register(subparsers) -> None:
                         "0.0039 = 1/255 for an 8-bit display) at the least cost, and "
                         "stop there; exit 1 when it stops short (best effort). Refuses "
                         "--terms, --tol, --prune-feed, --prune-operator and --force")
+    p.add_argument("--colour-path", dest="colour_path", choices=("auto", "general", "global"),
+                   default="auto",
+                   help="a colour T: 'global' inverts three grey transports between two "
+                        "3x3 un-mixings when the rig's colour mixing is one camera and one "
+                        "projector matrix for every pixel (recorded with T, or estimated "
+                        "from its diagonal blocks; verified over all of T, refused when it "
+                        "does not hold); 'general' the 3x3 block-diagonal engine; 'auto' "
+                        "global when the mixing holds, else general (default). A grey T "
+                        "ignores it")
     p.add_argument("--first-bounce", default=default["first_bounce"],
                    metavar="diag|identity|FILE.npy",
                    help="F: diag(T), identity (the naive choice), or a .npy vector "
@@ -110,7 +119,6 @@ def register(subparsers) -> None:
 def invert_cmd(args) -> int:
     from ..algorithms import stratified_inverse
 
-
     fb = args.first_bounce
     if fb not in ("diag", "identity") and not os.path.exists(fb):
         raise BigTError("--first-bounce is neither diag, identity nor an existing .npy file",
@@ -123,6 +131,9 @@ def invert_cmd(args) -> int:
     refuse_overwriting_inputs([args.output, json_file],
                               [args.T, None if fb in ("diag", "identity") else fb])
     if args.target_error is not None:
+        if args.colour_path == "global":
+            raise BigTError("--colour-path global cannot be combined with --target-error, "
+                            "which measures the general path's terms as they are published")
         return _invert_to_target(args, fb)
     given = {name: getattr(args, name) for name in ("terms", "prune", "method")
              if getattr(args, name) is not None}
@@ -130,9 +141,15 @@ def invert_cmd(args) -> int:
         args.T, args.output, tol=args.tol, prune_feed=args.prune_feed,
         prune_operator=args.prune_operator, first_bounce=fb, scheduler=args.scheduler,
         memory_limit=args.memory_limit, progress=args.progress, force=args.force,
-        workers=args.workers, overwrite=args.overwrite, **given)
+        workers=args.workers, overwrite=args.overwrite, colour_path=args.colour_path,
+        **given)
     if args.json != "-":
+        if getattr(report, "colour_reason", None):  # a colour T: which path, and why
+            print(f"colour path: {report.colour_reason}")
         print(report.table())
+        if getattr(report, "colour_path", None) == "global":
+            print(f"global path: un-mixing T {report.seconds_split:.2f} s, composing the "
+                  f"colour X {report.seconds_compose:.2f} s, nnz(X) {report.nnz_X:,}")
         print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
     _write_json(args.json, report.to_dict())
     return 0

@@ -12,7 +12,8 @@ objects (``bigT_inverse.params.T``), ``[]`` for the objects in a list
 The stores written here: a plain store (:func:`bigT.storage.from_scipy`, with every
 optional attribute), a scene (:func:`bigT.scenes.corner`) and its inverse
 (:func:`bigT.algorithms.stratified_inverse`, power form with the feed and operator
-thresholds, so that the fingerprint holds them).
+thresholds, so that the fingerprint holds them), and a colour T with a recorded global
+mixing and its inverse by the global-mixing path.
 Every record found in them must have a table (or be one of :data:`FREE` or
 :data:`SAME_AS`), and every table must be a record found.
 
@@ -27,6 +28,7 @@ import re
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import pytest
 import scipy.sparse as sp
 
@@ -37,7 +39,9 @@ DOC = Path(os.environ.get("BIGT_DOCS", ROOT / "docs")) / "FORMAT.md"
 FREE = {"bigT.metadata"}
 #: Records that repeat another (the doc says so in words): checked against its table.
 SAME_AS = {"bigT.metadata.scene": "bigT_scene",
-           "bigT.metadata.inverse.record": "bigT_inverse.history[]"}
+           "bigT.metadata.inverse.record": "bigT_inverse.history[]",
+           "bigT.metadata.inverse.mixing": "bigT_inverse.mixing",
+           "bigT_inverse.params.mixing": "bigT.metadata.mixing"}
 
 _SPAN = re.compile(r"`([^`]+)`")
 _HEADER = re.compile(r"^\|\s*key of `(?P<record>[^`]+)`\s*\|")
@@ -100,7 +104,8 @@ def written_records(*roots: Path) -> dict[str, set]:
 
 @pytest.fixture(scope="module")
 def stores(tmp_path_factory):
-    """The stores of the module docstring, written once: (plain, scene T, inverse)."""
+    """The stores of the module docstring, written once: (plain, scene T, inverse,
+    colour T, its global-path inverse)."""
     import bigT
     from bigT import scenes
 
@@ -114,7 +119,14 @@ def stores(tmp_path_factory):
     inverse = tmp / "X.zarr"
     bigT.stratified_inverse(scene, inverse, terms=2, prune_feed=1e-4, prune_operator=1e-4,
                             progress=False)
-    return plain, scene, inverse
+    colour, colour_inverse = tmp / "T3.zarr", tmp / "X3.zarr"  # the global-mixing path
+    mixing = np.array([[0.9, 0.1, 0.0], [0.1, 0.8, 0.1], [0.0, 0.1, 0.9]])
+    grey = sp.random(24, 24, density=0.1, random_state=1, format="csr") + 4 * sp.eye(24)
+    bigT.from_scipy(sp.kron(grey, mixing @ mixing), colour, tile_size=24, image_shape=(4, 6),
+                    channels=3, metadata={"mixing": {"camera": mixing.tolist(),
+                                                     "projector": mixing.tolist()}})
+    bigT.stratified_inverse(colour, colour_inverse, terms=1, progress=False)
+    return plain, scene, inverse, colour, colour_inverse
 
 
 @pytest.fixture(scope="module")
@@ -172,6 +184,7 @@ def test_the_stores_hold_every_kind_of_record(records):
         assert record in records, record
     assert {"redirect", "image_tile"} <= records["bigT"]
     assert {"prune_feed", "prune_operator"} <= records["bigT_inverse.params"]
+    assert records["bigT_inverse.mixing"] and "colour_path" in records["bigT_inverse"]
 
 
 def test_the_paper_scene_writes_documented_keys_only(tmp_path):
