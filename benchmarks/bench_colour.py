@@ -1,0 +1,220 @@
+"""Colour light transport (issue #28), reported, never asserted.
+
+On the colour Cornell box (red left wall, green right wall, the rest white; the rig's
+colour mixing global, with cross-talk) and on the grey Cornell box of the same geometry:
+
+* **Inverse time**: the grey inverse, the colour general path (3x3 block-diagonal F,
+  every product over 3n x 3n) and the global-mixing path (three grey inverses between
+  two per-pixel un-mixings), the same terms and pruning; seconds, entries of X, and the
+  ratios to grey the issue sets goals for (general <= 10x, global <= 3.5x).
+* **What the camera sees**: for a white target (the case colour bleeding spoils) and a
+  colour test pattern, the seen image T clip(l) against the desired one, uncompensated
+  (l = desired), per-pixel 3x3 only (term 0, F^-1: the classic colour method of Nayar et
+  al. 2003) and 1-4 terms of the unpruned series (applied matrix-free: F^-1 sum M^k, M =
+  I - T F^-1, so each count is exact for its terms), then the pruned 4-term X of both
+  paths: relative error, PSNR, SSIM and CIEDE2000 Delta E (mean, p95) from
+  :mod:`bigT.metrics`.
+* **Video**: a colour video of the scene's size through ``bigT compensate in.mp4 -o
+  out.mp4`` with X in memory, batch 1 and 64: frames/s (the command's own report).
+
+Run:  .venv/bin/python benchmarks/bench_colour.py                 # 384x512, ~15 min
+      .venv/bin/python benchmarks/bench_colour.py --quick         # 48x64, ~1 min
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import bigT  # noqa: E402
+from bigT import scenes  # noqa: E402
+from bigT.metrics import image_metrics  # noqa: E402
+
+from _results import Results, run_name  # noqa: E402
+
+#: Pruning of every inverse here: the dense 384x512 settings of the grey benchmarks.
+PRUNE = {"prune": 3e-6, "prune_feed": 1e-4, "prune_operator": 1e-5}
+TERMS = 4
+WHITE_LEVEL = 0.3
+
+
+@dataclass(frozen=True)
+class InverseRun:
+    """One timed inverse: its label, seconds, entries of X and the report line."""
+
+    label: str
+    seconds: float
+    nnz: int
+    path: Path
+    describe: str
+
+
+def _size(text: str) -> tuple[int, int]:
+    h, w = text.lower().split("x")
+    return int(h), int(w)
+
+
+def build_scenes(work: Path, size, density: str):
+    """The grey and the colour Cornell box of ``size`` (built once, reused)."""
+    out = {}
+    for label, kw in (("grey", {}), ("colour", {"colour": True, "mixing": "global"})):
+        path = work / f"cornell-{label}-{size[0]}x{size[1]}.zarr"
+        t0 = time.perf_counter()
+        if not path.exists():
+            scenes.build("cornell", size=size, path=path, density=density, preview=False,
+                         progress=False, **kw)
+        out[label] = (scenes.load(path), time.perf_counter() - t0)
+    return out
+
+
+def invert(T_path: Path, out: Path, label: str, **kw) -> InverseRun:
+    t0 = time.perf_counter()
+    rep = bigT.stratified_inverse(T_path, out, terms=TERMS, overwrite=True, progress=False,
+                                  **PRUNE, **kw)
+    seconds = time.perf_counter() - t0
+    X = bigT.open(out)
+    return InverseRun(label, seconds, int(X.nnz), out, rep.describe().splitlines()[0])
+
+
+def colour_test_pattern(shape) -> np.ndarray:
+    """(H, W, 3) linear light in [0.06, 0.4]: hue ramp, a ring and bars."""
+    H, W = shape
+    y, x = np.mgrid[0:H, 0:W] / np.array([max(H - 1, 1), max(W - 1, 1)])[:, None, None]
+    hue = 2 * np.pi * x
+    rgb = np.stack([0.5 + 0.5 * np.cos(hue - k * 2 * np.pi / 3) for k in range(3)], -1)
+    ring = (np.abs(np.hypot(y - 0.5, x - 0.5) - 0.22) < 0.04)[..., None]
+    img = np.where(ring, 0.9, 0.35 + 0.6 * rgb * (0.3 + 0.7 * y[..., None]))
+    return 0.06 + 0.34 * img
+
+
+def series_images(T, desired: np.ndarray, terms: int) -> list[np.ndarray]:
+    """Projector images of the unpruned series F^-1 sum_{k<=j} M^k applied to
+    ``desired`` (an (H, W, 3) image) for j = 0..terms (matrix-free, in row-major
+    order): Horner on the vector, s_j = b + s_{j-1} - T F^-1 s_{j-1}."""
+    from bigT.algorithms import resolve_first_bounce
+
+    fb = resolve_first_bounce(T, "diag")
+    order = T.pixel_order
+    b = order.to_matrix(desired)[:, None]
+    s, out = b.copy(), []
+    for j in range(terms + 1):
+        if j:
+            s = b + s - T.matmul(fb.apply_inverse(s), order="matrix")
+        out.append(order.to_images(fb.apply_inverse(s)[:, 0]))
+    return out
+
+
+def seen(T, projector: np.ndarray) -> np.ndarray:
+    """What the camera sees when the projector shows ``projector`` (clipped to [0, 1])."""
+    return T.matmul(np.clip(projector, 0, 1).ravel()).reshape(projector.shape)
+
+
+def metrics_rows(T, X_runs, desired: np.ndarray, target: str) -> list[list]:
+    rows = []
+
+    def row(label, projector):
+        m = image_metrics(seen(T, projector), desired)
+        clipped = float(np.mean((projector < 0) | (projector > 1)))
+        rows.append([target, label, round(m.relative_error, 4), round(m.psnr_db, 2),
+                     None if m.ssim is None else round(m.ssim, 4), round(m.delta_e_mean, 3),
+                     round(m.delta_e_p95, 3), round(100 * clipped, 2)])
+
+    row("uncompensated", desired)
+    for j, img in enumerate(series_images(T, desired, TERMS)):
+        row("per-pixel 3x3 (term 0)" if j == 0 else f"{j} term(s), unpruned", img)
+    for run in X_runs:
+        X = bigT.open(run.path)
+        row(f"X {run.label} (4 terms, pruned)", X.matmul(desired.ravel()).reshape(desired.shape))
+    return rows
+
+
+def write_video(path: Path, frames: int, shape, fps: float = 30.0) -> None:
+    from bigT.compensation.video import VideoSink
+
+    H, W = shape
+    base = colour_test_pattern(shape)
+    with VideoSink(path, shape, fps, 8, channels=3) as sink:
+        for k in range(frames):
+            sink.write(np.roll(base, 4 * k, axis=1)[None] ** (1 / 2.2))
+
+
+def video_rate(X_path: Path, video: Path, out: Path, batch: int) -> dict:
+    cmd = [sys.executable, "-m", "bigT.cli", "compensate", str(X_path), str(video), "-o",
+           str(out), "--batch", str(batch), "--json", "--overwrite", "-q"]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(done.stdout)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=_size, default=(384, 512))
+    ap.add_argument("--density", default="sparse")
+    ap.add_argument("--frames", type=int, default=128)
+    ap.add_argument("--workdir", type=Path, default=Path("bench-out/colour"))
+    ap.add_argument("--quick", action="store_true", help="48x64, 32 frames")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.size, args.frames = (48, 64), 32
+    work = args.workdir
+    work.mkdir(parents=True, exist_ok=True)
+    res = Results(run_name("colour"))
+    H, W = args.size
+
+    built = build_scenes(work, args.size, args.density)
+    (grey, t_grey), (colour, t_colour) = built["grey"], built["colour"]
+    print(f"scenes {H}x{W}: grey nnz {grey.T.nnz} ({t_grey:.1f} s), colour nnz "
+          f"{colour.T.nnz} ({t_colour:.1f} s)")
+
+    runs = [invert(grey.path, work / "X-grey.zarr", "grey"),
+            invert(colour.path, work / "X-general.zarr", "general", colour_path="general"),
+            invert(colour.path, work / "X-global.zarr", "global", colour_path="global")]
+    base = runs[0].seconds
+    rows = [[r.label, round(r.seconds, 2), r.nnz, round(r.seconds / base, 2)] for r in runs]
+    for r in runs:
+        print(f"{r.label:8s} {r.seconds:7.2f} s  nnz(X) {r.nnz}  {r.seconds / base:.2f}x grey"
+              f"  | {r.describe}")
+    res.table("inverse", f"Cornell box {H}x{W}, {TERMS} terms, prune {PRUNE}: grey against "
+              "colour (general and global-mixing paths), same geometry",
+              ["path", "seconds", "nnz(X)", "x grey"], rows)
+    res.value("general_over_grey", round(runs[1].seconds / base, 2),
+              "colour general path time / grey inverse time (goal <= 10)")
+    res.value("global_over_grey", round(runs[2].seconds / base, 2),
+              "colour global-mixing path time / grey inverse time (goal <= 3.5)")
+
+    header = ["target", "projector image", "rel. error", "PSNR dB", "SSIM", "dE2000 mean",
+              "dE2000 p95", "% clipped"]
+    rows = []
+    white = np.full((H, W, 3), WHITE_LEVEL)
+    rows += metrics_rows(colour.T, runs[1:], white, f"white {WHITE_LEVEL}")
+    rows += metrics_rows(colour.T, runs[1:], colour_test_pattern((H, W)), "test pattern")
+    for r in rows:
+        print("  ".join(str(v) for v in r))
+    res.table("seen", "What the camera sees on the colour Cornell box (T clip(l) against "
+              "the desired image; Delta E on sRGB-encoded values)", header, rows)
+
+    video = work / f"colour-{H}x{W}.mp4"
+    write_video(video, args.frames, (H, W))
+    vrows = []
+    for batch in (1, 64):
+        rep = video_rate(runs[2].path, video, work / f"out-{batch}.mp4", batch)
+        vrows.append([batch, rep["frames"], round(rep["frames_per_second"], 1),
+                      rep["resident"], rep["precision"]])
+        print(f"video batch {batch}: {rep['frames_per_second']:.1f} frames/s")
+    res.table("video", f"Colour video {H}x{W} through `compensate in.mp4 -o out.mp4`, X of "
+              "the global path in memory (goal: >= 20 frames/s at batch 1, >= 60 at 64)",
+              ["batch", "frames", "frames/s", "resident", "precision"], vrows)
+    res.save()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
