@@ -279,3 +279,48 @@ def test_on_worker_processes(tmp_path, scene):
                        progress=False)
     np.testing.assert_allclose(read(tmp_path / "X.zarr"),
                                dense_colour_stratified(scene, 3), atol=1e-12)
+
+
+@pytest.mark.parametrize("zero_diagonal", [True, False])
+def test_m_operand_rows_and_matvec(tmp_path, scene, zero_diagonal):
+    """M = D - T F^-1 from its cached rows and from T's rows (no cache room) against
+    dense, F = T's diagonal blocks (zero diagonal blocks) or another block diagonal."""
+    from bigT.schedule.cache import TileCache
+    from bigT.schedule.operators import MOperand
+
+    T = store(tmp_path, scene, (6, 8), order="row-major")
+    F = blocks_of(scene) if zero_diagonal else blocks_of(scene) * 1.2 + 0.01
+    Finv = np.linalg.inv(F)
+    active = np.ones(len(scene), bool)
+    M_dense = np.eye(len(scene)) - scene @ block_diag(Finv)
+    V = np.random.default_rng(2).standard_normal((len(scene), 2))
+    for cache in (TileCache(1 << 30), TileCache(0)):
+        M = MOperand(T, Finv, active, zero_diagonal, cache)
+        for a, b in [(0, 24), (24, 72), (120, 144)]:
+            np.testing.assert_allclose(M.matvec_rows(a, b, V), M_dense[a:b] @ V, atol=1e-12)
+            rows = M.rows(a, b).toarray()
+            np.testing.assert_allclose(rows, M_dense[a:b], atol=1e-12)
+            if zero_diagonal:  # dropped exactly, not left as rounding
+                assert not any(rows[3 * k:3 * k + 3, a + 3 * k:a + 3 * k + 3].any()
+                               for k in range((b - a) // 3))
+
+
+def test_matrix_free_apply_and_first_bounce_shapes(tmp_path, scene):
+    from bigT.compensation import first_bounce_from_inverse, matrix_free_apply
+    from bigT.compensation.core import first_bounce_diag
+
+    T = store(tmp_path, scene, (6, 8))
+    perm = T.pixel_order.permutation  # values: matrix index -> row-major value index
+    finv = first_bounce_diag(T)
+    assert finv.shape == (48, 3, 3)
+    A_stored = scene[np.ix_(perm, perm)]
+    np.testing.assert_allclose(finv, np.linalg.inv(blocks_of(A_stored)), rtol=1e-12)
+    B = np.random.default_rng(3).uniform(0, 1, (144, 2))
+    want = dense_colour_stratified(A_stored, 3) @ B
+    np.testing.assert_allclose(matrix_free_apply(T, B, 3), want, atol=1e-12)
+    np.testing.assert_allclose(matrix_free_apply(T, B, 3, F=blocks_of(A_stored)), want,
+                               atol=1e-12)
+    stratified_inverse(T, tmp_path / "X.zarr", terms=2, prune=0, progress=False)
+    F = first_bounce_from_inverse(bigT.open(tmp_path / "X.zarr"))
+    X_stored = read(tmp_path / "X.zarr", order="matrix")
+    np.testing.assert_allclose(F, np.linalg.inv(blocks_of(X_stored)), rtol=1e-12)
