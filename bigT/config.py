@@ -40,6 +40,13 @@ IMAGE_MAX_VALUES = 1 << 27
 # --- inverse -----------------------------------------------------------------------
 #: Absolute threshold below which entries of each series term are dropped.
 DEFAULT_PRUNE = 1e-5
+#: Largest condition number of a pixel's 3x3 colour block of F (a colour transport's
+#: first bounce) that the engine inverts; a pixel above it is refused, or left out
+#: with first_bounce="diag-skip-ill". The block's inverse carries the relative error of
+#: its entries times the condition number: float32 entries (2^-24 = 6e-8) then give
+#: F^-1 to 6e-4, under an 8-bit level (1/255 = 4e-3); past it, the pixel's channels are
+#: ones the camera cannot tell apart, and F^-1 is mostly noise.
+COLOUR_BLOCK_MAX_CONDITION = 1e4
 #: Random probes z used to estimate ||I - T X||_F by r = z - T (X z).
 RESIDUAL_PROBES = 4
 #: The spectral radius of M is computed before the first product (bigT.spectral):

@@ -1,32 +1,54 @@
 """The first-bounce transport F (the preconditioner of paper §4.4) and its recovery
-from an inverse (paper eq. 33 / 42)."""
+from an inverse (paper eq. 33 / 42).
+
+Grey: F is diagonal, held as the vector f. Colour (a store of 3 channels, index
+3 p + c): F is block-diagonal, one 3 x 3 colour-mixing block per pixel (with
+``first_bounce="diag"``, T's own diagonal blocks), held as the (n/3, 3, 3) blocks and
+inverted per pixel, each block's condition number checked
+(``config.COLOUR_BLOCK_MAX_CONDITION``). Everything the engine does with F or F^-1
+goes through :class:`FirstBounce`'s operations, which cost a grey F what they always
+did.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import os
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 
+from .. import config
 from ..errors import InvalidMatrixError, ShapeMismatchError, short_reason
+from ..kernels import BlockDiagonal, diagonal_blocks
 from ..storage import as_store
+
+#: ``first_bounce=`` names: T's diagonal (blocks), the same leaving out the pixels
+#: whose colour block is singular or ill-conditioned, and the identity.
+NAMED_FIRST_BOUNCES = ("diag", "diag-skip-ill", "identity")
 
 
 @dataclass(frozen=True)
 class FirstBounce:
-    """F = diag(f) and what the series needs from it.
+    """F and what the series needs from it.
 
     Attributes
     ----------
-    kind : {"diag", "identity", "vector"}
-    f : (n,) float64 ndarray, F's diagonal (0 on excluded pixels)
-    finv : (n,) float64 ndarray, 1/f (0 on excluded pixels)
-    active : (n,) bool ndarray, pixels kept in the inverse
+    kind : {"diag", "diag-skip-ill", "identity", "vector", "blocks"}
+        "vector" is a grey F given as an array or file, "blocks" a colour one.
+    f : float64 ndarray, F in T's stored order: (n,), its diagonal, for grey; (n/3, 3,
+        3), its per-pixel blocks, for colour (0 on excluded pixels)
+    finv : float64 ndarray of f's shape, F^-1: 1/f, or each block's inverse (0 on
+        excluded pixels)
+    active : (n,) bool ndarray, values (pixels, or pixels' channels) kept in the inverse
     excluded : int, pixels left out (their row and column of T are zero: no light
-        reaches them, none leaves them)
+        reaches them, none leaves them; or, asked for, their colour block is
+        ill-conditioned)
     digest : str, hash of f, recorded in the inverse's metadata
+    ill_conditioned : int, of the excluded pixels, those left out for their colour
+        block (``"diag-skip-ill"``)
     """
 
     kind: str
@@ -35,11 +57,54 @@ class FirstBounce:
     active: np.ndarray
     excluded: int
     digest: str
+    ill_conditioned: int = 0
 
     @property
     def zero_diagonal(self) -> bool:
-        """F = diag T: the diagonal of M = D - T F^-1 is exactly zero."""
-        return self.kind == "diag"
+        """F = diag T (its diagonal blocks, for colour): the diagonal (blocks) of
+        M = D - T F^-1 are exactly zero."""
+        return self.kind in ("diag", "diag-skip-ill")
+
+    @property
+    def channels(self) -> int:
+        """F's block size: 1 (grey) or 3 (colour)."""
+        return 1 if self.f.ndim == 1 else int(self.f.shape[1])
+
+    @cached_property
+    def forward(self) -> BlockDiagonal:
+        """F as a :class:`~bigT.kernels.BlockDiagonal`."""
+        return BlockDiagonal(self.f)
+
+    @cached_property
+    def inverse(self) -> BlockDiagonal:
+        """F^-1 as a :class:`~bigT.kernels.BlockDiagonal`."""
+        return BlockDiagonal(self.finv)
+
+    def apply(self, V: np.ndarray) -> np.ndarray:
+        """F V, V of shape (n, k)."""
+        return self.forward.apply(V)
+
+    def apply_inverse(self, V: np.ndarray, start: int = 0, stop: int | None = None
+                      ) -> np.ndarray:
+        """Rows ``start:stop`` of F^-1 V, V of shape (stop - start, k) (those rows of a
+        dense block)."""
+        stop = start + V.shape[0] if stop is None else stop
+        if stop - start != V.shape[0]:
+            raise ShapeMismatchError(f"V has {V.shape[0]} rows for rows {start}:{stop}")
+        return self.inverse.apply(V, start)
+
+    def scale_rows(self, S, start: int, dtype=None) -> sp.csr_array:
+        """F^-1 S for the row block S (rows ``start:start + r`` of an (n, m) matrix),
+        in ``dtype`` (S's by default)."""
+        return self.inverse.scale_rows(S, start, dtype)
+
+    def scale_cols(self, S) -> sp.csr_array:
+        """S F^-1, S of shape (r, n)."""
+        return self.inverse.scale_cols(S)
+
+    def inverse_rows(self, start: int, stop: int, dtype) -> sp.csr_array:
+        """Rows ``start:stop`` of F^-1, CSR (stop - start, n), global columns."""
+        return self.inverse.rows(start, stop, dtype)
 
 
 def _empty_rows_and_cols(T, candidates: np.ndarray) -> np.ndarray:
@@ -145,10 +210,15 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     Parameters
     ----------
     T : BlockCSR, shape (n, n)
-    spec : "diag", "identity", (n,) array-like, or path of a ``.npy`` file with one
-        (e.g. the result of :func:`recover_first_bounce`). A vector is indexed by pixel
-        in row-major image order (an (H, W) image raveled), as the public API speaks;
-        it is permuted into T's stored order here.
+    spec : "diag", "diag-skip-ill", "identity", an array, or path of a ``.npy`` file
+        with one (e.g. the result of :func:`recover_first_bounce`). For a grey T an
+        (n,) vector, for a colour T (``T.channels == 3``) the (n/3, 3, 3) blocks; either
+        indexed by pixel in row-major image order (an (H, W) image raveled), as the
+        public API speaks, and permuted into T's stored order here. For colour,
+        "diag" is T's 3x3 diagonal blocks, each pixel's colour mixing, inverted per
+        pixel; "diag-skip-ill" the same, but a pixel whose block is singular or
+        ill-conditioned is left out of the inverse like an unlit pixel instead of
+        refused. For grey (1x1 blocks, always well-conditioned) it is "diag".
 
     Returns
     -------
@@ -160,19 +230,24 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     InvalidMatrixError
         With ``"diag"``: a negative or NaN diagonal entry, or a zero one on a pixel
         whose row or column is not zero (count and first index given). With a vector:
-        a non-finite entry, or one <= 0 on such a pixel.
+        a non-finite entry, or one <= 0 on such a pixel. Colour: a block with a NaN
+        (or, given, non-finite) entry, or a lit pixel whose block's condition number
+        exceeds ``config.COLOUR_BLOCK_MAX_CONDITION`` (singular: infinite), naming the
+        pixel and its condition number (unless ``"diag-skip-ill"``).
     ShapeMismatchError
-        A vector of the wrong length.
+        A vector (or blocks) of the wrong shape.
     """
     n = T.shape[0]
-    d = np.asarray(T.diagonal(output_order="matrix"), dtype=np.float64)
     source = None  # the --first-bounce file, named in the errors about its vector
-    if isinstance(spec, (str, os.PathLike)) and str(spec) not in ("diag", "identity"):
+    if isinstance(spec, (str, os.PathLike)) and str(spec) not in NAMED_FIRST_BOUNCES:
         source = os.fspath(spec)
         spec = load_first_bounce(source)
+    if getattr(T, "channels", 1) != 1:
+        return _resolve_colour(T, spec, source)
+    d = np.asarray(T.diagonal(output_order="matrix"), dtype=np.float64)
     if isinstance(spec, str):
         kind = spec
-        f = d.copy() if kind == "diag" else np.ones(n)
+        f = d.copy() if kind != "identity" else np.ones(n)
     else:
         kind = "vector"
         f = _stored_order(T, _as_vector(spec, n, source))
@@ -185,7 +260,7 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     excluded = _empty_rows_and_cols(T, zero_diag) if len(zero_diag) else zero_diag
     active = np.ones(n, dtype=bool)
     active[excluded] = False
-    what, where = (("T's diagonal", getattr(T, "path", None)) if kind == "diag"
+    what, where = (("T's diagonal", getattr(T, "path", None)) if kind != "vector"
                    else ("first_bounce", source))
     if kind != "identity":
         _refuse_nonpositive(f, active, what, where, name)
@@ -195,6 +270,107 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     finv[active] = 1.0 / f[active]
     digest = hashlib.sha1(np.ascontiguousarray(f).tobytes()).hexdigest()[:16]
     return FirstBounce(kind, f, finv, active, int(len(excluded)), digest)
+
+
+def _resolve_colour(T, spec, source) -> FirstBounce:
+    """:func:`resolve_first_bounce` for a colour T (3 channels): F block-diagonal, one
+    3x3 block per pixel, inverted per pixel after its condition number is checked."""
+    b = int(T.channels)
+    m = T.shape[0] // b
+    path = getattr(T, "path", None)
+    d = stored_diagonal_blocks(T)
+    if np.isnan(d).any():
+        p = int(np.flatnonzero(np.isnan(d).any(axis=(1, 2)))[0])
+        raise InvalidMatrixError(f"T's diagonal blocks hold NaN entries, the first at "
+                                 f"{_pixel_name(T, p)}", path)
+    if isinstance(spec, str):
+        kind = spec
+        F = d.copy() if kind != "identity" else np.broadcast_to(np.eye(b), (m, b, b)).copy()
+    else:
+        kind = "blocks"
+        F = _as_blocks(spec, m, b, source)
+        order = getattr(T, "pixel_order", None)
+        F = F if order is None else F[order.pixel_permutation]
+    lit = _lit_pixels(T, d, b)
+    ill = np.zeros(m, dtype=bool)
+    if kind != "identity":
+        cond = np.full(m, np.inf)
+        with np.errstate(all="ignore"):  # a singular block: cond is inf (or ~1e16)
+            cond[lit] = np.linalg.cond(F[lit])
+        ill = lit & ~(cond <= config.COLOUR_BLOCK_MAX_CONDITION)
+        if ill.any() and kind != "diag-skip-ill":
+            _refuse_ill_conditioned(T, ill, cond, "first_bounce" if kind == "blocks"
+                                    else "T's diagonal block", source if kind == "blocks"
+                                    else path)
+    active_pixels = lit & ~ill
+    F[~active_pixels] = 0.0
+    Finv = np.zeros_like(F)
+    Finv[active_pixels] = np.linalg.inv(F[active_pixels])
+    digest = hashlib.sha1(np.ascontiguousarray(F).tobytes()).hexdigest()[:16]
+    return FirstBounce(kind, F, Finv, np.repeat(active_pixels, b),
+                       int(m - active_pixels.sum()), digest, int(ill.sum()))
+
+
+def _lit_pixels(T, d: np.ndarray, b: int) -> np.ndarray:
+    """(m,) bool: the pixels kept; a pixel whose diagonal block is zero and whose b rows
+    and b columns of T are all zero is unlit (left out, as a grey zero diagonal is)."""
+    zero = np.flatnonzero(~d.any(axis=(1, 2)))
+    lit = np.ones(len(d), dtype=bool)
+    if len(zero):
+        values = (b * zero[:, None] + np.arange(b)).ravel()
+        empty = np.zeros(T.shape[0], dtype=bool)
+        empty[_empty_rows_and_cols(T, values)] = True
+        lit[zero[empty[values].reshape(-1, b).all(axis=1)]] = False
+    return lit
+
+
+def _refuse_ill_conditioned(T, ill: np.ndarray, cond: np.ndarray, what: str, path) -> None:
+    """InvalidMatrixError naming the first ill-conditioned pixel, its condition number
+    and how many there are, on one line."""
+    p = int(np.flatnonzero(ill)[0])
+    c = "inf (singular)" if not np.isfinite(cond[p]) or cond[p] > 1e15 else f"{cond[p]:.3g}"
+    raise InvalidMatrixError(
+        f"{what} of {_pixel_name(T, p)} has condition number {c} (limit "
+        f"{config.COLOUR_BLOCK_MAX_CONDITION:g}; {int(ill.sum())} pixels above it): the "
+        "camera cannot tell its channels apart; fix the measurement or pass {option} to "
+        "leave such pixels out", path, option=("first_bounce", "diag-skip-ill"))
+
+
+def _pixel_name(T, p: int) -> str:
+    """``"pixel (y, x)"`` of the pixel numbered ``p`` in T's stored order."""
+    order = getattr(T, "pixel_order", None)
+    if order is None:
+        return f"pixel {p}"
+    return "pixel (%d, %d)" % divmod(int(order.pixel_permutation[p]), order.image_shape[1])
+
+
+def stored_diagonal_blocks(A) -> np.ndarray:
+    """The b x b diagonal blocks of a colour store A (b = ``A.channels``), (n/b, b, b)
+    float64 in A's stored order, from its diagonal tiles only (a tile size that is a
+    multiple of b keeps every block inside one)."""
+    b = int(A.channels)
+    out = np.zeros((A.shape[0] // b, b, b))
+    for i in range(min(A.grid)):
+        a, stop = A.tile_row_range(i)
+        out[a // b:stop // b] = diagonal_blocks(A.get_tile(i, i), 0, b)
+    return out
+
+
+def _as_blocks(spec, m: int, b: int, source) -> np.ndarray:
+    """``spec`` as (m, b, b) float64 blocks of finite numbers; errors name ``source``."""
+    try:
+        F = np.array(spec, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidMatrixError("first_bounce must hold real numbers", source) from None
+    if F.shape != (m, b, b):
+        raise ShapeMismatchError(f"first_bounce of a colour T ({b} channels) takes one "
+                                 f"{b}x{b} block per pixel, shape ({m}, {b}, {b}); got "
+                                 f"{F.shape}", source)
+    if not np.isfinite(F).all():
+        bad = np.flatnonzero(~np.isfinite(F).all(axis=(1, 2)))
+        raise InvalidMatrixError(f"first_bounce has {len(bad)} blocks with non-finite "
+                                 f"entries, the first of pixel {bad[0]}", source)
+    return F
 
 
 def _stored_order(T, f: np.ndarray) -> np.ndarray:
@@ -235,12 +411,22 @@ def recover_first_bounce(X, output_order: str = "row-major") -> np.ndarray:
 
     Returns
     -------
-    (n,) float64 ndarray
-        1 / X_ii; 0 where X_ii = 0 (pixels left out of the inverse). Pass it (or a
-        ``.npy`` file holding it) as ``first_bounce=`` of a second run.
+    (n,) float64 ndarray, or (n/3, 3, 3) for a colour store
+        1 / X_ii; 0 where X_ii = 0 (pixels left out of the inverse). For a colour
+        store (3 channels), the inverse of each pixel's 3x3 diagonal block of X (eq. 33
+        generalised), pixel by pixel in ``output_order``; an all-zero block (a pixel
+        left out) gives 0. Pass it (or a ``.npy`` file holding it) as
+        ``first_bounce=`` of a second run.
+
+    Raises
+    ------
+    InvalidMatrixError
+        A colour block of X that is singular but not zero, naming the pixel.
     """
     if isinstance(X, (str, os.PathLike)):
         X = as_store(X, "X")
+    if getattr(X, "channels", 1) != 1:
+        return _recover_blocks(X, output_order)
     if isinstance(X, np.ndarray):
         d = np.diagonal(X)
     elif sp.issparse(X):
@@ -252,3 +438,26 @@ def recover_first_bounce(X, output_order: str = "row-major") -> np.ndarray:
     nz = d != 0
     out[nz] = 1.0 / d[nz]
     return out
+
+
+def _recover_blocks(X, output_order: str) -> np.ndarray:
+    """:func:`recover_first_bounce` of a colour store: (n/3, 3, 3) inverses of X's
+    diagonal blocks, in ``output_order``."""
+    if output_order not in ("row-major", "matrix"):
+        raise ValueError(f"output_order must be 'row-major' or 'matrix', got "
+                         f"{output_order!r:.60}")
+    d = stored_diagonal_blocks(X)
+    held = d.any(axis=(1, 2))
+    out = np.zeros_like(d)
+    with np.errstate(all="ignore"):
+        cond = np.linalg.cond(d[held]) if held.any() else np.zeros(0)
+    singular = np.flatnonzero(held)[~(cond < 1 / np.finfo(np.float64).eps)]
+    if len(singular):
+        raise InvalidMatrixError(f"X's 3x3 diagonal block of {_pixel_name(X, singular[0])} "
+                                 f"is singular ({len(singular)} such pixels): no first "
+                                 "bounce inverts to it", getattr(X, "path", None))
+    out[held] = np.linalg.inv(d[held])
+    order = getattr(X, "pixel_order", None)
+    if output_order == "matrix" or order is None:
+        return out
+    return out[np.argsort(order.pixel_permutation)]

@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..schedule import blocks
-from ..kernels import prune, scale_rows, spmm_dense
+from ..kernels import prune, spmm_dense
 from ..schedule.worker import TaskContext
 
 
@@ -52,8 +52,9 @@ class Pass:
 # --- block tasks ---------------------------------------------------------------------
 
 def _x_rows(ctx: TaskContext, S: sp.csr_array) -> sp.csr_array:
-    """X = F^-1 S on the block's rows, explicit zeros dropped."""
-    X = scale_rows(sp.csr_array(S), np.asarray(ctx.finv[ctx.start:ctx.stop], dtype=ctx.dtype))
+    """X = F^-1 S on the block's rows (a colour F^-1 mixes each pixel's 3 rows),
+    explicit zeros dropped."""
+    X = ctx.inverse.scale_rows(sp.csr_array(S), ctx.start, ctx.dtype)
     X.eliminate_zeros()
     return X
 
@@ -64,8 +65,8 @@ def _read_rows(ctx: TaskContext, alias: str) -> sp.csr_array:
 
 
 def diag_task(ctx: TaskContext):
-    """X_0 = F^-1 (term 0)."""
-    X = blocks.diag_rows(ctx.start, ctx.stop, ctx.spec.n, ctx.finv, ctx.dtype)
+    """X_0 = F^-1 (term 0): a diagonal, or per-pixel 3x3 blocks for colour."""
+    X = ctx.inverse.rows(ctx.start, ctx.stop, ctx.dtype)
     ctx.write("X", X)
     return ctx.stats(nnz_P=X.nnz, nnz_X=X.nnz)
 
@@ -118,8 +119,12 @@ def _x_updated(ctx: TaskContext, Q: sp.csr_array):
         part = X_prev.get_tile_row(i, columns=stored[touched])
         stored_nnz = X_prev.tile_nnz[X_prev.tile_indptr[i]:X_prev.tile_indptr[i + 1]]
         kept, kept_nnz = stored[~touched], stored_nnz[~touched]
-    if Q.nnz:
+    if Q.nnz and ctx.inverse.b == 1:
         part = blocks.add_scaled(part, ctx.finv[ctx.start:ctx.stop], Q)
+    elif Q.nnz:
+        part = sp.csr_array(part + ctx.inverse.scale_rows(Q, ctx.start, ctx.dtype))
+        part.eliminate_zeros()
+        part.sort_indices()
     return part, kept, kept_nnz
 
 
@@ -133,7 +138,7 @@ def _probed(ctx: TaskContext, Q: sp.csr_array):
     out = np.zeros((ctx.stop - ctx.start, Z.shape[1]), np.float64)
     if Q.nnz:
         spmm_dense(Q, Z, out=out, n_threads=1)
-        out *= ctx.finv[ctx.start:ctx.stop, None]
+        out = ctx.inverse.apply(out, ctx.start)
     return out
 
 

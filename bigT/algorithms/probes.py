@@ -61,7 +61,7 @@ class ProbedResidual:
 
     def term_zero_XZ(self) -> np.ndarray:
         """X_0 Z = F^-1 Z, shape (n, p): known without a product."""
-        return self.matvecs.layout.fb.finv[:, None] * self.Z
+        return self.matvecs.layout.fb.apply_inverse(self.Z)
 
     def updated_XZ(self, XZ: np.ndarray | None, stats: list[BlockStats]) -> np.ndarray | None:
         """X_k Z, shape (n, p), from the held term's X_{k-1} Z and every row block's

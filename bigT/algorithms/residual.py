@@ -51,7 +51,7 @@ def estimate_residual(apply_M, apply_X, fb: FirstBounce, probes=None,
         return 0.0, 0.0
     Z = residual_probes(fb, probes, seed)
     p = Z.shape[1]
-    U = apply_X(Z) * fb.f[:, None]
+    U = fb.apply(apply_X(Z))
     R = Z - (U - apply_M(U))  # T (X z) = u - M u with u = F X z, on the kept pixels
     abs_ = math.sqrt(float(np.sum(R * R)) / p)
     return abs_ / math.sqrt(n_act), abs_

@@ -69,8 +69,8 @@ class RunLayout:
 
     @property
     def shared(self) -> dict[str, np.ndarray]:
-        """What every task of the series reads beside its stores: F^-1, F and the kept
-        pixels (each shape (n,))."""
+        """What every task of the series reads beside its stores: F^-1, F (each shape
+        (n,), or (n/3, 3, 3) blocks for colour) and the kept values (shape (n,))."""
         return {"finv": self.fb.finv, "f": self.fb.f, "active": self.fb.active}
 
     def memory_text(self) -> str:
@@ -98,7 +98,7 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
         store.open_or_create(params, overwrite=settings.overwrite), store.path)
     runner.check_paths([str(store.path)])
     if record.tile_size is None:  # a new store: its tile size chosen now, and recorded
-        ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads)
+        ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads, fb.channels)
         record = record.replace(tile_size=ts, excluded_pixels=fb.excluded)
         store.save(record.to_stored())
     n_blocks = -(-T.shape[0] // record.tile_size)
@@ -117,13 +117,14 @@ def _tasks_path(T, runner, progress: bool) -> str:
     return T_path
 
 
-def choose_tile_size(n: int, tile_size: int, threads: int) -> int:
+def choose_tile_size(n: int, tile_size: int, threads: int, channels: int = 1) -> int:
     """T's tile size, halved while it gives fewer than ``config.TASKS_PER_THREAD`` row
     blocks per thread, halving adds blocks, and blocks keep at least
-    ``config.MIN_BLOCK_ROWS`` rows."""
+    ``config.MIN_BLOCK_ROWS`` rows and a multiple of ``channels`` (a colour pixel's 3
+    rows in one row block, where its 3x3 block of F^-1 mixes them)."""
     ts = int(tile_size)
     while (-(-n // ts) < config.TASKS_PER_THREAD * threads and ts // 2 >= config.MIN_BLOCK_ROWS
-           and -(-n // (ts // 2)) > -(-n // ts)):
+           and (ts // 2) % channels == 0 and -(-n // (ts // 2)) > -(-n // ts)):
         ts //= 2
     return ts
 

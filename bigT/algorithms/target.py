@@ -209,28 +209,39 @@ class TargetReport:
 PROBE_NAMES = ("constant", "gradient", "low-pass noise")
 
 
-def probe_images(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
-    """The probe images, shape (3, H, W), float64 in [0.2, 0.8]: a constant 0.5, a
-    diagonal gradient, and Gaussian-filtered noise (sigma ~ 1/16 of the smaller side,
-    a natural-looking image's spectrum), stretched to [0.2, 0.8]."""
+def probe_images(shape: tuple[int, int], seed: int = 0, channels: int = 1) -> np.ndarray:
+    """The probe images, shape (3, H, W) (grey) or (3, H, W, 3) (colour), float64 in
+    [0.2, 0.8]: a constant 0.5, a diagonal gradient, and Gaussian-filtered noise
+    (sigma ~ 1/16 of the smaller side, a natural-looking image's spectrum), stretched
+    to [0.2, 0.8]. In colour the gradient runs another way in each channel and the
+    noise is drawn per channel, so that the probes are coloured images (the colour
+    mixing, not only the grey axis, is measured); the constant stays grey."""
     from scipy.ndimage import gaussian_filter  # ~0.3 s: only the probes' images need it
 
     H, W = shape
     yy, xx = np.mgrid[0:H, 0:W]
-    ramp = (yy / max(H - 1, 1) + xx / max(W - 1, 1)) / 2
-    noise = gaussian_filter(np.random.default_rng(seed).standard_normal((H, W)),
-                            max(1.0, min(H, W) / 16), mode="wrap")
-    span = np.ptp(noise)
-    noise = (noise - noise.min()) / span if span > 0 else np.full((H, W), 0.5)
-    return np.stack([np.full((H, W), 0.5), 0.2 + 0.6 * ramp, 0.2 + 0.6 * noise])
+    u, v = yy / max(H - 1, 1), xx / max(W - 1, 1)
+    ramps = [(u + v) / 2, (1 - u + v) / 2, (u + 1 - v) / 2][:channels]
+    rng = np.random.default_rng(seed)
+    noises = []
+    for _ in range(channels):
+        noise = gaussian_filter(rng.standard_normal((H, W)), max(1.0, min(H, W) / 16),
+                                mode="wrap")
+        span = np.ptp(noise)
+        noises.append((noise - noise.min()) / span if span > 0 else np.full((H, W), 0.5))
+    images = np.stack([np.full((channels, H, W), 0.5), 0.2 + 0.6 * np.stack(ramps),
+                       0.2 + 0.6 * np.stack(noises)])  # (3, channels, H, W)
+    return images[:, 0] if channels == 1 else np.moveaxis(images, 1, -1)
 
 
 def probe_vectors(T, active: np.ndarray, seed: int = 0) -> np.ndarray:
     """The probes in T's pixel order, shape (n, 3), zero on pixels left out (no inverse
-    can light them, so they would only add a constant to every error)."""
+    can light them, so they would only add a constant to every error); colour images
+    for a colour T."""
     n = T.shape[0]
     order = pixel_order_of(T, (n, 1))  # the store's own order when it records one
-    D = to_vectors(probe_images(order.image_shape, seed), order, np.float64)
+    D = to_vectors(probe_images(order.image_shape, seed, order.channels), order,
+                   np.float64)
     return D * active[:, None]
 
 
@@ -253,7 +264,7 @@ class _Products:
         """M V = V - T F^-1 V on the kept pixels, shape (n, k); T's tiles kept in the
         tile cache unless ``cache`` is False (between the engine's terms, whose M rows
         the cache holds under the engine's memory plan)."""
-        return (V - self.times(self.T, self.fb.finv[:, None] * V, cache=cache)) \
+        return (V - self.times(self.T, self.fb.apply_inverse(V), cache=cache)) \
             * self.fb.active[:, None]
 
     def close(self) -> None:

@@ -89,10 +89,13 @@ def register(subparsers) -> None:
                         "global when the mixing holds, else general (default). A grey T "
                         "ignores it")
     p.add_argument("--first-bounce", default=default["first_bounce"],
-                   metavar="diag|identity|FILE.npy",
+                   metavar="diag|diag-skip-ill|identity|FILE.npy",
                    help="F: diag(T), identity (the naive choice), or a .npy vector "
                         "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii); default "
-                        "%(default)s")
+                        "%(default)s. Colour: diag is T's 3x3 diagonal blocks (each pixel's "
+                        "colour mixing, inverted per pixel; a .npy holds (H*W, 3, 3) "
+                        "blocks); diag-skip-ill leaves out the pixels whose block is "
+                        "ill-conditioned instead of refusing them")
     add_scheduler(p, "tasks", "; T and the output must be at the same paths on every "
                   "worker")
     add_threads(p, default["workers"])
@@ -120,7 +123,7 @@ def invert_cmd(args) -> int:
     from ..algorithms import stratified_inverse
 
     fb = args.first_bounce
-    if fb not in ("diag", "identity") and not os.path.exists(fb):
+    if fb not in ("diag", "diag-skip-ill", "identity") and not os.path.exists(fb):
         raise BigTError("--first-bounce is neither diag, identity nor an existing .npy file",
                         fb)
     if args.json not in (None, "-") and os.path.isdir(args.json):  # refused now, not after the run

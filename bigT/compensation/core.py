@@ -21,6 +21,7 @@ import numpy as np
 
 from .. import config
 from ..errors import UNSET, BigTError, InvalidMatrixError, Option, ShapeMismatchError
+from ..kernels import BlockDiagonal
 from ..schedule.stream import (
     cache_budget,
     compute_dtype,
@@ -45,7 +46,10 @@ _FINV: dict[tuple, np.ndarray] = {}
 
 def first_bounce_diag(T) -> np.ndarray:
     """F^-1 for F = diag(T) (the Jacobi preconditioner of paper §4.4), shape (n,), in T's
-    stored order (it scales stored vectors, as the matrix-free path does): the
+    stored order (it scales stored vectors, as the matrix-free path does); for a colour
+    T (3 channels), F = T's 3x3 diagonal blocks and this is their inverses, shape
+    (n/3, 3, 3), pixel by pixel in T's stored order (apply them with
+    :class:`bigT.kernels.BlockDiagonal`): the
     algorithms layer's :func:`~bigT.algorithms.resolve_first_bounce`, with its policy
     for zero diagonals (a pixel whose row and column are empty is left out: 0 here;
     any other zero or negative entry is an InvalidMatrixError). Kept per store
@@ -75,7 +79,8 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     T : BlockCSR, shape (n, n)
     B : ndarray, shape (n, K), in T's pixel order
     terms : int, n >= 0
-    F : ndarray, shape (n,), optional; diag(T) by default.
+    F : ndarray, shape (n,), optional; diag(T) by default. For a colour T, (n/3, 3, 3):
+        F's per-pixel blocks (T's diagonal blocks by default), in T's stored order.
     cache_bytes : int, optional; T's tiles kept between the passes (tile cache budget).
     runner : optional, where the passes run (default: local threads).
 
@@ -87,14 +92,23 @@ def matrix_free_apply(T, B: np.ndarray, terms: int, *, F: np.ndarray | None = No
     if terms < 0:
         raise BigTError(f"terms must be >= 0, got {terms}")
     dtype = compute_dtype(T)
-    finv = first_bounce_diag(T) if F is None else 1.0 / np.asarray(F, np.float64)
-    finv = finv.astype(dtype)[:, None]
+    finv = BlockDiagonal(_inverse_first_bounce(T, F).astype(dtype))
     B = np.asarray(B, dtype=dtype).reshape(T.shape[0], -1)
     s = B.copy()
     for j in range(terms):
-        s = B + s - stream_matmul(T, finv * s, progress=progress, cache_bytes=cache_bytes,
-                                  runner=runner, desc=f"matrix-free term {j + 1}/{terms}")
-    return finv * s
+        s = B + s - stream_matmul(T, finv.apply(s), progress=progress,
+                                  cache_bytes=cache_bytes, runner=runner,
+                                  desc=f"matrix-free term {j + 1}/{terms}")
+    return finv.apply(s)
+
+
+def _inverse_first_bounce(T, F) -> np.ndarray:
+    """F^-1 of the matrix-free path: diag(T)'s (blocks') by default, else 1 / F for a
+    vector, each block inverted for (n/3, 3, 3) blocks."""
+    if F is None:
+        return first_bounce_diag(T)
+    F = np.asarray(F, np.float64)
+    return np.linalg.inv(F) if F.ndim == 3 else 1.0 / F
 
 
 @dataclass
@@ -404,11 +418,15 @@ def first_bounce_from_inverse(X) -> np.ndarray:
     X's stored order, since bounce separation multiplies stored vectors with it (the
     algorithms layer's :func:`~bigT.algorithms.recover_first_bounce`, which gives it
     as an image by default; 0 on pixels left out of the inverse, X_ii = 0); a negative
-    X_ii is an InvalidMatrixError."""
+    X_ii is an InvalidMatrixError. For a colour X (3 channels): the inverses of X's
+    3x3 diagonal blocks, shape (n/3, 3, 3), pixel by pixel in X's stored order (apply
+    them with :class:`bigT.kernels.BlockDiagonal`; their entries may be negative)."""
     from ..algorithms.first_bounce import recover_first_bounce  # dask via the engine:
     # only bounce separation needs it
 
     F = recover_first_bounce(X, output_order="matrix")  # multiplied with stored vectors
+    if F.ndim == 3:
+        return F
     bad = np.flatnonzero(F < 0)
     if bad.size:
         raise InvalidMatrixError(f"diag(X) must not be negative to recover F_ii = 1/X_ii; "

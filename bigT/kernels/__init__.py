@@ -18,6 +18,7 @@ from .csr import (
     workspace_bytes,
 )
 from ._constants import GROUP as SPGEMM_GROUP
+from .block_diagonal import BlockDiagonal, diagonal_blocks, off_block_diagonal
 
 __all__ = [
     "spgemm",
@@ -32,4 +33,7 @@ __all__ = [
     "SPGEMM_GROUP",
     "release_workspaces",
     "workspace_bytes",
+    "BlockDiagonal",
+    "diagonal_blocks",
+    "off_block_diagonal",
 ]

@@ -5,14 +5,16 @@ they import stores and kernels from here, so the layers' contracts
 
 from __future__ import annotations
 
-from bigT.kernels import (SPGEMM_GROUP, add_diag_scaled, prune, release_workspaces, scale_cols,
+from bigT.kernels import (SPGEMM_GROUP, BlockDiagonal, add_diag_scaled, diagonal_blocks,
+                          off_block_diagonal, prune, release_workspaces, scale_cols,
                           scale_cols_off_diagonal, scale_rows, spgemm, spmm_dense,
                           workspace_bytes)
 from bigT.storage import BlockCSR, KeptTiles, from_scipy, read_store_attrs, row_marker, write_tile_row
 from bigT.storage import open as open_store
 
 __all__ = [
-    "SPGEMM_GROUP", "BlockCSR", "KeptTiles", "add_diag_scaled", "from_scipy", "open_store", "prune",
+    "SPGEMM_GROUP", "BlockCSR", "BlockDiagonal", "KeptTiles", "add_diag_scaled",
+    "diagonal_blocks", "from_scipy", "off_block_diagonal", "open_store", "prune",
     "read_store_attrs", "release_workspaces", "row_marker", "scale_cols",
     "scale_cols_off_diagonal", "scale_rows", "spgemm",
     "spmm_dense", "workspace_bytes", "write_tile_row",

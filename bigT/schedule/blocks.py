@@ -5,8 +5,9 @@ operators that read tiles from stores live in :mod:`bigT.schedule.operators`. No
 here touches dask or zarr.
 
 Notation (paper eq. 13, docs/DESIGN.md "The math"): T is n x n, F the first bounce
-(diagonal, stored as the vector ``f``; ``finv`` = 1/f, 0 on excluded pixels), D the
-diagonal 0/1 mask of active pixels, M = D - T F^-1.
+(diagonal, stored as the vector ``f``; ``finv`` = 1/f, 0 on excluded pixels; for a
+colour T block-diagonal, stored as its (n/3, 3, 3) blocks, ``finv`` their inverses), D
+the diagonal 0/1 mask of active pixels, M = D - T F^-1.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._backend import add_diag_scaled, prune, scale_cols_off_diagonal, spgemm
+from ._backend import (BlockDiagonal, add_diag_scaled, off_block_diagonal, prune,
+                       scale_cols_off_diagonal, spgemm)
 
 
 @dataclass
@@ -82,16 +84,21 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
     ----------
     T_rows : csr_array, shape (r, n), global columns
     start : int, global index of the first row
-    finv : (n,) ndarray, 1/F (0 on excluded pixels)
+    finv : (n,) ndarray, 1/F (0 on excluded pixels); or (n/b, b, b), the inverses of
+        a block-diagonal F's blocks (colour: b = 3; ``start`` and r multiples of b)
     active_rows : (r,) bool ndarray, D's diagonal on these rows
     zero_diagonal : bool
         F = diag T: M's diagonal is exactly 1 - T_ii / T_ii = 0 and is dropped instead
-        of being left as rounding noise.
+        of being left as rounding noise (for a block-diagonal F = T's diagonal blocks,
+        M's diagonal blocks are I - B B^-1 = 0: dropped the same way).
 
     Returns
     -------
     csr_array, shape (r, n), sorted indices
     """
+    if np.ndim(finv) == 3:
+        return _m_rows_blocks(T_rows, start, BlockDiagonal(finv), active_rows,
+                              zero_diagonal)
     minus_finv = -np.asarray(finv, dtype=T_rows.dtype)
     # one pass, no COO round trip: a tile row of a big T has ~10^7 entries and every
     # extra copy of them counts against the memory limit
@@ -103,11 +110,37 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
         nz = np.flatnonzero(d)
         M = sp.csr_array(M + sp.csr_array((d[nz], (nz, nz + start)), shape=M.shape))
         M.sort_indices()
+    return _narrow_indices(M)
+
+
+def _narrow_indices(M: sp.csr_array) -> sp.csr_array:
     if M.nnz < 2**31 and M.shape[1] < 2**31:
         # scipy's sum may widen the indices; the memory plan counts int32 ones
         M.indices = M.indices.astype(np.int32, copy=False)
         M.indptr = M.indptr.astype(np.int32, copy=False)
     return M
+
+
+def _m_rows_blocks(T_rows: sp.csr_array, start: int, finv: BlockDiagonal,
+                   active_rows: np.ndarray, zero_diagonal: bool) -> sp.csr_array:
+    """:func:`m_rows` for a block-diagonal F (colour). T F^-1 mixes each entry into the
+    b columns of its pixel (O(b nnz)); the rows of pixels left out are empty (their X
+    rows are 0 whatever M holds there, and M's other rows never reach them: F^-1's
+    columns for them are 0), so the products skip them."""
+    M = finv.scale_cols(T_rows)
+    M.data *= -1
+    if zero_diagonal:
+        M = off_block_diagonal(M, start, finv.b)
+    else:
+        rows = np.flatnonzero(active_rows)
+        D = sp.csr_array((np.ones(len(rows), M.dtype), (rows, rows + start)), shape=M.shape)
+        M = sp.csr_array(M + D)
+    if not np.all(active_rows):
+        M = sp.csr_array(sp.diags_array(np.asarray(active_rows, M.dtype)) @ M)
+    M.eliminate_zeros()
+    M.sum_duplicates()
+    M.sort_indices()
+    return _narrow_indices(M)
 
 
 def assemble_rows(row_blocks, n_rows: int, n_cols: int, dtype, nnz: int) -> sp.csr_array:

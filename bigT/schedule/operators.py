@@ -9,7 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import blocks
-from ._backend import scale_rows, spmm_dense
+from ._backend import BlockDiagonal, diagonal_blocks, scale_rows, spmm_dense
 from .cache import TileCache
 from .memory import stored_bytes
 
@@ -34,7 +34,8 @@ class StoreOperand:
     Parameters
     ----------
     store : BlockCSR
-    row_scale : (n,) ndarray, optional
+    row_scale : (n,) ndarray, optional; or (n/b, b, b) blocks of a block-diagonal F
+        (colour), B read as F B
     cache : TileCache, optional
         Tile rows are kept there when it is given.
     version : tuple, optional
@@ -84,6 +85,8 @@ class StoreOperand:
     def _scaled(self, r: sp.csr_array, a: int, b: int) -> sp.csr_array:
         if self.row_scale is None:
             return r
+        if np.ndim(self.row_scale) == 3:
+            return BlockDiagonal(self.row_scale).scale_rows(r, a)
         return scale_rows(r, np.asarray(self.row_scale[a:b], dtype=r.dtype))
 
     def _read_row(self, j):
@@ -109,10 +112,16 @@ class StoreOperand:
         come through the cache when there is one and ``cached``, and are read one at
         a time into arrays of the final size."""
         read = self.row if cached else self._read_row
-        return blocks.assemble_rows(
-            ((self.store.tile_row_range(j)[0], read(j)) for j in js),
-            self.shape[0], self.shape[1], self.dtype,
-            nnz=int(sum(self._row_nnz[j] for j in js)))
+        row_blocks = ((self.store.tile_row_range(j)[0], read(j)) for j in js)
+        if np.ndim(self.row_scale) == 3:
+            # F B with a colour F mixes each pixel's rows: its entries are known only
+            # once read (the store's counts are B's), so the rows are read first
+            row_blocks = list(row_blocks)
+            nnz = sum(B.nnz for _, B in row_blocks)
+        else:
+            nnz = int(sum(self._row_nnz[j] for j in js))
+        return blocks.assemble_rows(row_blocks, self.shape[0], self.shape[1], self.dtype,
+                                    nnz=nnz)
 
     def whole(self) -> sp.csr_array:
         """The whole matrix in memory, read once per pass by the first task of this
@@ -138,9 +147,11 @@ class MOperand:
     Parameters
     ----------
     T : BlockCSR, shape (n, n)
-    finv : (n,) ndarray, 1/F, 0 on excluded pixels
+    finv : (n,) ndarray, 1/F, 0 on excluded pixels; or (n/b, b, b), the inverses of a
+        block-diagonal F's blocks (colour)
     active : (n,) bool ndarray, D's diagonal
-    zero_diagonal : bool, F = diag T (M's diagonal is exactly 0)
+    zero_diagonal : bool, F = diag T (M's diagonal is exactly 0), or its diagonal
+        blocks (M's diagonal blocks are 0)
     cache : TileCache
     digest : str, identifies F (cache keys)
     version : tuple, identifies this version of T (cache keys)
@@ -201,6 +212,8 @@ class MOperand:
         M_rows = self.cache.lookup(self._key + (int(a), int(b)))
         if M_rows is None and not self.cache.has_room(self.row_bytes(a, b)):
             T_rows = sp.csr_array(self.T.get_rows(a, b))
+            if np.ndim(self.finv) == 3:
+                return self._matvec_from_T_blocks(T_rows, a, b, V, minus_finv_v, out)
             scaled = -(self.finv[:, None] * V) if minus_finv_v is None else minus_finv_v
             spmm_dense(T_rows, scaled, out=out, n_threads=1)
             if self.zero_diagonal:
@@ -209,4 +222,20 @@ class MOperand:
                 out += self.active[a:b, None] * V[a:b]
             return out
         spmm_dense(self.rows(a, b) if M_rows is None else M_rows, V, out=out, n_threads=1)
+        return out
+
+    def _matvec_from_T_blocks(self, T_rows, a: int, b: int, V, minus_finv_v, out):
+        """:meth:`matvec_rows` from T's rows for a block-diagonal F (colour): -T F^-1 V,
+        with M's zero diagonal blocks restored (T's diagonal blocks times F^-1 V added
+        back) or D V added, on the kept rows."""
+        finv = BlockDiagonal(self.finv)
+        scaled = -finv.apply(V) if minus_finv_v is None else minus_finv_v
+        spmm_dense(T_rows, scaled, out=out, n_threads=1)
+        if self.zero_diagonal:
+            blocks = diagonal_blocks(T_rows, a, finv.b)
+            k = V.shape[1]
+            out -= np.matmul(blocks, scaled[a:b].reshape(-1, finv.b, k)).reshape(b - a, k)
+        else:
+            out += V[a:b]
+        out *= self.active[a:b, None]
         return out

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 
 from ..errors import BigTError, DiskFullError, TaskError
 from . import blocks
-from ._backend import (KeptTiles, open_store, read_store_attrs, release_workspaces, row_marker,
+from ._backend import (BlockDiagonal, KeptTiles, open_store, read_store_attrs, release_workspaces, row_marker,
                        write_tile_row)
 from .cache import TileCache
 from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
@@ -203,7 +203,8 @@ class TaskContext:
     spec : PassSpec
     block : RowBlock
     start, stop : int, the block's rows
-    shared : dict of name -> ndarray (``finv``, ``f``, ``active`` (n,); ``V`` (n, k))
+    shared : dict of name -> ndarray (``finv``, ``f``: (n,) for a diagonal F, (n/3, 3, 3)
+        blocks for a colour one; ``active`` (n,); ``V`` (n, k))
     plan : MemoryPlan
     """
 
@@ -224,7 +225,14 @@ class TaskContext:
 
     @property
     def finv(self) -> np.ndarray:
+        """F^-1 as shared: (n,) or (n/3, 3, 3) blocks."""
         return self.shared["finv"]
+
+    @property
+    def inverse(self) -> BlockDiagonal:
+        """F^-1 as a :class:`~bigT.kernels.BlockDiagonal` (diagonal or colour blocks),
+        made once per pass in this process."""
+        return self._pass.get("inverse", lambda: BlockDiagonal(self.shared["finv"]))
 
     @property
     def M(self) -> MOperand:
@@ -274,7 +282,7 @@ class TaskContext:
 
     def minus_finv_v(self, V) -> np.ndarray:
         """-F^-1 V, computed once per pass in this process."""
-        return self._pass.get("minus_finv_v", lambda: -(self.shared["finv"][:, None] * V))
+        return self._pass.get("minus_finv_v", lambda: -self.inverse.apply(V))
 
     def cache_budget(self) -> int | None:
         """The tile cache's budget for this pass: the spec's, when it sets one; none
