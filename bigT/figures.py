@@ -10,6 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from .atomic import atomic_output
+from .colour import encode
 
 
 def pyplot():
@@ -74,23 +75,30 @@ def scan_lines(path, lines: dict, *, title: str, target: float | None = None) ->
 
 
 def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
-    """b_0 ... b_K and their sum in grey from 0 to each panel's maximum; the remainder,
-    which may be negative, on a diverging scale centred on 0 with a colour bar."""
+    """b_0 ... b_K and their sum from 0 to each panel's maximum (grey, or RGB for
+    colour parts (K + 2, H, W, 3), shown sRGB-encoded); the remainder, which may be
+    negative, on a diverging scale centred on 0 with a colour bar (its channels summed
+    for colour)."""
     plt = pyplot()
     K = parts.shape[0] - 2
     panels = list(parts) + [parts.sum(axis=0)]
     titles = [f"b{k} {'direct' if k == 0 else 'bounce'} {100 * shares[k]:.3g}%"
               for k in range(K + 1)]
     titles += [f"remainder {100 * shares[-1]:.3g}%", "sum = T l"]
-    H, W = parts.shape[1:]
+    H, W = parts.shape[1:3]
     fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.4 * H / W + 0.7),
                              squeeze=False)
     for k, (ax, img, title) in enumerate(zip(axes[0], panels, titles)):
         if k == K + 1:  # the remainder: signed
+            img = img.sum(axis=-1) if img.ndim == 3 else img
             span = float(np.abs(img).max()) or 1e-12
             shown = ax.imshow(img, cmap="RdBu_r", vmin=-span, vmax=span,
                               interpolation="nearest")
             fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02)
+        elif img.ndim == 3:  # colour: scaled to the panel's maximum, then sRGB-encoded
+            hi = float(img.max())
+            ax.imshow(encode(np.clip(img / (hi if hi > 0 else 1.0), 0, 1), "srgb"),
+                      interpolation="nearest")
         else:
             hi = float(img.max())
             ax.imshow(img, cmap="gray", vmin=0.0, vmax=hi if hi > 0 else 1e-12,

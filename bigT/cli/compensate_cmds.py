@@ -263,14 +263,12 @@ def run_relight(args) -> int:
 
 def run_bounces(args) -> int:
     from ..compensation import bounce_shares, separate_bounces
-    from ..compensation.core import refuse_colour_bounces
     from ..compensation.files import describe_store, image_shape_of, store_paths
     from ..figures import bounce_strip
     from ..storage import as_store
 
     T = as_store(args.T, "T")
     X = as_store(args.X, "X")
-    refuse_colour_bounces(T, X)  # before any image is read
     if Path(args.input).is_dir():
         raise ImageError("bounces takes one image, not a folder", args.input)
     out = Path(args.output)
@@ -281,7 +279,7 @@ def run_bounces(args) -> int:
     files = [out / f"{name}.{args.format}" for name in names + ["total"]]
     refuse_overwriting_inputs(files + [out / "bounces.png"], [args.input, *store_paths(T, X)],
                               folders=[out])
-    image = read_image(args.input, image_shape_of(T), channels=1)
+    image = read_image(args.input, image_shape_of(T), channels=T.channels)
     print(f"bigT bounces: {args.input}, K = {args.bounces}")
     print("  " + describe_store(T, "T"))
     print("  " + describe_store(X, "X"))

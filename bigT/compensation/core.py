@@ -151,14 +151,10 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
         why = "asked for" if path == "explicit" else "no T given for the matrix-free path"
         return PathChoice("explicit", f"{why}: one pass over X, nnz(X) = {c_x:,} per frame",
                           None, c_x, c_t)
-    if path == "auto" and X is not None and getattr(T, "channels", 1) != 1:
-        return PathChoice("explicit", "a colour T has no matrix-free path yet: one pass over "
-                          f"X, nnz(X) = {c_x:,} per frame", None, c_x, c_t)
     if path == "matrix-free" or X is None:
         if T is None:
             raise BigTError("the matrix-free path needs the transport T ({option})",
                             option=_MATRIX_FREE_T)
-        refuse_colour_matrix_free(T)
         why = "asked for" if path == "matrix-free" else "no inverse X given"
         return PathChoice("matrix-free", f"{why}: {terms} passes over T, {terms} x nnz(T) = "
                           f"{c_t:,} per frame", terms, c_x, c_t)
@@ -167,16 +163,6 @@ def choose_path(X=None, T=None, terms: int | None = None, path: str = "auto") ->
                           "multiply-adds per frame", None, c_x, c_t)
     return PathChoice("matrix-free", f"cheaper: {terms} x nnz(T) = {c_t:,} < nnz(X) = {c_x:,} "
                       "multiply-adds per frame", terms, c_x, c_t)
-
-
-def refuse_colour_matrix_free(T) -> None:
-    """BigTError for a colour T on the matrix-free path: its F^-1 is a 3x3 block per
-    pixel, which the series here does not apply yet (the explicit inverse X does)."""
-    if getattr(T, "channels", 1) != 1:
-        raise BigTError("the matrix-free path does not take a colour transport yet (its "
-                        "first bounce F is a 3x3 block per pixel): compensate with its "
-                        "inverse X ({option})", getattr(T, "path", None),
-                        option=Option("path", "explicit"))
 
 
 # --- compensation ---------------------------------------------------------------------
@@ -438,7 +424,8 @@ def first_bounce_from_inverse(X) -> np.ndarray:
 def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -> np.ndarray:
     """Split the camera image T l into light bounces (Seitz et al. 2005, docs/DESIGN.md).
 
-    F is recovered from X (F_ii = 1/X_ii, paper eq. 33), A = I - F X, and bounce k is
+    F is recovered from X (F_ii = 1/X_ii, paper eq. 33; for colour the inverse of each
+    pixel's 3x3 diagonal block of X), A = I - F X, and bounce k is
     b_k = A^k F l, computed with mat-vecs only: A v = v - F (X v). Since
     sum_k A^k F = (I - A)^-1 F = X^-1, the parts sum to T l when X is the exact inverse;
     the last part is the remainder T l - sum_{k<=K} b_k, so the returned parts always sum
@@ -447,17 +434,16 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     Parameters
     ----------
     T, X : BlockCSR or path, shape (n, n)
-    image : ndarray, shape (H, W) or (B, H, W)
+    image : ndarray, shape (H, W) or (B, H, W); (H, W, 3) or (B, H, W, 3) for colour
     bounces : int, K >= 0
 
     Returns
     -------
-    ndarray, shape (K + 2, H, W) or (K + 2, B, H, W), float64: b_0 (direct), b_1, ...,
-    b_K, remainder.
+    ndarray, shape (K + 2, *image.shape), float64: b_0 (direct), b_1, ..., b_K,
+    remainder.
     """
     T = as_store(T, "T")
     X = as_store(X, "X")
-    refuse_colour_bounces(T, X)
     bounces = int(bounces)
     if bounces < 0:
         raise BigTError(f"bounces must be >= 0, got {bounces}")
@@ -469,14 +455,15 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     if order_x.image_shape != order_t.image_shape:
         raise ShapeMismatchError(f"X maps {order_x.image_shape} images but T ({T.path}) "
                                  f"maps {order_t.image_shape}", X.path)
-    F = first_bounce_from_inverse(X)[:, None]  # in X's pixel order
+    F = BlockDiagonal(first_bounce_from_inverse(X))  # in X's pixel order; 3x3 blocks for colour
     # Work in float64 for the dense vectors so the parts sum to T l to rounding.
-    v = F * to_vectors(frames, order_x, np.float64)
+    v = F.apply(to_vectors(frames, order_x, np.float64))
     parts = [v]
     try:
         for k in range(bounces):
-            v = v - F * stream_matmul(X, v, progress=progress, desc=f"bounce {k + 1}/{bounces}",
-                                      cache_bytes=cache_budget(None))
+            v = v - F.apply(stream_matmul(X, v, progress=progress,
+                                          desc=f"bounce {k + 1}/{bounces}",
+                                          cache_bytes=cache_budget(None)))
             parts.append(v)
     finally:
         forget_tiles(None, X)
@@ -486,17 +473,6 @@ def separate_bounces(T, X, image, bounces: int = 4, *, progress: bool = False) -
     out.append(seen - np.sum(out, axis=0))
     result = np.stack(out)
     return result[:, 0] if single else result
-
-
-def refuse_colour_bounces(*stores) -> None:
-    """BigTError for a colour store: bounce separation needs F recovered from X, for
-    colour a 3x3 block per pixel, which :func:`first_bounce_from_inverse` does not
-    return yet."""
-    for store in stores:
-        if getattr(store, "channels", 1) != 1:
-            raise BigTError("bounce separation does not take a colour transport yet (its "
-                            "first bounce F, recovered from X, is a 3x3 block per pixel)",
-                            getattr(store, "path", None))
 
 
 def bounce_shares(parts: np.ndarray) -> np.ndarray:

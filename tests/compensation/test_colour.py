@@ -261,19 +261,56 @@ def test_grey_simulation_reports_metrics_of_the_grey_images(tmp_path, small_scen
     assert sim.report.clipped_low_by_channel == (sim.report.clipped_low,)
 
 
-def test_matrix_free_and_bounces_refuse_colour_in_one_line(scene, tmp_path, capsys):
-    d, _, _ = scene
-    with pytest.raises(BigTError, match="matrix-free path does not take a colour"):
-        compensate(None, _desired(1)[0], T=d / "T.zarr", path="matrix-free")
-    # auto with X given takes X for colour
-    _, report = compensate(d / "X.zarr", _desired(1)[0], T=d / "T.zarr", path="auto",
-                           return_report=True)
-    assert report.choice.path == "explicit"
-    write_image(tmp_path / "l.png", _desired(1)[0], bits=8)
-    rc, _, err = _run(["bounces", str(d / "T.zarr"), str(d / "X.zarr"), str(tmp_path / "l.png"),
-                       "-o", str(tmp_path / "parts")], capsys)
-    assert rc == 2 and "bounce separation does not take a colour" in err
-    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "parts").exists()
+def test_matrix_free_colour_is_the_series_with_3x3_blocks(scene):
+    """The matrix-free path applies F^-1 sum_k M^k with F the 3x3 diagonal blocks of T:
+    against the same series in dense numpy."""
+    d, T, _ = scene
+    desired = _desired(1)[0]
+    F = np.zeros_like(T)
+    for p in range(H * W):
+        F[3 * p:3 * p + 3, 3 * p:3 * p + 3] = T[3 * p:3 * p + 3, 3 * p:3 * p + 3]
+    Finv = np.linalg.inv(F)
+    M = np.eye(N) - T @ Finv
+    b = desired.ravel()
+    s = b.copy()
+    for _ in range(3):
+        s = b + M @ s
+    want = np.clip(Finv @ s, 0, 1).reshape(H, W, 3)
+    got = compensate(None, desired, T=d / "T.zarr", path="matrix-free", terms=3)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+
+
+def test_colour_bounces_sum_to_the_seen_image_and_match_dense(scene, tmp_path, capsys):
+    """Bounce k = A^k F l with F the inverse of X's 3x3 diagonal blocks and A = I - F X
+    (dense numpy), the parts summing to T l; the CLI writes RGB parts."""
+    from bigT.compensation import separate_bounces
+
+    d, T, X = scene
+    light = _desired(1)[0]
+    T32 = T.astype(np.float32).astype(np.float64)
+    X32 = X.astype(np.float32).astype(np.float64)
+    F = np.zeros_like(X32)
+    for p in range(H * W):
+        F[3 * p:3 * p + 3, 3 * p:3 * p + 3] = np.linalg.inv(X32[3 * p:3 * p + 3, 3 * p:3 * p + 3])
+    A = np.eye(N) - F @ X32
+    v = F @ light.ravel()
+    want = [v]
+    for _ in range(2):
+        v = A @ v
+        want.append(v)
+    parts = separate_bounces(d / "T.zarr", d / "X.zarr", light, 2)
+    assert parts.shape == (4, H, W, 3)
+    for got, ref in zip(parts[:3], want):
+        np.testing.assert_allclose(got.ravel(), ref, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(parts.sum(axis=0).ravel(), T32 @ light.ravel(), rtol=1e-6,
+                               atol=1e-9)
+    write_image(tmp_path / "l.tif", light.astype(np.float32))
+    rc, out, err = _run(["bounces", str(d / "T.zarr"), str(d / "X.zarr"),
+                         str(tmp_path / "l.tif"), "-o", str(tmp_path / "parts"),
+                         "--bounces", "2"], capsys)
+    assert rc == 0, err
+    assert read_image(tmp_path / "parts" / "bounce_0.tif", channels=3).shape == (H, W, 3)
+    assert (tmp_path / "parts" / "bounces.png").exists()
 
 
 def test_srgb_kernel_matches_bigT_colour():
