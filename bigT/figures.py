@@ -110,3 +110,43 @@ def bounce_strip(path, parts: np.ndarray, shares: Sequence[float]) -> Path:
                  "negative, red positive, centred on 0)", fontsize=9)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def colour_views(path, views: dict, delta_e: dict, *, suptitle: str | None = None,
+                 vmax: float = 1.0) -> Path:
+    """Colour images in a row above their CIEDE2000 Delta E maps.
+
+    Parameters
+    ----------
+    path : str or os.PathLike, the PNG written
+    views : dict of title -> (H, W, 3) linear light, shown sRGB-encoded from [0, vmax]
+    delta_e : dict of title -> (H, W) Delta E map, drawn under the view of the same
+        title on one shared scale (0 to the largest 99th percentile) with a colour bar;
+        a view without one gets an empty cell
+    """
+    plt = pyplot()
+    H, W = next(iter(views.values())).shape[:2]
+    top = max((float(np.percentile(m, 99)) for m in delta_e.values()), default=1.0) or 1.0
+    fig, axes = plt.subplots(2, len(views), figsize=(2.9 * len(views), 2 * (2.9 * H / W) + 1),
+                             squeeze=False)
+    shown = None
+    for k, (title, img) in enumerate(views.items()):
+        axes[0, k].imshow(encode(np.clip(np.asarray(img) / vmax, 0, 1), "srgb"),
+                          interpolation="nearest")
+        axes[0, k].set_title(title, fontsize=8)
+        if title in delta_e:
+            m = delta_e[title]
+            shown = axes[1, k].imshow(m, cmap="magma", vmin=0, vmax=top,
+                                      interpolation="nearest")
+            axes[1, k].set_title(f"dE2000 mean {np.mean(m):.2f}, p95 "
+                                 f"{np.percentile(m, 95):.2f}", fontsize=8)
+        else:
+            axes[1, k].axis("off")
+        for ax in axes[:, k]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    if shown is not None:
+        fig.colorbar(shown, ax=list(axes[1]), fraction=0.02, pad=0.01, label="dE2000")
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=10)
+    return save_figure(fig, path)
