@@ -26,10 +26,11 @@ def dense(store, order="row-major") -> np.ndarray:
     return store.to_scipy(output_order=order).toarray().astype(np.float64)
 
 
-def reference_T(name: str, size, rig: ColourRig, white: float = 0.6) -> np.ndarray:
+def reference_T(name: str, size, rig: ColourRig, white: float = 0.6,
+                blur: float = 0.0) -> np.ndarray:
     """The colour T of scene ``name`` made here, row-major (index 3 (y W + x) + c): each
-    band's grey T_k = (I - diag(a_k) FF)^-1 diag(a_k gain) by a dense solve, mixed with
-    numpy by the rig's blocks."""
+    band's grey T_k = (I - diag(a_k) FF)^-1 diag(a_k gain) [G] by a dense solve, mixed
+    with numpy by the rig's blocks."""
     P = geometry.cornell_box(size) if name == "cornell" else geometry.wall_corner(size)
     FF = radiosity.form_factors(P, 0.0, progress=False).toarray()
     albedo = np.full((P.n, 3), white)
@@ -37,6 +38,9 @@ def reference_T(name: str, size, rig: ColourRig, white: float = 0.6) -> np.ndarr
         albedo[P.face == face] = rgb
     bands = [np.linalg.solve(np.eye(P.n) - albedo[:, k, None] * FF,
                              np.diag(albedo[:, k] * P.first_bounce_gain())) for k in range(3)]
+    if blur:
+        G = radiosity.gaussian_blur_matrix(size, blur, np.arange(P.n)).toarray()
+        bands = [T_k @ G for T_k in bands]
     C, Pq = rig.blocks(size)
     T = np.einsum("pik,kpq,qkj->piqj", C, np.array(bands), Pq)
     return T.reshape(3 * P.n, 3 * P.n)
@@ -69,6 +73,22 @@ def test_the_corner_has_two_coloured_walls(tmp_path):
                                rtol=1e-10, atol=1e-14)
     left, right = (np.array(sc.summary["surface_albedo"][k]) for k in (0, 1))
     assert left[0] > 3 * left[2] and right[2] > 3 * right[0]  # orange and blue
+
+
+def test_blur_acts_on_each_band_and_noise_on_the_stored_entries(tmp_path):
+    kw = dict(colour=True, dtype="float64", preview=False, progress=False, density="exact")
+    blurred = scenes.cornell((6, 8), tmp_path / "b.zarr", blur=0.8, **kw)
+    np.testing.assert_allclose(dense(blurred.T),
+                               reference_T("cornell", (6, 8), blurred.rig, blur=0.8),
+                               rtol=1e-10, atol=1e-14)
+    clean = scenes.cornell((6, 8), tmp_path / "c.zarr", **kw)
+    noisy = scenes.cornell((6, 8), tmp_path / "n.zarr", noise=1e-4, seed=3, **kw)
+    T, T0 = dense(noisy.T), dense(clean.T)
+    kept = T != 0
+    assert (T[kept] >= 3e-4).all()  # the default floor, 3 noise, on the stored entries
+    assert 0 < np.abs(T[kept] - T0[kept]).max() < 1e-3 and kept.sum() < T0.size
+    again = scenes.cornell((6, 8), tmp_path / "m.zarr", noise=1e-4, seed=3, **kw)
+    assert (dense(again.T) == T).all()  # seeded
 
 
 def test_global_mixing_is_recorded_only_when_it_holds(cornell):
