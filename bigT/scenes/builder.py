@@ -44,11 +44,11 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from ..progress import progress_bar
-from ..spectral import SpectralRadius, spectral_radius
 from ..storage import BlockCSRWriter, PixelOrder, check_replaceable
 from . import geometry, palette, radiosity, stored
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES
-from .rig import ColourRig
+from .colouring import ColourParts, resolve_rig
+from .statistics import colour_ground_truth_stats, ground_truth_stats
 from .paper_example import dihedral4
 from .ground_truth import commit, new_ground_truth_group
 from .preview import draw_preview, preview_path
@@ -126,107 +126,6 @@ def _add_noise(rows: sp.csr_array, noise: float, floor: float, rng) -> sp.csr_ar
     rows.data[rows.data < max(floor, np.finfo(np.float64).tiny)] = 0.0
     rows.eliminate_zeros()
     return rows
-
-
-def _finite(value: float) -> float | None:
-    """JSON has no inf or NaN: an undetermined radius is stored as null."""
-    return float(value) if math.isfinite(value) else None
-
-
-
-def _spectral_radius_T(times_T, d) -> SpectralRadius:
-    """rho(M) for M = I - T diag(d)^-1 on the pixels with d > 0, to
-    ``config.SCENE_SPECTRAL_RTOL``; ``times_T(V)`` is T @ V."""
-    inv = np.zeros_like(d)
-    inv[d > 0] = 1.0 / d[d > 0]
-    lit = d > 0
-
-    def minus_M(V):
-        # (T - diag(d)) diag(d)^-1 V: the diagonal cancels exactly (V - T diag(d)^-1 V
-        # left 1e-16 of rounding on a diagonal T)
-        W = V * inv[:, None]
-        return times_T(W) - d[:, None] * W
-
-    return spectral_radius(minus_M, len(d), lit, rtol=config.SCENE_SPECTRAL_RTOL,
-                           max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-
-
-#: A colour pixel's 3x3 block of T counts as singular beyond this condition number (its
-#: channels cannot be told apart): the ground truth's rho(M) leaves the pixel out.
-BLOCK_COND_MAX = 1e12
-
-
-def _spectral_radius_blocks(times_T, D: np.ndarray) -> SpectralRadius:
-    """rho(M) for M = I - T F^-1, F = the (n_pixels, 3, 3) diagonal blocks ``D`` of a
-    colour T, on the pixels whose block is invertible (the others are left out, as an
-    unlit grey pixel is); ``times_T(V)`` is T @ V. M is not sign-definite (F^-1 has
-    negative entries): Arnoldi (or every eigenvalue when small) decides."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cond = np.linalg.cond(D) if len(D) else np.zeros(0)
-    good = np.isfinite(cond) & (cond < BLOCK_COND_MAX)
-    inv = np.zeros_like(D)
-    inv[good] = np.linalg.inv(D[good])
-
-    def blocks_times(B, V):
-        p = V.shape[1]
-        return np.einsum("nij,njp->nip", B, V.reshape(-1, 3, p)).reshape(-1, p)
-
-    def minus_M(V):
-        W = blocks_times(inv, V)  # F^-1 V
-        return times_T(W) - blocks_times(D, W)  # (T - F) F^-1 V
-
-    return spectral_radius(minus_M, 3 * len(D), np.repeat(good, 3),
-                           rtol=config.SCENE_SPECTRAL_RTOL,
-                           max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-
-
-@dataclass(frozen=True)
-class _ColourParts:
-    """The rig of a colour scene applied to its pixels, in the store's pixel order.
-
-    Attributes
-    ----------
-    rig : ColourRig
-    camera, projector : ndarray, (n_pixels, 3, 3) float64
-        C_p of each camera pixel, P_q of each projector pixel.
-    projector_matrix : csr_array, (3 n_pixels, 3 n_pixels)
-        The block-diagonal of the P_q (T's rows are mixed by it from the right).
-    first_bounce : ndarray, (n_pixels, 3, 3) float64
-        The true first bounce F_p = C_p diag(f_p) P_p (f_p the bands' albedo times the
-        pixel's gain): the diagonal blocks of F.
-    surface_albedo : list or None
-        The RGB albedo of each face (None for a texture), for the summary.
-    """
-
-    rig: ColourRig
-    camera: np.ndarray
-    projector: np.ndarray
-    projector_matrix: sp.csr_array
-    first_bounce: np.ndarray
-    surface_albedo: list | None
-
-    @classmethod
-    def of(cls, rig: ColourRig, size, perm: np.ndarray, f_bands: np.ndarray,
-           surface_albedo) -> "_ColourParts":
-        """The parts of ``rig`` for an image of ``size`` numbered by ``perm`` (stored
-        pixel -> row-major pixel), with the bands' first bounce ``f_bands`` (n, 3)."""
-        C, P = rig.blocks(size)
-        C, P = C[perm], P[perm]
-        F = np.einsum("nik,nk,nkj->nij", C, f_bands, P)
-        return cls(rig, C, P, radiosity.block_diagonal(P), F, surface_albedo)
-
-    def record(self) -> dict:
-        return {"channels": 3, **self.rig.record(), "surface_albedo": self.surface_albedo}
-
-
-def _resolve_rig(colour: bool, mixing: str, rig, seed: int) -> ColourRig | None:
-    """The rig of a colour scene (None for grey): ``rig`` when given, else the default
-    rig with a ``mixing`` of "global" or "per-pixel" (seeded by the scene's seed)."""
-    if rig is not None:
-        if not isinstance(rig, ColourRig):
-            raise BigTError(f"rig must be a bigT.scenes.rig.ColourRig, got {type(rig).__name__}")
-        return rig
-    return ColourRig.named(mixing, seed) if colour else None
 
 
 def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=None,
@@ -316,7 +215,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     _check_nonnegative(noise=noise, noise_floor=floor, blur=blur)
     noise, blur = float(noise), float(blur)
     check_replaceable(path, overwrite)
-    rig = _resolve_rig(colour, mixing, rig, seed)
+    rig = resolve_rig(colour, mixing, rig, seed)
     H, W = size
     pixels = H * W
     po = PixelOrder(size, pixel_order, channels=1 if rig is None else 3)
@@ -333,7 +232,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     else:
         albedo_vec, albedo_label, table = palette.band_albedo(name, albedo, size, P.face, perm)
         f_bands = albedo_vec * P.first_bounce_gain()[:, None]
-        colour_parts = _ColourParts.of(rig, size, perm, f_bands, table)
+        colour_parts = ColourParts.of(rig, size, perm, f_bands, table)
         f = f_bands.ravel()  # the bands interleaved, 3 p + k
         G = None if G is None else radiosity.interleave_bands(G)
     memory_limit = int(memory_limit or config.SCENE_IN_MEMORY_BYTES)
@@ -375,7 +274,7 @@ class _Recipe:
     pixel_order: PixelOrder
     memory_limit: int
     exact: bool
-    colour: _ColourParts | None = None
+    colour: ColourParts | None = None
 
 
 def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
@@ -397,9 +296,9 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     timings["seconds_T"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if r.colour is None:
-        stats = _ground_truth_stats(T, A, r.f, r.G, r.memory_limit)
+        stats = ground_truth_stats(T, A, r.f, r.G, r.memory_limit)
     else:
-        stats = _colour_ground_truth_stats(T, A, r.f, r.G, r.colour, r.memory_limit)
+        stats = colour_ground_truth_stats(T, A, r.f, r.G, r.colour, r.memory_limit)
     timings["seconds_stats"] = time.perf_counter() - t0
     summary = {
         **{k: v for k, v in params.items() if k not in ("tile_size", "albedo_digest")},
@@ -465,84 +364,6 @@ def _transport_rows(writer, times_A, recipe: _Recipe, progress):
             rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
         writer.write_tile_row(i, rows)
     return writer.finalize(), max_bounces
-
-
-@dataclass(frozen=True)
-class _GroundTruthStats:
-    """What a scene's summary says of its transport, measured on the stores.
-
-    Attributes
-    ----------
-    rho_M, rho_A : SpectralRadius
-        Of M = I - T diag(T)^-1 and of A.
-    shares : list of float
-        Each bounce's share of the light of a white projector image.
-    T1 : ndarray, (n,) float64
-        T 1, the camera's view of a white projector image (the preview).
-    shares_per_channel : list of 3 lists of float, or None
-        Colour: each bounce's share of the light the camera sees in channel R, G, B.
-    """
-
-    rho_M: SpectralRadius
-    rho_A: SpectralRadius
-    shares: list
-    T1: np.ndarray
-    shares_per_channel: list | None = None
-
-    def fields(self) -> dict:
-        colour = {} if self.shares_per_channel is None else {
-            "bounce_shares_per_channel": self.shares_per_channel}
-        return {**colour, "spectral_radius": _finite(self.rho_M.value),
-                "spectral_radius_A": _finite(self.rho_A.value),
-                "spectral_radius_uncertainty": _finite(self.rho_M.uncertainty),
-                "spectral_radius_A_uncertainty": _finite(self.rho_A.uncertainty),
-                "spectral_radius_method": self.rho_M.method,
-                "spectral_radius_A_method": self.rho_A.method,
-                "bounce_shares": self.shares}
-
-
-def _ground_truth_stats(T, A, f, G, memory_limit: int) -> _GroundTruthStats:
-    """Spectral radii, bounce shares and T 1 from the stored T and A, one matrix at a
-    time held within ``memory_limit`` (streamed from disk beyond it)."""
-    n = T.shape[0]
-    d = np.asarray(T.diagonal(output_order="matrix"), np.float64)
-    times_T = stored.stored_apply(T, memory_limit)
-    rho_M = _spectral_radius_T(times_T, d)
-    T1 = times_T(np.ones(n))
-    del times_T
-    times_A = stored.stored_apply(A, memory_limit)
-    rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
-                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-    white = np.ones(n)
-    b0 = f * (G @ white if G is not None else white)
-    bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
-                                      config.SCENE_SHARE_TOL)
-    return _GroundTruthStats(rho_M, rho_A, radiosity.light_shares(bounces), T1)
-
-
-def _colour_ground_truth_stats(T, A, f, G, colour: _ColourParts,
-                               memory_limit: int) -> _GroundTruthStats:
-    """:func:`_ground_truth_stats` for a colour scene: rho(M) with F the 3x3 diagonal
-    blocks of T, rho of the bands' A (that of the camera's C A C^-1), and the bounce
-    shares of what the camera sees, in all and per channel.
-
-    ``f`` (3 n_pixels,) and ``G`` are the bands' first bounce and blur, interleaved."""
-    n = T.shape[0]
-    D = stored.diagonal_blocks(T)
-    times_T = stored.stored_apply(T, memory_limit)
-    rho_M = _spectral_radius_blocks(times_T, D)
-    T1 = times_T(np.ones(n))
-    del times_T
-    times_A = stored.stored_apply(A, memory_limit)
-    rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
-                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-    lit = colour.projector_matrix @ np.ones(n)  # the bands a white image lights
-    b0 = f * (G @ lit if G is not None else lit)
-    bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
-                                      config.SCENE_SHARE_TOL)
-    seen = [np.einsum("pik,pk->pi", colour.camera, b.reshape(-1, 3)) for b in bounces]
-    per_channel = [radiosity.light_shares([s[:, c] for s in seen]) for c in range(3)]
-    return _GroundTruthStats(rho_M, rho_A, radiosity.light_shares(seen), T1, per_channel)
 
 
 def _named(name):
