@@ -47,9 +47,19 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=integer(0), default=0,
                    help="seed of the noise (default %(default)s)")
     p.add_argument("--tile-size", type=integer(1), default=None,
-                   help=f"rows/cols of one matrix tile (default {config.DEFAULT_TILE_SIZE})")
+                   help=f"rows/cols of one matrix tile (default {config.DEFAULT_TILE_SIZE}; "
+                        f"colour {config.DEFAULT_COLOUR_TILE_SIZE}, a multiple of 3)")
     p.add_argument("--pixel-order", choices=("tile-major", "row-major"), default="tile-major",
                    help="pixel order of the store (default %(default)s)")
+    p.add_argument("--colour", "--color", action="store_true",
+                   help="an RGB scene: per-surface RGB albedo (cornell: red left and green "
+                        "right walls; corner: orange and blue walls), a colour store "
+                        "(3 H W values, index 3 p + c), mixed by a projector-camera rig "
+                        "with realistic cross-talk")
+    p.add_argument("--mixing", choices=("global", "per-pixel"), default=None,
+                   help="with --colour: one camera and projector 3x3 mixing for the whole "
+                        "rig (the default; recorded in T's metadata), or one varying by a "
+                        "few percent per pixel (so that T has no global factorisation)")
     p.add_argument("--dtype", choices=("float32", "float64"), default=None,
                    help="dtype of T's values (default float32; dihedral4 float64)")
     add_memory_limit(p, default=config.SCENE_IN_MEMORY_BYTES,
@@ -63,6 +73,7 @@ def register(subparsers) -> None:
 
 
 def scene_cmd(args) -> int:
+    from ..errors import BigTError
     from ..scenes import make
     from ..storage.locks import ReplaceLock
 
@@ -74,7 +85,12 @@ def scene_cmd(args) -> int:
                       threshold=args.threshold, noise=args.noise, noise_floor=args.noise_floor,
                       blur=args.blur, seed=args.seed, tile_size=args.tile_size,
                       pixel_order=args.pixel_order, memory_limit=args.memory_limit,
-                      progress=None if args.progress else False)
+                      progress=None if args.progress else False,
+                      colour=args.colour, mixing=args.mixing or "global")
+    elif args.colour:
+        raise BigTError("dihedral4 is the paper's grey 4x4 example: it has no --colour")
+    if args.mixing and not args.colour:
+        raise BigTError("--mixing is the colour rig's: give it with --colour")
     # a second scene (or convert, or invert) of the same store is refused here, at once
     with ReplaceLock(args.output, "bigT scene"):
         scene = make(args.name, args.size, args.output, **kwargs)

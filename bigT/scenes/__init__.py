@@ -6,7 +6,11 @@
 
 Modules: :mod:`.builder` (the resumable build), :mod:`.scene` (the reader),
 :mod:`.ground_truth` (its layout on disk), :mod:`.preview`, :mod:`.paper_example`
-(the paper's 4x4 dihedral); :mod:`.geometry`, :mod:`.radiosity` and :mod:`.stored` compute.
+(the paper's 4x4 dihedral); :mod:`.geometry`, :mod:`.radiosity` and :mod:`.stored` compute,
+:mod:`.statistics` measures the ground truth's radii and bounce shares;
+colour scenes (``colour=True``) add :mod:`.rig` (the projector's primaries and the
+camera's sensitivities), :mod:`.colouring` (the rig applied to the pixels) and
+:mod:`.palette` (the surfaces' RGB albedo).
 Each is imported on first use of one of its names, so that listing the scenes
 (:mod:`bigT.scenes.catalog`) stays cheap (no scipy.spatial, no zarr).
 """
@@ -19,11 +23,12 @@ from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES  # noqa: F401
 
 #: Public name -> the module defining it, imported on first use.
 _LAZY = {"Scene": "scene", "load": "scene", "exact_inverse_rows": "scene",
+         "ColourRig": "rig",
          "dihedral4": "paper_example",
          **{name: "builder" for name in ("build", "convex", "corner", "cornell", "flat",
                                           "hemispheres", "make")}}
-_SUBMODULES = ("builder", "catalog", "geometry", "ground_truth", "paper_example", "preview",
-               "radiosity", "scene", "stored")
+_SUBMODULES = ("builder", "catalog", "colouring", "geometry", "ground_truth", "palette",
+               "paper_example", "preview", "radiosity", "rig", "scene", "statistics", "stored")
 
 __all__ = ["DEFAULT_SIZES", "DENSITIES", "SCENE_NAMES", *_LAZY]
 

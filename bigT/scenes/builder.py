@@ -15,6 +15,12 @@ A scene is built in four steps, each in bounded memory:
 4. acquisition (optional): Gaussian defocus G of the projector, additive camera noise
    on every stored entry and a noise floor below which entries are dropped.
 
+A colour scene (``colour=True``) runs the same steps on the three bands at once: A holds
+the bands' A_k = diag(albedo_k) FF interleaved (index 3 p + k, the form factors computed
+once), the series gives the bands' T_k interleaved, and each tile row is mixed by the
+rig (:mod:`.rig`: camera sensitivities C_p, projector primaries P_q) before it is
+written: T[3 p + i, 3 q + j] = sum_k C_p[i, k] T_k[p, q] P_q[k, j].
+
 The whole scene is written in the hidden work directory ``.NAME.scene-build`` beside
 ``path`` and moved into place when complete: a failed or interrupted call leaves
 ``path`` as it was, and the next call with the same parameters resumes from the tile
@@ -38,10 +44,11 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from ..progress import progress_bar
-from ..spectral import SpectralRadius, spectral_radius
 from ..storage import BlockCSRWriter, PixelOrder, check_replaceable
-from . import geometry, radiosity, stored
+from . import geometry, palette, radiosity, stored
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES
+from .colouring import ColourParts, resolve_rig
+from .statistics import colour_ground_truth_stats, ground_truth_stats
 from .paper_example import dihedral4
 from .ground_truth import commit, new_ground_truth_group
 from .preview import draw_preview, preview_path
@@ -121,44 +128,25 @@ def _add_noise(rows: sp.csr_array, noise: float, floor: float, rng) -> sp.csr_ar
     return rows
 
 
-def _finite(value: float) -> float | None:
-    """JSON has no inf or NaN: an undetermined radius is stored as null."""
-    return float(value) if math.isfinite(value) else None
-
-
-
-def _spectral_radius_T(times_T, d) -> SpectralRadius:
-    """rho(M) for M = I - T diag(d)^-1 on the pixels with d > 0, to
-    ``config.SCENE_SPECTRAL_RTOL``; ``times_T(V)`` is T @ V."""
-    inv = np.zeros_like(d)
-    inv[d > 0] = 1.0 / d[d > 0]
-    lit = d > 0
-
-    def minus_M(V):
-        # (T - diag(d)) diag(d)^-1 V: the diagonal cancels exactly (V - T diag(d)^-1 V
-        # left 1e-16 of rounding on a diagonal T)
-        W = V * inv[:, None]
-        return times_T(W) - d[:, None] * W
-
-    return spectral_radius(minus_M, len(d), lit, rtol=config.SCENE_SPECTRAL_RTOL,
-                           max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-
-
 def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=None,
           threshold=None, noise=0.0, noise_floor=None, blur=0.0, seed=0, tile_size=None,
           pixel_order="tile-major", dtype="float32", overwrite=False, preview=True,
-          progress=None, memory_limit=None) -> Scene:
+          progress=None, memory_limit=None, colour=False, mixing="global",
+          rig=None) -> Scene:
     """Build a named scene at ``path`` (see :func:`corner` and friends).
 
     Parameters
     ----------
     name : {"corner", "convex", "flat", "cornell", "hemispheres"}
     size : (H, W), optional
-        Image size; default ``DEFAULT_SIZES[name]``. n = H W.
+        Image size; default ``DEFAULT_SIZES[name]``. n = H W (3 H W for colour).
     path : str or os.PathLike
         Directory of the T store (e.g. ``corner.zarr``); the preview PNG goes beside it.
-    albedo : float in (0, 1) or (H, W) ndarray
-        Lambertian albedo, one value or a texture (row-major image).
+    albedo : float in (0, 1) or (H, W) ndarray; (H, W, 3) ndarray for colour
+        Lambertian albedo, one value or a texture (row-major image). For colour, one
+        value is the albedo of the white surfaces (in every band; the scene's coloured
+        surfaces, :data:`bigT.scenes.palette.PALETTES`, keep theirs), a texture is an
+        RGB albedo per pixel.
     density : {"exact", "sparse", "dense"} or float, optional
         Preset of (form-factor cut, threshold); a float is a form-factor cut (with the
         sparse threshold). Default: "exact" up to ``config.SCENE_EXACT_MAX_N`` pixels
@@ -178,9 +166,11 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     blur : float
         Standard deviation (pixels) of the projector's Gaussian defocus (0: none).
     seed : int
-        Seeds the noise (tile row i uses the stream (seed, i)).
+        Seeds the noise (tile row i uses the stream (seed, i)) and the default rig's
+        per-pixel variation.
     tile_size : int, optional
-        Default ``config.DEFAULT_TILE_SIZE``.
+        Default ``config.DEFAULT_TILE_SIZE`` (``config.DEFAULT_COLOUR_TILE_SIZE`` for
+        colour, where it is a multiple of 3).
     pixel_order : {"tile-major", "row-major"}
     dtype : {"float32", "float64"}
         dtype of T's values (A, F and the ground truth are float64).
@@ -196,6 +186,16 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         larger one tile row by tile row. The build is resumable: an interrupted call
         leaves its work in ``.NAME.scene-build`` beside ``path``, and the next call
         with the same parameters goes on from the tile rows done.
+    colour : bool
+        Build an RGB scene (a colour store, ``channels`` 3, index 3 p + c): each band's
+        light with its albedo, mixed by the rig. The truncation ``threshold`` applies to
+        the bands' entries (so a global mixing factors T exactly), the noise and the
+        noise floor to the stored entries, the blur to each band.
+    mixing : {"global", "per-pixel"}
+        The default rig's colour mixing (colour only): one camera and one projector
+        3x3 for every pixel, or varying by ``rig.DEFAULT_VARIATION`` per pixel.
+    rig : ColourRig, optional
+        The rig (overrides ``mixing``; implies ``colour``).
 
     Returns
     -------
@@ -215,30 +215,40 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     _check_nonnegative(noise=noise, noise_floor=floor, blur=blur)
     noise, blur = float(noise), float(blur)
     check_replaceable(path, overwrite)
+    rig = resolve_rig(colour, mixing, rig, seed)
     H, W = size
-    n = H * W
-    po = PixelOrder(size, pixel_order)
-    perm = po.permutation
-    density, cut, thr = _resolve_density(density, ff_cut, threshold, n)
-    albedo_vec, albedo_label = _albedo_vector(albedo, size, perm)
-    radiosity.check_all_pairs(n, cut)
+    pixels = H * W
+    po = PixelOrder(size, pixel_order, channels=1 if rig is None else 3)
+    perm = po.pixel_permutation
+    density, cut, thr = _resolve_density(density, ff_cut, threshold, pixels)
+    radiosity.check_all_pairs(pixels, cut)
 
     P = _patches(name, size).take(perm)
-    f = albedo_vec * P.first_bounce_gain()
     G = radiosity.gaussian_blur_matrix(size, blur, perm) if blur > 0 else None
+    colour_parts = None
+    if rig is None:
+        albedo_vec, albedo_label = _albedo_vector(albedo, size, perm)
+        f = albedo_vec * P.first_bounce_gain()
+    else:
+        albedo_vec, albedo_label, table = palette.band_albedo(name, albedo, size, P.face, perm)
+        f_bands = albedo_vec * P.first_bounce_gain()[:, None]
+        colour_parts = ColourParts.of(rig, size, perm, f_bands, table)
+        f = f_bands.ravel()  # the bands interleaved, 3 p + k
+        G = None if G is None else radiosity.interleave_bands(G)
     memory_limit = int(memory_limit or config.SCENE_IN_MEMORY_BYTES)
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
     params = {
-        "name": name, "image_shape": [H, W], "n": n, "pixel_order": po.order,
+        "name": name, "image_shape": [H, W], "n": po.n, "pixel_order": po.order,
         "albedo": albedo_label, "density": density, "ff_cut": cut, "threshold": thr,
         "noise": noise, "noise_floor": floor, "blur": blur, "seed": int(seed),
         "dtype": str(np.dtype(dtype)), "tile_size": tile_size,
+        **({} if colour_parts is None else colour_parts.record()),
     }
     if albedo_label == "texture":  # a texture is not in the parameters: its digest is
         params["albedo_digest"] = hashlib.sha256(albedo_vec.tobytes()).hexdigest()
     path.parent.mkdir(parents=True, exist_ok=True)
     recipe = _Recipe(path, params, P, albedo_vec, f, G, cut, thr, noise, floor, int(seed),
-                     tile_size, dtype, po, memory_limit, exact)
+                     tile_size, dtype, po, memory_limit, exact, colour_parts)
     with stored.disk_full_names(path):
         return _build_resumable(recipe, preview, progress, t_start)
 
@@ -264,6 +274,7 @@ class _Recipe:
     pixel_order: PixelOrder
     memory_limit: int
     exact: bool
+    colour: ColourParts | None = None
 
 
 def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
@@ -284,7 +295,10 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     T, max_bounces = _write_transport(T, A, r, progress)
     timings["seconds_T"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    stats = _ground_truth_stats(T, A, r.f, r.G, r.memory_limit)
+    if r.colour is None:
+        stats = ground_truth_stats(T, A, r.f, r.G, r.memory_limit)
+    else:
+        stats = colour_ground_truth_stats(T, A, r.f, r.G, r.colour, r.memory_limit)
     timings["seconds_stats"] = time.perf_counter() - t0
     summary = {
         **{k: v for k, v in params.items() if k not in ("tile_size", "albedo_digest")},
@@ -293,7 +307,13 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
         "seconds": 0.0, **timings, "resumed": bool(resumed),
         "preview": str(preview_path(r.path)) if preview else None,
     }
-    commit(tmp, r.path, r.f, summary, t_start)
+    if r.colour is None:
+        commit(tmp, r.path, r.f, summary, t_start)
+    else:
+        c = r.colour
+        commit(tmp, r.path, c.first_bounce, summary, t_start,
+               rig_blocks={"camera": c.camera, "projector": c.projector},
+               mixing=c.rig.metadata())
     shutil.rmtree(work, ignore_errors=True)
     scene = load(r.path)
     if preview:
@@ -337,58 +357,13 @@ def _transport_rows(writer, times_A, recipe: _Recipe, progress):
         if thr > 0:
             rows.data[rows.data < thr] = 0.0
             rows.eliminate_zeros()
+        if recipe.colour is not None:  # the bands' rows, truncated, mixed by the rig
+            c = recipe.colour
+            rows = radiosity.mix_bands(rows, c.camera[r0 // 3:r1 // 3], c.projector_matrix)
         if noise > 0 or floor > 0:
             rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
         writer.write_tile_row(i, rows)
     return writer.finalize(), max_bounces
-
-
-@dataclass(frozen=True)
-class _GroundTruthStats:
-    """What a scene's summary says of its transport, measured on the stores.
-
-    Attributes
-    ----------
-    rho_M, rho_A : SpectralRadius
-        Of M = I - T diag(T)^-1 and of A.
-    shares : list of float
-        Each bounce's share of the light of a white projector image.
-    T1 : ndarray, (n,) float64
-        T 1, the camera's view of a white projector image (the preview).
-    """
-
-    rho_M: SpectralRadius
-    rho_A: SpectralRadius
-    shares: list
-    T1: np.ndarray
-
-    def fields(self) -> dict:
-        return {"spectral_radius": _finite(self.rho_M.value),
-                "spectral_radius_A": _finite(self.rho_A.value),
-                "spectral_radius_uncertainty": _finite(self.rho_M.uncertainty),
-                "spectral_radius_A_uncertainty": _finite(self.rho_A.uncertainty),
-                "spectral_radius_method": self.rho_M.method,
-                "spectral_radius_A_method": self.rho_A.method,
-                "bounce_shares": self.shares}
-
-
-def _ground_truth_stats(T, A, f, G, memory_limit: int) -> _GroundTruthStats:
-    """Spectral radii, bounce shares and T 1 from the stored T and A, one matrix at a
-    time held within ``memory_limit`` (streamed from disk beyond it)."""
-    n = T.shape[0]
-    d = np.asarray(T.diagonal(output_order="matrix"), np.float64)
-    times_T = stored.stored_apply(T, memory_limit)
-    rho_M = _spectral_radius_T(times_T, d)
-    T1 = times_T(np.ones(n))
-    del times_T
-    times_A = stored.stored_apply(A, memory_limit)
-    rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
-                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-    white = np.ones(n)
-    b0 = f * (G @ white if G is not None else white)
-    bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
-                                      config.SCENE_SHARE_TOL)
-    return _GroundTruthStats(rho_M, rho_A, radiosity.light_shares(bounces), T1)
 
 
 def _named(name):

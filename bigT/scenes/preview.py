@@ -13,17 +13,31 @@ from ..figures import pyplot, save_figure
 
 def draw_preview(path: Path, image: np.ndarray, title: str) -> Path:
     """T 1 (the camera's view of a white projector image) with three horizontal scan
-    lines drawn on it and plotted beside it (paper Fig. 8)."""
+    lines drawn on it and plotted beside it (paper Fig. 8).
+
+    ``image`` is (H, W) grey, or (H, W, 3) linear RGB: shown sRGB-encoded (scaled so
+    its brightest value is white), its scan lines plotted per channel."""
     plt = pyplot()
-    H, W = image.shape
-    rows = distinct_rows(image, 3)
+    colour = image.ndim == 3
+    rows = distinct_rows(image.reshape(image.shape[0], -1), 3)
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
-    ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest")
+    if colour:
+        peak = float(image.max()) or 1.0
+        ax0.imshow(_srgb_encode(np.clip(image / peak, 0.0, 1.0)), interpolation="nearest")
+    else:
+        ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    styles = ("-", "--", ":")
     for k, r in enumerate(rows):
-        ax0.axhline(r, color=colours[k], lw=1)
-        ax1.plot(image[r], color=colours[k], lw=1.3, label=f"row {r}")
-    ax0.set_title("T 1 (white projector image)", fontsize=9)
+        if colour:  # the line's style names the row, its colour the channel
+            ax0.axhline(r, color="white", ls=styles[k], lw=1)
+            for c, name in enumerate(("red", "green", "blue")):
+                ax1.plot(image[r, :, c], color=f"tab:{name}", ls=styles[k], lw=1.2,
+                         label=f"row {r}" if c == 0 else None)
+        else:
+            ax0.axhline(r, color=colours[k], lw=1)
+            ax1.plot(image[r], color=colours[k], lw=1.3, label=f"row {r}")
+    ax0.set_title("T 1 (white projector image)" + (", sRGB" if colour else ""), fontsize=9)
     ax0.set_xticks([])
     ax0.set_yticks([])
     ax1.set_xlabel("column")
@@ -36,8 +50,17 @@ def draw_preview(path: Path, image: np.ndarray, title: str) -> Path:
     return save_figure(fig, path, dpi=100)
 
 
+def _srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear values in [0, 1] -> sRGB-encoded ones (IEC 61966-2-1), for display.
+
+    A private stand-in: bigT.colour's encode() will replace it once it is in main."""
+    linear = np.asarray(linear, np.float64)
+    return np.where(linear <= 0.0031308, 12.92 * linear,
+                    1.055 * np.power(linear, 1.0 / 2.4) - 0.055)
+
+
 def distinct_rows(image: np.ndarray, k: int) -> list[int]:
-    """``k`` rows of ``image`` whose profiles differ most, ascending: the centre row,
+    """``k`` rows of ``image`` (H, ...) whose profiles differ most, ascending: the centre row,
     then greedily the row farthest (L2) from those chosen. A scene symmetric top to
     bottom (the corner) would draw two of the quarter rows on top of each other."""
     image = np.asarray(image, np.float64)

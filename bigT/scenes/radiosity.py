@@ -216,6 +216,47 @@ def interreflection(FF: sp.csr_array, albedo: np.ndarray) -> sp.csr_array:
     return A
 
 
+def band_interreflection(FF: sp.csr_array, albedo: np.ndarray) -> sp.csr_array:
+    """The three bands' A_k = diag(albedo[:, k]) FF interleaved: entry (3 p + k, 3 q + k)
+    is A_k[p, q], shape (3 m, 3 n) for FF of shape (m, n) and albedo (m, 3), float64."""
+    A = sp.csr_array(sp.kron(FF, sp.eye_array(3), format="csr"))
+    A = sp.csr_array(A.multiply(np.asarray(albedo, np.float64).reshape(-1, 1)))
+    A.sort_indices()
+    return A
+
+
+def interleave_bands(G: sp.csr_array) -> sp.csr_array:
+    """G acting on each band alike: entry (3 p + k, 3 q + k) is G[p, q]."""
+    return sp.csr_array(sp.kron(G, sp.eye_array(3), format="csr"))
+
+
+def block_diagonal(blocks: np.ndarray) -> sp.csr_array:
+    """The (3 m, 3 m) block-diagonal matrix of m (3, 3) ``blocks``, CSR float64."""
+    m = len(blocks)
+    bsr = sp.bsr_array((np.asarray(blocks, np.float64), np.arange(m), np.arange(m + 1)),
+                       shape=(3 * m, 3 * m))
+    return sp.csr_array(bsr.tocsr())
+
+
+def mix_bands(T_bands: sp.csr_array, camera: np.ndarray, projector: sp.csr_array
+              ) -> sp.csr_array:
+    """Rows of a colour T from the same rows of the interleaved band transport:
+    T[3 p + i, 3 q + j] = sum_k C_p[i, k] T_k[p, q] P_q[k, j].
+
+    Parameters
+    ----------
+    T_bands : csr_array, (3 m, 3 n)
+        Rows 3 p0 .. 3 p1 of the bands interleaved (entry (3 p + k, 3 q + k) = T_k[p, q]).
+    camera : ndarray, (m, 3, 3)
+        C_p of the m camera pixels p0 .. p1.
+    projector : csr_array, (3 n, 3 n)
+        The block-diagonal of every projector pixel's P_q (:func:`block_diagonal`).
+    """
+    T = sp.csr_array(block_diagonal(camera) @ (T_bands @ projector))
+    T.sort_indices()
+    return T
+
+
 def gaussian_blur_matrix(size, sigma: float, order: np.ndarray) -> sp.csr_array:
     """Projector defocus G, shape (n, n): column j spreads projector pixel j over the
     image with a Gaussian of standard deviation ``sigma`` pixels, truncated at

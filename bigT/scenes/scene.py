@@ -6,6 +6,10 @@ For a noise-free scene without truncation (``threshold=0``) and without blur, th
 exact inverse is F^-1 (I - A); :func:`exact_inverse_rows` gives it tile row by tile
 row, so the error of an inverse can be measured at full scale without any dense
 inversion (or on a sample of rows: :meth:`Scene.inverse_error`).
+
+A colour scene's A holds the bands' interreflections (index 3 p + k, :mod:`.rig`), F
+its 3x3 diagonal blocks F_p = C_p diag(f_p) P_p; with C = blockdiag(C_p), T = C (I -
+A)^-1 C^-1 F, so the exact inverse is F^-1 (I - C A C^-1), again tile row by tile row.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from ..spectral import spectral_meaning
 from ..storage import PixelOrder
 from ..storage import open as open_store
 from .ground_truth import GROUND_TRUTH, SCENE_ATTR
+from .rig import ColourRig
 
 
 @dataclass
@@ -37,12 +42,17 @@ class Scene:
     T, A : BlockCSR, shape (n, n)
         Light transport and interreflection, stored in ``pixel_order``; their products,
         ``to_scipy`` and ``diagonal`` speak row-major image vectors like every store's.
-    F_stored : ndarray, (n,) float64
-        True first bounce (diagonal of F) in the stored order, the order of the stores'
-        tiles, as the ground truth holds it (:attr:`F` is the same as an image vector).
+        Colour (n = 3 H W): A holds the bands' A_k interleaved, A[3 p + k, 3 q + k] =
+        A_k[p, q], without the rig's mixing.
+    F_stored : ndarray, (n,) float64; colour (H W, 3, 3)
+        True first bounce (diagonal of F; colour: its 3x3 diagonal blocks) in the stored
+        order, the order of the stores' tiles, as the ground truth holds it (:attr:`F`
+        is the same in row-major pixel order).
     pixel_order : PixelOrder
     summary : dict
         Name, parameters, nnz, spectral radii, bounce shares, timings (JSON).
+    camera_stored, projector_stored : ndarray, (H W, 3, 3) float64, or None
+        Colour: the rig's C_p and P_q of each pixel, in the stored order (None for grey).
     """
 
     path: Path
@@ -51,15 +61,49 @@ class Scene:
     F_stored: np.ndarray
     pixel_order: PixelOrder
     summary: dict = field(default_factory=dict)
+    camera_stored: np.ndarray | None = None
+    projector_stored: np.ndarray | None = None
+
+    @property
+    def channels(self) -> int:
+        """1 for a grey scene, 3 for colour (T's index 3 p + c)."""
+        return getattr(self.T, "channels", 1)
+
+    @property
+    def rig(self) -> ColourRig | None:
+        """The colour rig (camera sensitivities, projector primaries, per-pixel
+        variation) of a colour scene; None for grey."""
+        return ColourRig.from_record(self.summary) if self.channels == 3 else None
 
     @property
     def F(self) -> np.ndarray:
-        """True first bounce (diagonal of F), (n,) float64, in row-major image order like
-        every vector of the public API (``F.reshape(H, W)`` is its image; pass it as
-        ``first_bounce=``)."""
+        """True first bounce in row-major pixel order like every vector of the public API:
+        grey, the diagonal of F, (n,) float64 (``F.reshape(H, W)`` is its image; pass it
+        as ``first_bounce=``); colour, its diagonal blocks, (H W, 3, 3) float64, block
+        p = F_p = C_p diag(f_p) P_p for the pixel p = y W + x."""
         if self.pixel_order is None:
             return self.F_stored
-        return self.pixel_order.to_images(self.F_stored).ravel()
+        if self.channels == 1:
+            return self.pixel_order.to_images(self.F_stored).ravel()
+        return _row_major_blocks(self.F_stored, self.pixel_order)
+
+    @property
+    def camera(self) -> np.ndarray | None:
+        """Colour: the rig's C_p of each pixel, (H W, 3, 3) in row-major pixel order."""
+        return None if self.camera_stored is None else \
+            _row_major_blocks(self.camera_stored, self.pixel_order)
+
+    @property
+    def projector(self) -> np.ndarray | None:
+        """Colour: the rig's P_q of each pixel, (H W, 3, 3) in row-major pixel order."""
+        return None if self.projector_stored is None else \
+            _row_major_blocks(self.projector_stored, self.pixel_order)
+
+    @property
+    def bounce_shares_per_channel(self) -> list[list[float]] | None:
+        """Colour: each bounce's share of the light the camera sees in channel R, G and
+        B (three lists, each adding up to 1) for a white projector image; None for grey."""
+        return self.summary.get("bounce_shares_per_channel")
 
     @property
     def name(self) -> str:
@@ -93,8 +137,9 @@ class Scene:
         return None if p is None else Path(p)
 
     def exact_inverse_rows(self, i: int) -> sp.csr_array:
-        """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64."""
-        return exact_inverse_rows(self.A, self.F_stored, i)
+        """Tile row ``i`` of F^-1 (I - A) (colour: F^-1 (I - C A C^-1)), shape
+        (rows_i, n), float64."""
+        return exact_inverse_rows(self.A, self.F_stored, i, self.camera_stored)
 
     def inverse_error(self, X, sample: int | None = None, seed: int = 0) -> float:
         """||X - F^-1 (I - A)||_F / ||F^-1 (I - A)||_F, tile row by tile row, over
@@ -102,9 +147,11 @@ class Scene:
 
         Parameters
         ----------
-        X : BlockCSR of T's shape and pixel order (any tile size), or (n,) ndarray
+        X : BlockCSR of T's shape and pixel order (any tile size), or ndarray
             An inverse on disk, or the diagonal of a diagonal one in row-major image
-            order (e.g. ``1 / T.diagonal()``).
+            order (e.g. ``1 / T.diagonal()``), (n,); colour: the 3x3 diagonal blocks of
+            a block-diagonal one in row-major pixel order, (H W, 3, 3) (e.g.
+            ``numpy.linalg.inv(scene.F)``).
         sample : int, optional
             Measure on this many rows drawn uniformly without replacement (seeded by
             ``seed``) instead of all n: the error of a full-HD inverse in one read of
@@ -157,12 +204,38 @@ class Scene:
             "  exact inverse F^-1 (I - A) " + ("holds" if s["exact"] else
                                                "holds up to truncation/noise/blur"),
         ]
+        if s.get("channels", 1) == 3:
+            lines[-2:-2] = _colour_lines(s)
+            lines[0] = lines[0].replace(f"(n = {s['n']})", f"(n = {s['n']} = 3 x {H * W} "
+                                        "pixels), RGB")
+            lines[2] = lines[2].replace("T diag(T)^-1 (ground truth)",
+                                        "T F^-1 (ground truth; F the 3x3 diagonal blocks of T)")
+            lines[-1] = lines[-1].replace("F^-1 (I - A)", "F^-1 (I - C A C^-1)")
         return "\n".join(lines)
 
 
+def _colour_lines(s: dict) -> list[str]:
+    """The lines :meth:`Scene.describe` adds for a colour scene: its rig and the bounce
+    shares per channel."""
+    mixing = ("global (T's metadata records it)" if s["mixing"] == "global" else
+              f"per pixel (C_p, P_q within {100 * s['rig_variation']:g}% of C, P)")
+    rows = " / ".join(" ".join(f"{v:.2f}" for v in row) for row in s["rig_camera"])
+    cols = " / ".join(" ".join(f"{v:.2f}" for v in row) for row in s["rig_projector"])
+    lines = [f"  colour (R, G, B; index 3 p + c): mixing {mixing}",
+             f"  camera sensitivities C = [{rows}], projector primaries P = [{cols}]"]
+    for name, shares in zip("RGB", s["bounce_shares_per_channel"]):
+        lines.append(f"  bounce shares in {name}: " + ", ".join(f"{100 * v:.3g}%"
+                                                              for v in shares[:4])
+                     + (", ..." if len(shares) > 4 else ""))
+    return lines
+
+
 def _inverse_rows(X, T):
-    """``rows(i)``: tile row ``i`` of T's grid of the inverse ``X`` (a store, or the
-    (n,) row-major diagonal of a diagonal inverse), float64 CSR."""
+    """``rows(i)``: tile row ``i`` of T's grid of the inverse ``X`` (a store, the (n,)
+    row-major diagonal of a diagonal inverse, or the (H W, 3, 3) row-major diagonal
+    blocks of a colour one), float64 CSR."""
+    if isinstance(X, np.ndarray) and X.ndim == 3:
+        return _block_diagonal_rows(X, T)
     if isinstance(X, np.ndarray):
         if X.shape != (T.shape[0],):
             raise ShapeMismatchError(f"a diagonal X needs {T.shape[0]} entries, got {X.shape}")
@@ -187,17 +260,49 @@ def _inverse_rows(X, T):
     return rows
 
 
-def exact_inverse_rows(A, F, i: int) -> sp.csr_array:
+def _block_diagonal_rows(X: np.ndarray, T):
+    """``rows(i)`` of the block-diagonal inverse whose (H W, 3, 3) blocks ``X`` are in
+    row-major pixel order, for T's (colour) grid."""
+    order = T.pixel_order
+    if order is None or order.channels != 3 or X.shape != (order.pixels, 3, 3):
+        raise ShapeMismatchError(f"a block-diagonal X needs (H W, 3, 3) blocks of a colour "
+                                 f"scene, got {X.shape}")
+    stored = np.asarray(X, np.float64)[order.pixel_permutation]
+
+    def rows(i):
+        r0, r1 = T.tile_row_range(i)
+        return _blocks_rows(stored[r0 // 3:r1 // 3], r0, T.shape[1])
+    return rows
+
+
+def _blocks_rows(blocks: np.ndarray, r0: int, n: int) -> sp.csr_array:
+    """Rows r0 .. r0 + 3 m of the (n, n) block-diagonal matrix whose m (3, 3) blocks from
+    row r0 on are ``blocks``."""
+    m = len(blocks)
+    bsr = sp.bsr_array((blocks, np.arange(m) + r0 // 3, np.arange(m + 1)), shape=(3 * m, n))
+    return sp.csr_array(bsr.tocsr())
+
+
+def exact_inverse_rows(A, F, i: int, camera: np.ndarray | None = None) -> sp.csr_array:
     """Tile row ``i`` of F^-1 (I - A), shape (rows_i, n), float64.
 
     A : BlockCSR (n, n), the scene's interreflection; F : (n,) first bounce, both in
-    matrix order."""
+    matrix order. Colour: F is (n / 3, 3, 3), its diagonal blocks, ``camera`` the
+    rig's (n / 3, 3, 3) C_p (matrix order), and the row is that of
+    F^-1 (I - C A C^-1) with C = blockdiag(C_p)."""
     n = A.shape[0]
     r0, r1 = A.tile_row_range(i)
     Arows = sp.csr_array(A.get_tile_row(i), dtype=np.float64)
     eye = sp.csr_array((np.ones(r1 - r0), np.arange(r0, r1), np.arange(r1 - r0 + 1)),
                        shape=(r1 - r0, n))
-    return sp.csr_array(sp.diags_array(1.0 / np.asarray(F[r0:r1], np.float64)) @ (eye - Arows))
+    F = np.asarray(F, np.float64)
+    if F.ndim == 1:
+        return sp.csr_array(sp.diags_array(1.0 / F[r0:r1]) @ (eye - Arows))
+    p0, p1 = r0 // 3, r1 // 3
+    camera = np.asarray(camera, np.float64)
+    seen = _blocks_rows(camera[p0:p1], r0, n)[:, r0:r1] @ Arows  # C A, rows r0:r1
+    seen = sp.csr_array(seen @ _blocks_rows(np.linalg.inv(camera), 0, n))  # ... C^-1
+    return sp.csr_array(_blocks_rows(np.linalg.inv(F[p0:p1]), r0, n)[:, r0:r1] @ (eye - seen))
 
 
 # --- building ----------------------------------------------------------------------------
@@ -220,9 +325,33 @@ def load(path) -> Scene:
     except (OSError, KeyError, ValueError, zarr.errors.BaseZarrError) as exc:
         raise StoreError(f"no readable scene ground truth ({exc.__class__.__name__}: {exc}); "
                          "was it written by bigT scene?", gt) from None
-    if F.shape != (T.shape[0],) or not np.isfinite(F).all():
+    pixels = T.shape[0] // T.channels
+    want = (T.shape[0],) if T.channels == 1 else (pixels, 3, 3)
+    if F.shape != want or not np.isfinite(F).all():
         raise StoreError("ground-truth F is damaged (wrong length or missing chunks)", gt / "F")
-    return Scene(path, T, A, F, T.pixel_order, summary)
+    if T.channels == 1:
+        return Scene(path, T, A, F, T.pixel_order, summary)
+    blocks = {name: _read_blocks(gt / name, want) for name in ("camera", "projector")}
+    return Scene(path, T, A, F, T.pixel_order, summary, blocks["camera"], blocks["projector"])
+
+
+def _read_blocks(path: Path, shape) -> np.ndarray:
+    """A colour scene's (H W, 3, 3) rig blocks from the ground truth at ``path``."""
+    try:
+        blocks = np.asarray(zarr.open_array(str(path), mode="r")[...], np.float64)
+    except (OSError, KeyError, ValueError, zarr.errors.BaseZarrError) as exc:
+        raise StoreError(f"no readable rig blocks ({exc.__class__.__name__}: {exc})",
+                         path) from None
+    if blocks.shape != tuple(shape) or not np.isfinite(blocks).all():
+        raise StoreError("the rig's blocks are damaged (wrong shape or missing chunks)", path)
+    return blocks
+
+
+def _row_major_blocks(stored: np.ndarray, order: PixelOrder) -> np.ndarray:
+    """(H W, 3, 3) blocks in the stored pixel order -> row-major pixel order."""
+    out = np.empty_like(stored)
+    out[order.pixel_permutation] = stored
+    return out
 
 
 

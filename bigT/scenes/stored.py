@@ -129,12 +129,17 @@ def write_interreflection(P: Patches, albedo: np.ndarray, cut: float, path: Path
     """A = diag(albedo) FF written tile row by tile row at ``path`` (float64 store),
     resuming an interrupted write; memory holds one tile row's candidate pairs.
 
+    For a colour ``pixel_order`` (``albedo`` of shape (n, 3)), the three bands'
+    interreflections A_k = diag(albedo[:, k]) FF interleaved: A[3 p + k, 3 q + k] =
+    A_k[p, q]; each tile row's form factors are computed once for the three bands.
+
     Returns
     -------
-    BlockCSR, shape (n, n)
+    BlockCSR, shape (n, n) (grey) or (3 n, 3 n) (colour), n = P.n
     """
     n = P.n
-    writer = BlockCSRWriter(path, (n, n), tile_size=tile_size, dtype="float64",
+    c = pixel_order.channels
+    writer = BlockCSRWriter(path, (c * n, c * n), tile_size=tile_size, dtype="float64",
                             pixel_order=pixel_order, resume=True)
     missing = writer.missing_tile_rows
     if missing:
@@ -142,9 +147,29 @@ def write_interreflection(P: Patches, albedo: np.ndarray, cut: float, path: Path
         for i in progress_bar(missing, progress=progress, desc="interreflection A",
                               unit="tile row"):
             r0, r1 = writer.tile_row_range(i)
+            p0, p1 = r0 // c, r1 // c  # a colour tile size is a multiple of 3
             pieces = [block for _, block in
-                      radiosity.form_factor_rows(P, cut, rows=(r0, r1), search=search)]
+                      radiosity.form_factor_rows(P, cut, rows=(p0, p1), search=search)]
             FF = sp.csr_array(sp.vstack(pieces, format="csr")) if pieces else \
-                sp.csr_array((r1 - r0, n))
-            writer.write_tile_row(i, radiosity.interreflection(FF, albedo[r0:r1]))
+                sp.csr_array((p1 - p0, n))
+            if c == 1:
+                writer.write_tile_row(i, radiosity.interreflection(FF, albedo[p0:p1]))
+            else:
+                writer.write_tile_row(i, radiosity.band_interreflection(FF, albedo[p0:p1]))
     return writer.finalize()
+
+
+def diagonal_blocks(store, channels: int = 3) -> np.ndarray:
+    """The (channels x channels) diagonal blocks of a colour store, (n_pixels, c, c)
+    float64 in its matrix order (pixel p's block holds rows and columns c p .. c p + c - 1),
+    read one tile row at a time."""
+    c = channels
+    blocks = np.zeros((store.shape[0] // c, c, c))
+    for i in range(store.grid[0]):
+        r0, _ = store.tile_row_range(i)
+        rows = store.get_tile_row(i, columns=[i]).tocoo()  # the diagonal tile holds them
+        r = rows.row.astype(np.int64) + r0
+        col = rows.col.astype(np.int64)
+        on = r // c == col // c
+        blocks[r[on] // c, r[on] % c, col[on] % c] = rows.data[on]
+    return blocks

@@ -10,7 +10,8 @@ objects (``bigT_inverse.params.T``), ``[]`` for the objects in a list
 (``bigT_inverse.history[]``).
 
 The stores written here: a plain store (:func:`bigT.storage.from_scipy`, with every
-optional attribute), a scene (:func:`bigT.scenes.corner`) and its inverse
+optional attribute), a scene (:func:`bigT.scenes.corner`), a colour scene
+(:func:`bigT.scenes.cornell`, its global mixing in T's metadata) and the first's inverse
 (:func:`bigT.algorithms.stratified_inverse`, power form with the feed and operator
 thresholds, so that the fingerprint holds them), and a colour T with a recorded global
 mixing and its inverse by the global-mixing path.
@@ -116,6 +117,7 @@ def stores(tmp_path_factory):
                     image_tile=(2, 4), metadata={"note": "free JSON"}, channels=3)
     scene = tmp / "T.zarr"
     scenes.corner(size=(4, 6), path=scene, preview=False)
+    scenes.cornell(size=(4, 6), path=tmp / "colour" / "T.zarr", preview=False, colour=True)
     inverse = tmp / "X.zarr"
     bigT.stratified_inverse(scene, inverse, terms=2, prune_feed=1e-4, prune_operator=1e-4,
                             progress=False)
@@ -131,7 +133,7 @@ def stores(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def records(stores):
-    return written_records(*stores)
+    return written_records(*stores, stores[0].parent / "colour")
 
 
 # --- the checks -----------------------------------------------------------------------
