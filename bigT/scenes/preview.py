@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..colour import encode
 from ..figures import pyplot, save_figure
 
 
@@ -23,7 +24,7 @@ def draw_preview(path: Path, image: np.ndarray, title: str) -> Path:
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
     if colour:
         peak = float(image.max()) or 1.0
-        ax0.imshow(_srgb_encode(np.clip(image / peak, 0.0, 1.0)), interpolation="nearest")
+        ax0.imshow(encode(np.clip(image / peak, 0.0, 1.0), "srgb"), interpolation="nearest")
     else:
         ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -48,15 +49,6 @@ def draw_preview(path: Path, image: np.ndarray, title: str) -> Path:
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path, dpi=100)
-
-
-def _srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear values in [0, 1] -> sRGB-encoded ones (IEC 61966-2-1), for display.
-
-    A private stand-in: bigT.colour's encode() will replace it once it is in main."""
-    linear = np.asarray(linear, np.float64)
-    return np.where(linear <= 0.0031308, 12.92 * linear,
-                    1.055 * np.power(linear, 1.0 / 2.4) - 0.055)
 
 
 def distinct_rows(image: np.ndarray, k: int) -> list[int]:
