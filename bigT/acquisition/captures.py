@@ -20,10 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import AcquisitionError
-from ..images import IMAGE_SUFFIXES, is_image_file
+from ..images import IMAGE_SUFFIXES, check_image, is_image_file, read_raw_image
 from .manifest import Manifest, Pattern
-from .rgb_files import read_raw as read_raw_image  # images.read_raw_image once it reads RGB
-from .rgb_files import to_unit
 
 
 @dataclass(frozen=True)
@@ -103,7 +101,7 @@ class Captures:
         def format_of(pattern):
             path = self.path(pattern)
             raw = _checked_channels(read_raw_image(path), path, self.manifest.channels)
-            return CaptureFormat(tuple(to_unit(raw, path).shape[:2]), raw.dtype.name,
+            return CaptureFormat(tuple(check_image(raw, path).shape[:2]), raw.dtype.name,
                                  self.manifest.channels), raw
 
         black, raw_black = format_of(self.manifest.single("black"))
@@ -148,7 +146,7 @@ class Captures:
                 f"pixel type {raw.dtype.name} differs from the other captures' "
                 f"{self.format.dtype} (mixed bit depths: capture every pattern the same way)",
                 path)
-        image = to_unit(raw, path)
+        image = check_image(raw, path)
         if image.shape[:2] != self.format.shape:
             raise AcquisitionError(
                 f"capture of {image.shape[0]}x{image.shape[1]} pixels; the others are "

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..images import write_image
 from ..progress import progress_bar
-from . import rgb_files
 from .manifest import Manifest, Pattern, write_manifest
 
 #: A pixel is in shadow unless white - black exceeds this many standard deviations of
@@ -108,7 +108,7 @@ def write_patterns(folder, manifest: Manifest, *, progress: bool | None = None) 
     folder.mkdir(parents=True, exist_ok=True)
     for pattern in progress_bar(manifest.patterns, progress=progress, desc="patterns",
                                 unit="image"):
-        rgb_files.write(folder / pattern.file, pattern_image(manifest, pattern), bits=8)
+        write_image(folder / pattern.file, pattern_image(manifest, pattern), bits=8)
     return write_manifest(folder, manifest)
 
 

@@ -32,10 +32,10 @@ import numpy as np
 
 from ..atomic import atomic_output
 from ..errors import AcquisitionError
+from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..storage import PixelOrder
 from ..storage import open as open_store
-from . import rgb_files
 from .correspondence import Correspondence
 from .manifest import Manifest, patterns_folder, read_manifest
 
@@ -138,7 +138,7 @@ def _pattern_vectors(manifest: Manifest, folder: Path, patterns, order: PixelOrd
 def _pattern_file(path: Path, manifest: Manifest) -> np.ndarray:
     """A pattern image as written: (H, W) grey, (H, W, 3) colour; refused (naming it)
     when it is not the projector's size or the set's channels."""
-    image = rgb_files.to_unit(rgb_files.read_raw(path), path)
+    image = read_image(path)
     channels = 1 if image.ndim == 2 else image.shape[2]
     if image.shape[:2] != tuple(manifest.projector) or channels != manifest.channels:
         raise AcquisitionError(
@@ -205,7 +205,7 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise=0.0,
                                           order="matrix"))
         light = light.reshape(len(batch), *order.frame_shape)
         for p, image in zip(batch, model.render(light, rng)):
-            rgb_files.write(out / (p.stem + suffix), image, bits=8 if fmt == "png8" else 16)
+            write_image(out / (p.stem + suffix), image, bits=8 if fmt == "png8" else 16)
     with atomic_output(out / SIMULATION, "the simulation's camera model") as tmp:
         with open(tmp, "w") as f:
             json.dump({"scene": str(Path(scene_path).resolve()), "format": fmt, "seed": seed,
