@@ -64,7 +64,7 @@ def lit_superpixels(manifest: Manifest, pattern: Pattern) -> np.ndarray:
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
     if pattern.kind == "black":
         return np.zeros((gh, gw), dtype=bool)
-    if pattern.kind == "white":
+    if pattern.kind in ("white", "ramp"):  # a ramp lights all, at its level
         return np.ones((gh, gw), dtype=bool)
     if pattern.kind == "superpixel":
         return (rows * gw + cols) == pattern.index
@@ -83,13 +83,17 @@ def pattern_image(manifest: Manifest, pattern: Pattern) -> np.ndarray:
 
     Returns
     -------
-    ndarray, float64 in {0, 1}: shape manifest.projector (grey set), or
+    ndarray, float64 in {0, 1} (a ramp pattern: its level): shape manifest.projector
+        (grey set), or
         (*manifest.projector, 3) (colour set: lit in the pattern's primary only, or in all
         three when it has none)
     """
     s = manifest.superpixel
-    lit = lit_superpixels(manifest, pattern)
-    image = np.repeat(np.repeat(lit, s, axis=0), s, axis=1).astype(np.float64)
+    if pattern.kind == "ramp":  # uniform at its level
+        image = np.full(manifest.projector, float(pattern.level))
+    else:
+        lit = lit_superpixels(manifest, pattern)
+        image = np.repeat(np.repeat(lit, s, axis=0), s, axis=1).astype(np.float64)
     if manifest.channels == 1:
         return image
     primaries = np.ones(3) if pattern.primary is None else np.eye(3)[pattern.primary_index]

@@ -15,6 +15,11 @@ from ..errors import MemoryLimitWarning
 from ._argtypes import image_size, integer, number
 from ._options import add_json, add_memory_limit, add_progress
 
+# plain numbers, kept here so that building the parser imports no library layer
+# (bigT.acquisition.manifest's MIN_RAMP_LEVELS, MAX_RAMP_LEVELS, DEFAULT_RAMP_LEVELS;
+# tests/acquisition check they agree)
+MIN_RAMP_LEVELS, MAX_RAMP_LEVELS, DEFAULT_RAMP_LEVELS = 17, 256, 17
+
 # The library's layers are imported inside each command's functions, where the
 # command runs: building the parser imports every command module, and a command
 # should pay only for the layers it uses (stores: zarr ~0.3 s; compensation ~0.5 s).
@@ -61,6 +66,12 @@ def _register_patterns(sub) -> None:
                    help="3 for a colour T: every super-pixel or stripe pattern once per "
                         "projector primary (R, G, B; RGB PNGs), black, white and the Gray "
                         "code in white (default %(default)s: grey)")
+    p.add_argument("--ramp-levels", type=ramp_levels, default=DEFAULT_RAMP_LEVELS,
+                   metavar="N",
+                   help="uniform frames from 0 to 1 (each an 8-bit code) that the build fits "
+                        "the projector's response from, once per primary for colour: 0 (no "
+                        f"ramp) or {MIN_RAMP_LEVELS} to {MAX_RAMP_LEVELS} (default "
+                        "%(default)s)")
     p.add_argument("-o", "--output", required=True, metavar="DIR",
                    help="folder of the pattern images and manifest.json")
     _common(p)
@@ -84,7 +95,13 @@ def _register_build(sub) -> None:
                    help="drop entries of T below this (default 3 x the noise of a camera "
                         "super-pixel, estimated from the black capture)")
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
-                   help="undo a camera gamma: linear = stored ** gamma (default 1: linear)")
+                   help="undo a camera gamma: linear = stored ** gamma (default 1: linear; "
+                        "the same as --camera-response gamma:G)")
+    p.add_argument("--camera-response", default=None, metavar="SPEC",
+                   help="the camera's response, undone before anything else (each exposure "
+                        "of a bracket before the merge): linear (default), srgb, gamma:G, a "
+                        ".npy/.json table, or recover[:debevec|:robertson] (from the "
+                        "brackets of the white and ramp patterns); RAW files are linear")
     p.add_argument("--tile-size", type=integer(1), default=None,
                    help=f"rows/cols of one matrix tile of T (default {config.DEFAULT_TILE_SIZE}; "
                         f"of a colour T a multiple of 3, default "
@@ -134,6 +151,15 @@ def _register_simulate(sub) -> None:
     p.set_defaults(func=simulate_cmd, command="acquire simulate")
 
 
+def ramp_levels(text: str) -> int:
+    """An argparse type: 0 (no ramp) or MIN_RAMP_LEVELS to MAX_RAMP_LEVELS."""
+    value = integer(0)(text)
+    if value and not MIN_RAMP_LEVELS <= value <= MAX_RAMP_LEVELS:
+        raise argparse.ArgumentTypeError(
+            f"must be 0 (no ramp) or {MIN_RAMP_LEVELS} to {MAX_RAMP_LEVELS}, got {text!r}")
+    return value
+
+
 def noise_levels(text: str) -> float | tuple[float, ...]:
     """An argparse type: one noise std >= 0, or three (R, G, B) separated by commas."""
     parts = text.split(",")
@@ -152,11 +178,13 @@ def patterns_cmd(args) -> int:
     from ..acquisition import make_manifest, write_patterns
 
     manifest = make_manifest(args.method, args.projector, args.superpixel, graycode=args.graycode,
-                             channels=args.channels)
+                             channels=args.channels, ramp_levels=args.ramp_levels)
     path = write_patterns(args.output, manifest, progress=_progress(args))
+    ramp = (f", a ramp of {manifest.ramp_levels} levels"
+            f"{' per primary' if manifest.channels == 3 else ''}" if manifest.ramp_levels else "")
     print(f"{len(manifest.patterns)} patterns ({args.method}"
           f"{', Gray code' if manifest.graycode else ''}"
-          f"{', colour: R, G, B each' if manifest.channels == 3 else ''}) for a "
+          f"{', colour: R, G, B each' if manifest.channels == 3 else ''}{ramp}) for a "
           f"{manifest.projector[0]}x{manifest.projector[1]} projector, "
           f"{manifest.grid[0]}x{manifest.grid[1]} super-pixels")
     print(f"-> {path}")
@@ -165,6 +193,7 @@ def patterns_cmd(args) -> int:
 
 def build_cmd(args) -> int:
     from ..acquisition import build_transport, load_correspondence
+    from ..acquisition.ramp import response_figure_path
     from ..acquisition.validate import (
         check_white,
         figure_paths,
@@ -172,14 +201,18 @@ def build_cmd(args) -> int:
         plot_white_check,
     )
 
-    planned = () if args.no_figures else figure_paths(args.output)
-    refuse_overwriting_inputs(planned, [args.patterns, args.captures, args.black, args.mixing])
+    planned = () if args.no_figures else (*figure_paths(args.output),
+                                          response_figure_path(args.output))
+    response_file = args.camera_response if _is_file_spec(args.camera_response) else None
+    refuse_overwriting_inputs(planned, [args.patterns, args.captures, args.black, args.mixing,
+                                        response_file])
 
     with _own_warnings("bigT acquire build"):
         report = build_transport(args.patterns, args.captures, args.output, black=args.black,
                                  floor=args.floor, gamma=args.gamma, tile_size=args.tile_size,
                                  memory_bytes=args.memory_limit, overwrite=args.overwrite,
-                                 progress=_progress(args), mixing=args.mixing)
+                                 progress=_progress(args), mixing=args.mixing,
+                                 camera_response=args.camera_response)
     check = check_white(report.path)
     figures = []
     if not args.no_figures:
@@ -187,6 +220,10 @@ def build_cmd(args) -> int:
         figures = [plot_correspondence(load_correspondence(report.path), _grid(report),
                                        corr_png),
                    plot_white_check(check, val_png)]
+        if report.projector_response is not None:
+            figures.append(report.projector_response.draw(
+                response_figure_path(report.path),
+                title=f"projector response of {report.path.name} (light above black)"))
     if args.json:
         print(json.dumps({**report.settings.to_dict(), "n": report.n, "seen": report.seen,
                           "nnz": report.nnz, "passes": report.passes,
@@ -195,6 +232,8 @@ def build_cmd(args) -> int:
                           "seconds": report.seconds,
                           "white_relative_error": check.relative_error,
                           "mixing": None if report.mixing is None else report.mixing.to_metadata(),
+                          "projector_response": None if report.projector_response is None
+                          else report.projector_response.to_document(),
                           "figures": [str(f) for f in figures]}, indent=1))
         return 0
     print(report.describe())
@@ -225,6 +264,12 @@ def _own_warnings(command: str):
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno,
                                    source=w.source)
+
+
+def _is_file_spec(spec) -> bool:
+    """A ``--camera-response`` naming a table file (an input the figures must not
+    overwrite)."""
+    return spec is not None and str(spec).lower().endswith((".npy", ".json"))
 
 
 def _noise_text(noise) -> str:

@@ -448,7 +448,8 @@ def test_an_edited_pattern_entry(work, capsys):
 
 def test_the_written_manifest_reads_back(work):
     m = read_manifest(work / "bf-patterns")
-    assert m.projector == (24, 32) and m.grid == (12, 16) and len(m.patterns) == 194
+    # 194 patterns of brute force and Gray code, and the default ramp of 17 levels
+    assert m.projector == (24, 32) and m.grid == (12, 16) and len(m.patterns) == 194 + 17
 
 
 # --- 8. Gray code alone -----------------------------------------------------------------
