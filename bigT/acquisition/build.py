@@ -48,7 +48,7 @@ from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
                        read_store_attrs, temporary_sibling)
 from ..storage import open as open_store
-from ..calibration import ProjectorResponse
+from ..calibration import CameraResponse, ProjectorResponse, parse_camera_response
 from .brackets import seconds_text
 from .captures import Captures, grey_view
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
@@ -58,6 +58,9 @@ from .ramp import PROJECTOR_RESPONSE_FILE, PROJECTOR_RESPONSE_KEY, fit_ramp, sav
 
 ACQUISITION_KEY = "acquisition"
 CORRESPONDENCE = "correspondence.npy"
+#: The camera response a build applied, kept beside the correspondence (JSON,
+#: ``CameraResponse.save``): a recovered one is measured once.
+CAMERA_RESPONSE = "camera_response.json"
 
 
 class AcquisitionWarning(UserWarning):
@@ -140,6 +143,7 @@ class BuildReport:
     mixing : Mixing or None, the global colour mixing recorded in T's metadata
     projector_response : ProjectorResponse or None, fitted from the ramp and kept in
         the store (``projector_response.json``); None without a ramp
+    camera : str, the camera response applied, in words
     """
 
     path: Path
@@ -153,6 +157,7 @@ class BuildReport:
     black_level: float = 0.0
     mixing: Mixing | None = None
     projector_response: ProjectorResponse | None = None
+    camera: str = "linear"
 
     @property
     def superpixels(self) -> int:
@@ -180,7 +185,7 @@ class BuildReport:
             + (f"; {self.saturated_pixels} saturated pixels" if self.saturated_pixels else ""),
         ]
         if s.exposures is not None or s.camera_response is not None:
-            lines.append(f"camera response: {s.camera_response or 'linear'}"
+            lines.append(f"camera response: {self.camera}"
                          + ("" if s.exposures is None else
                             f"; brackets of {len(s.exposures)} exposures ("
                             + ", ".join(seconds_text(t) for t in s.exposures)
@@ -291,7 +296,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         str(Path(black).resolve()) if black else None, float(floors[means.seen].max()),
         noise, corr.source, float(floors[means.seen].min()), cap.fingerprint(),
         manifest.channels, channel_noise,
-        None if camera_response is None else cap.response.describe(), cap.exposures,
+        _camera_spec(camera_response), cap.exposures,
         manifest.ramp_levels)
     target = Path(output)
     # with overwrite, an existing store is replaced only by a complete one: a bad capture
@@ -307,6 +312,8 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         _save_correspondence(writer.path, corr)
         if response is not None:  # in the store before it is complete
             save_response(writer.path, response)
+        if camera_response is not None:  # what check_white and a reader undo again
+            cap.response.save(writer.path / ACQUISITION_KEY / CAMERA_RESPONSE)
         passes = _fill(writer, manifest, cap, means, floors,
                        memory_bytes or config.ACQUIRE_MEMORY_BYTES, progress)
         T = writer.finalize()
@@ -322,7 +329,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         warnings.warn(warning, AcquisitionWarning, stacklevel=2)
     return BuildReport(T.path, settings, order.n, means.seen_superpixels, int(T.nnz), passes,
                        sum(cap.saturated.values()), time.perf_counter() - t0,
-                       float(cap.black.mean()), mixing, response)
+                       float(cap.black.mean()), mixing, response, cap.response.describe())
 
 
 def _checked_mixing(mixing, manifest: Manifest) -> Mixing | None:
@@ -417,6 +424,24 @@ def _save_correspondence(store: Path, corr: Correspondence) -> None:
     with atomic_output(folder / CORRESPONDENCE, "the correspondence map") as tmp:
         with open(tmp, "wb") as f:
             np.save(f, corr.labels.astype(np.int32))
+
+
+def _camera_spec(spec) -> str | None:
+    """``--camera-response`` as recorded in the settings: a file by its absolute path,
+    a CameraResponse by its description, None when not given."""
+    if spec is None:
+        return None
+    if isinstance(spec, CameraResponse):
+        return spec.describe()
+    text = str(spec).strip()
+    return str(Path(text).resolve()) if text.lower().endswith((".npy", ".json")) else text
+
+
+def load_camera_response(store) -> CameraResponse | None:
+    """The camera response a build applied (``--camera-response``), kept in the store as
+    ``acquisition/camera_response.json``; None when the build had none (``gamma``)."""
+    path = Path(store) / ACQUISITION_KEY / CAMERA_RESPONSE
+    return parse_camera_response(str(path)) if path.is_file() else None
 
 
 def load_correspondence(store) -> np.ndarray:

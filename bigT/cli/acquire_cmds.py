@@ -143,10 +143,38 @@ def _register_simulate(sub) -> None:
     p.add_argument("--black", type=number(0, 1), default=0.0, help="black level (default 0)")
     p.add_argument("--gamma", type=number(0, lo_open=True), default=1.0,
                    help="camera gamma: stored = linear ** (1 / gamma) (default 1)")
-    p.add_argument("--format", choices=tuple(FORMATS), default="png16",
-                   help="capture files (default %(default)s)")
+    p.add_argument("--format", choices=tuple(FORMATS), default=None,
+                   help="capture files (default png16; with the nonlinear rig, png of its "
+                        "--bits)")
     p.add_argument("--seed", type=integer(0), default=0,
                    help="seed of the noise (default %(default)s)")
+    rig = p.add_argument_group(
+        "nonlinear rig", "any of these simulates a real rig (docs/CALIBRATION.md): the "
+        "patterns through a projector response r(v) = b + (1 - b) s(v^G), s(u) = u + S u "
+        "(1 - u), captured by a camera with shot and read noise, clipped at its full well, "
+        "through its response and quantised; the defaults are those given")
+    rig.add_argument("--projector-gamma", type=per_channel(number(0, lo_open=True)),
+                     default=None, metavar="G[,G,G]",
+                     help="the projector's gamma, or one per primary (default 2.2)")
+    rig.add_argument("--projector-black", type=per_channel(number(0, 1, hi_open=True)),
+                     default=None, metavar="B[,B,B]",
+                     help="light at value 0, of full scale (default 0.02)")
+    rig.add_argument("--projector-shoulder", type=per_channel(number(0, 1, hi_open=True)),
+                     default=None, metavar="S[,S,S]",
+                     help="roll-off at the top: slope 1 - S at full scale (default 0.3)")
+    rig.add_argument("--camera-response", default=None, metavar="SPEC",
+                     help="the camera's curve: linear, srgb, gamma:G or a table file "
+                          "(default gamma:2.2); build with the same --camera-response")
+    rig.add_argument("--bits", type=int, choices=(8, 16), default=None,
+                     help="the camera's bit depth (default 8)")
+    rig.add_argument("--full-well", type=number(0, lo_open=True), default=None,
+                     metavar="E", help="electrons at full well: the shot noise (default 20000)")
+    rig.add_argument("--read-noise", type=number(0), default=None, metavar="R",
+                     help="read noise std, of full well (default 0.001)")
+    rig.add_argument("--exposures", type=exposure_list, default=None, metavar="T1,T2,...",
+                     help="exposure times in seconds, rising (default 1): several write "
+                          "brackets, CAPTURES_DIR/<pattern>@<seconds>.png; the white "
+                          "pattern's brightest pixel fills 0.9 of the full well in the first")
     _common(p)
     p.set_defaults(func=simulate_cmd, command="acquire simulate")
 
@@ -158,6 +186,25 @@ def ramp_levels(text: str) -> int:
         raise argparse.ArgumentTypeError(
             f"must be 0 (no ramp) or {MIN_RAMP_LEVELS} to {MAX_RAMP_LEVELS}, got {text!r}")
     return value
+
+
+def per_channel(parse):
+    """An argparse type: one value of ``parse``, or three (R, G, B) separated by commas."""
+    def values(text: str) -> float | tuple[float, ...]:
+        parts = text.split(",")
+        if len(parts) not in (1, 3):
+            raise argparse.ArgumentTypeError(f"must be one value or three (R,G,B), got {text!r}")
+        parsed = tuple(parse(part) for part in parts)
+        return parsed[0] if len(parsed) == 1 else parsed
+    return values
+
+
+def exposure_list(text: str) -> tuple[float, ...]:
+    """An argparse type: exposure times in seconds, rising strictly: ``1,8,64``."""
+    times = tuple(number(0, lo_open=True)(part) for part in text.split(","))
+    if any(b <= a for a, b in zip(times, times[1:])):
+        raise argparse.ArgumentTypeError(f"must rise strictly, got {text!r}")
+    return times
 
 
 def noise_levels(text: str) -> float | tuple[float, ...]:
@@ -289,13 +336,47 @@ def simulate_cmd(args) -> int:
 
     # the pattern folder as the output is refused by simulate_captures, in its own words
     refuse_overwriting_inputs((), [args.scene], folders=[args.output])
+    rig = _rig(args)
+    exposures = args.exposures or (1.0,)
+    fmt = args.format or ("png16" if rig is None else f"png{rig.bits}")
     model = simulate_captures(args.scene, args.patterns, args.output, camera=args.camera,
                               noise=args.noise, black=args.black, gamma=args.gamma,
-                              fmt=args.format, seed=args.seed, progress=_progress(args))
+                              fmt=fmt, seed=args.seed, progress=_progress(args), rig=rig,
+                              exposures=exposures)
     count = len(read_manifest(args.patterns).patterns)
-    print(f"{count} captures of {args.scene} by a {model.camera[0]}x{model.camera[1]} camera "
-          f"(exposure {model.exposure:.3g}, noise {_noise_text(model.noise)}, black "
-          f"{model.black:g}, "
-          f"gamma {model.gamma:g})")
+    if rig is None:
+        print(f"{count} captures of {args.scene} by a {model.camera[0]}x{model.camera[1]} "
+              f"camera (exposure {model.exposure:.3g}, noise {_noise_text(model.noise)}, "
+              f"black {model.black:g}, gamma {model.gamma:g})")
+    else:
+        from ..acquisition.brackets import seconds_text
+
+        r = rig
+        shots = (f"{count} captures" if len(exposures) == 1 else
+                 f"{count} brackets of {len(exposures)} exposures "
+                 f"({', '.join(seconds_text(t) for t in exposures)})")
+        print(f"{shots} of {args.scene} on a nonlinear rig: projector gamma "
+              f"{_noise_text(r.projector_gamma)}, black {_noise_text(r.projector_black)}, "
+              f"shoulder {_noise_text(r.projector_shoulder)}; a {model.camera[0]}x"
+              f"{model.camera[1]} {r.bits}-bit camera, response {r.camera.describe()}, "
+              f"full well {r.full_well_electrons:g} e-, read noise {r.read_noise:g}")
     print(f"-> {args.output}")
     return 0
+
+
+def _rig(args):
+    """The nonlinear rig the options describe, None when none is given."""
+    names = ("projector_gamma", "projector_black", "projector_shoulder", "camera_response",
+             "bits", "full_well", "read_noise", "exposures")
+    if all(getattr(args, name) is None for name in names):
+        return None
+    from ..calibration import NonlinearRig, parse_camera_response
+
+    given = {key: getattr(args, name) for key, name in (
+        ("projector_gamma", "projector_gamma"), ("projector_black", "projector_black"),
+        ("projector_shoulder", "projector_shoulder"), ("bits", "bits"),
+        ("full_well_electrons", "full_well"), ("read_noise", "read_noise"))
+        if getattr(args, name) is not None}
+    if args.camera_response is not None:  # a bad spelling: one CalibrationError line
+        given["camera"] = parse_camera_response(args.camera_response)
+    return NonlinearRig(**given, seed=args.seed)
