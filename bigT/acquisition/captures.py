@@ -32,9 +32,9 @@ from .manifest import Manifest, Pattern
 
 #: ``--camera-response`` spellings that recover the response from the brackets.
 RECOVER = "recover"
-#: Side of the pixel grid each pattern's capture gives a response recovery (OpenCV's
-#: Debevec samples 70 pixels; Robertson uses all: a subsample keeps it quick).
-RECOVERY_SIDE = 96
+#: Side of the square of ranked pixels a response recovery fits (:func:`recovery_samples`;
+#: Robertson uses them all: a subsample keeps it quick).
+RECOVERY_SIDE = 64
 
 
 @dataclass(frozen=True)
@@ -207,9 +207,7 @@ class Captures:
 
     def _recover(self, spec: str) -> CameraResponse:
         """The response recovered (OpenCV) from the brackets of the white and ramp
-        patterns: each exposure's captures of them, subsampled to about
-        :data:`RECOVERY_SIDE` squared pixels each, side by side as one image, so the
-        fit sees every radiance the ramp spans."""
+        patterns (:func:`recovery_samples`)."""
         from ..calibration import recover_camera_response
 
         method = spec.partition(":")[2] or "debevec"
@@ -218,16 +216,12 @@ class Captures:
                 "{option} recover needs exposure brackets (pattern@seconds.png); these "
                 "captures have one exposure each", self.folder, option="camera_response")
         patterns = [self.manifest.single("white")] + self.manifest.ramp()
-        frames = []
-        for k in range(len(self.exposures)):
-            parts = []
-            for p in patterns:
-                raw = self._stored(self.brackets[p.stem].paths[k])
-                step = max(1, max(raw.shape[:2]) // RECOVERY_SIDE)
-                parts.append(raw[::step, ::step])
-            frames.append(np.concatenate(parts, axis=1))
+        stacks = [np.stack([self._stored(path) for path in self.brackets[p.stem].paths])
+                  for p in patterns]
+        frames = recovery_samples(stacks)
         try:
-            return recover_camera_response(frames, self.exposures, method, pattern="white")
+            return recover_camera_response(list(frames), self.exposures, method,
+                                           pattern="white")
         except CalibrationError as exc:
             raise AcquisitionError(f"cannot recover the camera response: {exc.template}",
                                    self.folder, option="camera_response") from None
@@ -405,6 +399,38 @@ class Captures:
         shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
         return (f"{sum(self.saturated.values())} saturated pixels in {len(names)} captures "
                 f"({shown}): T is underestimated there; lower the exposure and capture again")
+
+
+def recovery_samples(stacks: list[np.ndarray], side: int = RECOVERY_SIDE) -> np.ndarray:
+    """The pixels a response recovery fits, as a small bracket of its own.
+
+    OpenCV's Debevec fit samples 70 pixels on a grid of the image it is given: given
+    the captures themselves, most samples land where nothing is lit (code 0 in every
+    exposure) or where everything saturates, and the curve comes out wrong. Here the
+    pixels of the white and ramp brackets that are neither black in the longest
+    exposure nor saturated in the shortest are ranked by their light (the sum of their
+    codes over the bracket) and ``side`` x ``side`` of them taken evenly through the
+    ranks, darkest first: every sample informs the fit, and the samples span every
+    radiance the ramp holds.
+
+    Parameters
+    ----------
+    stacks : list of ndarray, each (K, H, W) or (K, H, W, 3): a pattern's K exposures
+
+    Returns
+    -------
+    ndarray, shape (K, side, side) or (K, side, side, 3), the captures' type
+    """
+    K = stacks[0].shape[0]
+    pixels = np.concatenate([s.reshape(K, -1, *s.shape[3:]) for s in stacks], axis=1)
+    top = np.iinfo(pixels.dtype).max if pixels.dtype.kind in "ui" else 1.0
+    grey = pixels.reshape(K, pixels.shape[1], -1).astype(np.float64).mean(axis=2)
+    informative = (grey[-1] > 0) & (grey[0] < top)
+    if informative.any():
+        pixels, grey = pixels[:, informative], grey[:, informative]
+    ranked = np.argsort(grey.sum(axis=0), kind="stable")
+    chosen = ranked[np.linspace(0, len(ranked) - 1, side * side).round().astype(int)]
+    return pixels[:, chosen].reshape(K, side, side, *pixels.shape[2:])
 
 
 def _match_files(manifest: Manifest, folder: Path
