@@ -48,13 +48,19 @@ from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
                        read_store_attrs, temporary_sibling)
 from ..storage import open as open_store
+from ..calibration import CameraResponse, ProjectorResponse, parse_camera_response
+from .brackets import seconds_text
 from .captures import Captures, grey_view
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
 from .manifest import Manifest, patterns_folder, read_manifest
 from .mixing import MIXING_KEY, Mixing, read_mixing
+from .ramp import PROJECTOR_RESPONSE_FILE, PROJECTOR_RESPONSE_KEY, fit_ramp, save_response
 
 ACQUISITION_KEY = "acquisition"
 CORRESPONDENCE = "correspondence.npy"
+#: The camera response a build applied, kept beside the correspondence (JSON,
+#: ``CameraResponse.save``): a recovered one is measured once.
+CAMERA_RESPONSE = "camera_response.json"
 
 
 class AcquisitionWarning(UserWarning):
@@ -95,15 +101,26 @@ class BuildSettings:
     capture_files: str
     channels: int = 1
     channel_noise: tuple[float, ...] | None = None
+    camera_response: str | None = None
+    exposures: tuple[float, ...] | None = None
+    ramp_levels: int = 0
 
     def to_dict(self) -> dict:
-        """JSON-serialisable; a grey build's keys are those it always had."""
+        """JSON-serialisable; a build of single exposures, no ``--camera-response`` and
+        no ramp (grey) has the keys it always had."""
         d = dict(self.__dict__)
         d["projector"], d["camera"] = list(self.projector), list(self.camera)
         if self.channels == 1:
             del d["channels"], d["channel_noise"]
         else:
             d["channel_noise"] = list(self.channel_noise)
+        for key in ("camera_response", "exposures"):
+            if d[key] is None:
+                del d[key]
+        if self.exposures is not None:
+            d["exposures"] = list(self.exposures)
+        if not self.ramp_levels:
+            del d["ramp_levels"]
         return d
 
 
@@ -124,6 +141,9 @@ class BuildReport:
     black_level : float, mean of the black level subtracted (the black capture's or
         ``--black``'s)
     mixing : Mixing or None, the global colour mixing recorded in T's metadata
+    projector_response : ProjectorResponse or None, fitted from the ramp and kept in
+        the store (``projector_response.json``); None without a ramp
+    camera : str, the camera response applied, in words
     """
 
     path: Path
@@ -136,6 +156,8 @@ class BuildReport:
     seconds: float
     black_level: float = 0.0
     mixing: Mixing | None = None
+    projector_response: ProjectorResponse | None = None
+    camera: str = "linear"
 
     @property
     def superpixels(self) -> int:
@@ -162,6 +184,22 @@ class BuildReport:
             f"{self.passes} pass(es) over the captures, {self.seconds:.1f} s"
             + (f"; {self.saturated_pixels} saturated pixels" if self.saturated_pixels else ""),
         ]
+        if s.exposures is not None or s.camera_response is not None:
+            lines.append(f"camera response: {self.camera}"
+                         + ("" if s.exposures is None else
+                            f"; brackets of {len(s.exposures)} exposures ("
+                            + ", ".join(seconds_text(t) for t in s.exposures)
+                            + ") merged into linear radiance"))
+        r = self.projector_response
+        if r is None:
+            lines.append("projector response: none measured (no ramp in the patterns): "
+                         "the projector is taken as linear")
+        else:
+            blacks = ", ".join(f"{c} {b:.3g}" for c, b in zip(r.channels, r.black))
+            lines.append(f"projector response: fitted from a ramp of {len(r.levels)} levels"
+                         f"{' per primary' if r.n_channels == 3 else ''} (black {blacks}; "
+                         f"light above black), kept in the store as "
+                         f"{PROJECTOR_RESPONSE_FILE}")
         if self.mixing is not None:
             lines.append(f"global colour mixing recorded in T's metadata ({MIXING_KEY}): "
                          f"{self.mixing.describe()}")
@@ -172,7 +210,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
                     gamma: float = 1.0, tile_size: int | None = None,
                     pixel_order: str = "tile-major", memory_bytes: int | None = None,
                     overwrite: bool = False, progress: bool | None = None,
-                    mixing=None) -> BuildReport:
+                    mixing=None, camera_response=None) -> BuildReport:
     """Assemble T from a pattern folder and its captures into a bigT store.
 
     Parameters
@@ -195,6 +233,10 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         :class:`Mixing`, optional
         The rig's global colour mixing (colour pattern sets only), recorded in T's
         metadata as ``mixing`` for the engine's global path.
+    camera_response : CameraResponse or str, optional
+        The camera's response (``linear``, ``srgb``, ``gamma:G``, a table file,
+        ``recover`` or ``recover:robertson``; :class:`Captures`); default ``gamma``'s.
+        Applied to single exposures and to each exposure of a bracket before the merge.
 
     Returns
     -------
@@ -223,7 +265,8 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         raise AcquisitionError(
             "the captures folder is the pattern folder: put the camera's captures in a "
             "folder of their own", Path(captures))
-    cap = Captures(manifest, Path(captures), gamma=gamma, black_file=black and Path(black))
+    cap = Captures(manifest, Path(captures), gamma=gamma, black_file=black and Path(black),
+                   camera_response=camera_response)
     white = grey_view(cap.signal(manifest.single("white")))  # geometry: the grey view
     noise = cap.pixel_noise()
     if white.max() <= 2 * cap.pixel_floor() + 1e-12:  # no pixel clearly above the noise
@@ -237,6 +280,8 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     if not means.seen.any():
         raise AcquisitionError("no camera pixel is lit directly by any super-pixel: is the "
                                "camera looking at the projected area?", Path(captures))
+    # fitted before the store is touched: a bad ramp leaves what exists as it was
+    response = fit_ramp(manifest, cap, corr) if manifest.ramp_levels else None
     if floor is None:
         # row 3 p + i (p + 0 for grey) has camera channel i's noise
         row_noise = np.tile(cap.channel_noise(), order.pixels)
@@ -250,7 +295,9 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         manifest.projector, manifest.superpixel, cap.shape, float(gamma),
         str(Path(black).resolve()) if black else None, float(floors[means.seen].max()),
         noise, corr.source, float(floors[means.seen].min()), cap.fingerprint(),
-        manifest.channels, channel_noise)
+        manifest.channels, channel_noise,
+        _camera_spec(camera_response), cap.exposures,
+        manifest.ramp_levels)
     target = Path(output)
     # with overwrite, an existing store is replaced only by a complete one: a bad capture
     # first read while filling (Gray code reads T's captures only then) or an interrupt
@@ -261,8 +308,12 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     where = temporary_sibling(target) if aside else target
     try:
         writer = _open_writer(where, order, settings, mixing, tile_size,
-                              overwrite and not aside)
+                              overwrite and not aside, response is not None)
         _save_correspondence(writer.path, corr)
+        if response is not None:  # in the store before it is complete
+            save_response(writer.path, response)
+        if camera_response is not None:  # what check_white and a reader undo again
+            cap.response.save(writer.path / ACQUISITION_KEY / CAMERA_RESPONSE)
         passes = _fill(writer, manifest, cap, means, floors,
                        memory_bytes or config.ACQUIRE_MEMORY_BYTES, progress)
         T = writer.finalize()
@@ -278,7 +329,7 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
         warnings.warn(warning, AcquisitionWarning, stacklevel=2)
     return BuildReport(T.path, settings, order.n, means.seen_superpixels, int(T.nnz), passes,
                        sum(cap.saturated.values()), time.perf_counter() - t0,
-                       float(cap.black.mean()), mixing)
+                       float(cap.black.mean()), mixing, response, cap.response.describe())
 
 
 def _checked_mixing(mixing, manifest: Manifest) -> Mixing | None:
@@ -325,12 +376,16 @@ def _correspondence(manifest, cap, white, bar) -> Correspondence:
 
 
 def _open_writer(path: Path, order: PixelOrder, settings: BuildSettings,
-                 mixing: Mixing | None, tile_size, overwrite: bool) -> BlockCSRWriter:
+                 mixing: Mixing | None, tile_size, overwrite: bool,
+                 with_response: bool = False) -> BlockCSRWriter:
     """A new store, or the interrupted build of the same settings (and mixing) resumed
-    (refused, naming the settings that differ, when they are not the same)."""
+    (refused, naming the settings that differ, when they are not the same).
+    ``with_response``: the store keeps a projector response, named in its metadata."""
     meta = {ACQUISITION_KEY: settings.to_dict()}
     if mixing is not None:
         meta[MIXING_KEY] = mixing.to_metadata()
+    if with_response:
+        meta[PROJECTOR_RESPONSE_KEY] = PROJECTOR_RESPONSE_FILE
     shape = (order.n, order.n)
     if path.exists() and not overwrite:
         try:
@@ -369,6 +424,24 @@ def _save_correspondence(store: Path, corr: Correspondence) -> None:
     with atomic_output(folder / CORRESPONDENCE, "the correspondence map") as tmp:
         with open(tmp, "wb") as f:
             np.save(f, corr.labels.astype(np.int32))
+
+
+def _camera_spec(spec) -> str | None:
+    """``--camera-response`` as recorded in the settings: a file by its absolute path,
+    a CameraResponse by its description, None when not given."""
+    if spec is None:
+        return None
+    if isinstance(spec, CameraResponse):
+        return spec.describe()
+    text = str(spec).strip()
+    return str(Path(text).resolve()) if text.lower().endswith((".npy", ".json")) else text
+
+
+def load_camera_response(store) -> CameraResponse | None:
+    """The camera response a build applied (``--camera-response``), kept in the store as
+    ``acquisition/camera_response.json``; None when the build had none (``gamma``)."""
+    path = Path(store) / ACQUISITION_KEY / CAMERA_RESPONSE
+    return parse_camera_response(str(path)) if path.is_file() else None
 
 
 def load_correspondence(store) -> np.ndarray:

@@ -17,6 +17,12 @@ Kinds of pattern
 ``row-stripe``, ``col-stripe``
     Stripe scanning (Ding et al. 2009): one band of super-pixel rows (``band`` = the
     grid row) or columns (``band`` = the grid column) lit.
+``ramp``
+    A uniform frame at ``level`` (in [0, 1], an exact 8-bit code: k / 255), the ramp
+    the projector's response is fitted from (docs/CALIBRATION.md "Capturing");
+    ``--ramp-levels`` levels from 0 to 1, in a colour set once per primary (``primary``
+    lit at ``level``, the other two at 0: ``ramp_04_G.png``). A manifest records the
+    count as ``ramp_levels`` (absent: no ramp, the sets bigT wrote before).
 ``graycode``
     Structured light: the super-pixels whose ``axis`` ("col" or "row") coordinate has a
     Gray code with bit ``bit`` set (``bit`` 0 is the most significant, as OpenCV's
@@ -51,7 +57,7 @@ METHODS = ("brute-force", "stripes", "graycode")
 #: (8.3 M, days of capturing) fits; a manifest edited to a far larger projector is
 #: refused at once instead of being rebuilt pattern by pattern to compare.
 MAX_PATTERNS = 1 << 23
-KINDS = ("black", "white", "superpixel", "row-stripe", "col-stripe", "graycode")
+KINDS = ("black", "white", "ramp", "superpixel", "row-stripe", "col-stripe", "graycode")
 AXES = ("col", "row")
 #: The projector primaries of a colour pattern set, in T's column order (3 q + j).
 PRIMARIES = ("R", "G", "B")
@@ -59,6 +65,11 @@ PRIMARIES = ("R", "G", "B")
 TRANSPORT_KINDS = ("superpixel", "row-stripe", "col-stripe")
 #: Channels a pattern set may have: grey, or the three primaries.
 CHANNEL_COUNTS = (1, 3)
+#: Ramp levels a pattern set may have: none, or MIN_RAMP_LEVELS (17: 1/16 steps, so
+#: the fitted response's interpolation error stays near 3e-4 of full scale,
+#: docs/CALIBRATION.md) to 256 (every 8-bit code: the patterns are 8-bit PNGs).
+MIN_RAMP_LEVELS, MAX_RAMP_LEVELS = 17, 256
+DEFAULT_RAMP_LEVELS = MIN_RAMP_LEVELS
 
 
 @dataclass(frozen=True)
@@ -77,7 +88,8 @@ class Pattern:
     bit : int or None, the Gray-code bit, 0 = most significant
     inverted : bool or None, a ``graycode`` pattern's complement
     primary : {"R", "G", "B"} or None, the one primary lit (a colour set's
-        ``superpixel`` and stripe patterns); None: all lit (white) or a grey set
+        ``superpixel``, stripe and ramp patterns); None: all lit (white) or a grey set
+    level : float or None, a ``ramp`` pattern's uniform value in [0, 1] (k / 255)
     """
 
     file: str
@@ -88,6 +100,7 @@ class Pattern:
     bit: int | None = None
     inverted: bool | None = None
     primary: str | None = None
+    level: float | None = None
 
     @property
     def stem(self) -> str:
@@ -114,6 +127,7 @@ class Manifest:
     graycode : bool, Gray-code patterns included (the correspondence by decoding)
     patterns : tuple of Pattern
     channels : {1, 3}, 3 for a colour set (each transport pattern once per primary)
+    ramp_levels : int, levels of the projector-response ramp (0: none)
     """
 
     projector: tuple[int, int]
@@ -122,6 +136,7 @@ class Manifest:
     graycode: bool
     patterns: tuple[Pattern, ...]
     channels: int = 1
+    ramp_levels: int = 0
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -145,6 +160,10 @@ class Manifest:
         """The one pattern of ``kind`` (``black`` or ``white``)."""
         return self.of_kind(kind)[0]
 
+    def ramp(self) -> list[Pattern]:
+        """The ``ramp`` patterns, by primary (grey: one run) then rising level."""
+        return self.of_kind("ramp")
+
     def graycode_bits(self, axis: str) -> int:
         """Bits of the Gray code of a grid coordinate along ``axis``."""
         size = self.grid[1] if axis == "col" else self.grid[0]
@@ -152,9 +171,10 @@ class Manifest:
 
     def to_dict(self) -> dict:
         colour = {} if self.channels == 1 else {"channels": self.channels}
+        ramp = {"ramp_levels": self.ramp_levels} if self.ramp_levels else {}
         return {"format": FORMAT, "version": VERSION, "projector": list(self.projector),
                 "superpixel": self.superpixel, "grid": list(self.grid),
-                "method": self.method, "graycode": self.graycode, **colour,
+                "method": self.method, "graycode": self.graycode, **colour, **ramp,
                 "patterns": [p.to_dict() for p in self.patterns]}
 
     @classmethod
@@ -172,6 +192,7 @@ class Manifest:
             superpixel = _count(d["superpixel"], "superpixel")
             method, graycode = d["method"], d["graycode"]
             channels = d.get("channels", 1)
+            ramp_levels = d.get("ramp_levels", 0)
             patterns = tuple(_pattern(p) for p in d["patterns"])
         except (KeyError, TypeError, ValueError) as exc:
             raise bad(str(exc) if not isinstance(exc, KeyError) else f"no {exc}") from None
@@ -179,12 +200,16 @@ class Manifest:
             raise bad("method, graycode or projector has a wrong value")
         if isinstance(channels, bool) or channels not in CHANNEL_COUNTS:
             raise bad(f"channels {channels!r:.40} is not 1 (grey) or 3 (R, G, B)")
-        manifest = cls(projector, superpixel, method, graycode, patterns, channels)
+        if not _valid_ramp_levels(ramp_levels):
+            raise bad(f"ramp_levels {ramp_levels!r:.40} is not 0 or {MIN_RAMP_LEVELS} to "
+                      f"{MAX_RAMP_LEVELS}")
+        manifest = cls(projector, superpixel, method, graycode, patterns, channels,
+                       ramp_levels)
         try:
             check_geometry(projector, superpixel)
             # counted first: a huge projector is refused at once, not listed to compare
             count = checked_pattern_count(method, projector, superpixel, graycode=graycode,
-                                          channels=channels)
+                                          channels=channels, ramp_levels=ramp_levels)
         except AcquisitionError as exc:  # super-pixels not dividing it, too many patterns
             raise AcquisitionError(f"not a valid bigT pattern manifest: {exc.template}", path,
                                    option=exc.option) from None
@@ -192,7 +217,7 @@ class Manifest:
             raise bad(f"the pattern list is not the one bigT writes for its method and size "
                       f"({len(patterns)} patterns listed, {count} expected)")
         expected = make_manifest(method, projector, superpixel, graycode=graycode,
-                                 channels=channels)
+                                 channels=channels, ramp_levels=ramp_levels)
         if manifest != expected:
             raise bad("the pattern list is not the one bigT writes for its method and size")
         # the canonical one: equal is not identical (an index of 5.0 equals 5 but is no
@@ -212,6 +237,18 @@ def _pattern(d) -> Pattern:
     return Pattern(**{k: d.get(k) for k in Pattern.__dataclass_fields__})
 
 
+def _valid_ramp_levels(levels) -> bool:
+    return (isinstance(levels, int) and not isinstance(levels, bool)
+            and (levels == 0 or MIN_RAMP_LEVELS <= levels <= MAX_RAMP_LEVELS))
+
+
+def ramp_values(levels: int) -> list[float]:
+    """The ramp's ``levels`` values, rising from 0 to 1, each an exact 8-bit code k / 255
+    (k = round(i 255 / (levels - 1))): what an 8-bit pattern file holds is the level
+    the manifest records."""
+    return [round(i * 255 / (levels - 1)) / 255 for i in range(levels)]
+
+
 def graycode_bits(size: int) -> int:
     """Bits needed to number ``size`` positions (at least 1)."""
     return max(1, math.ceil(math.log2(size)))
@@ -227,20 +264,22 @@ def check_geometry(projector, superpixel: int) -> None:
 
 
 def pattern_count(method: str, projector, superpixel: int = 1, *,
-                  graycode: bool | None = None, channels: int = 1) -> int:
+                  graycode: bool | None = None, channels: int = 1, ramp_levels: int = 0) -> int:
     """How many patterns :func:`make_manifest` lists, without listing them."""
     gh, gw = int(projector[0]) // superpixel, int(projector[1]) // superpixel
-    count = 2 + channels * {"brute-force": gh * gw, "stripes": gh + gw}.get(method, 0)
+    count = 2 + channels * ({"brute-force": gh * gw, "stripes": gh + gw}.get(method, 0)
+                            + ramp_levels)
     if method == "graycode" or graycode:
         count += 2 * (graycode_bits(gw) + graycode_bits(gh))
     return count
 
 
 def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
-                          graycode: bool | None = None, channels: int = 1) -> int:
+                          graycode: bool | None = None, channels: int = 1,
+                          ramp_levels: int = 0) -> int:
     """:func:`pattern_count`, refused (AcquisitionError) above :data:`MAX_PATTERNS`."""
     count = pattern_count(method, projector, superpixel, graycode=graycode,
-                          channels=channels)
+                          channels=channels, ramp_levels=ramp_levels)
     if count > MAX_PATTERNS:
         raise AcquisitionError(
             f"{method} on a {projector[0]}x{projector[1]} projector in {superpixel}x"
@@ -251,7 +290,8 @@ def checked_pattern_count(method: str, projector, superpixel: int = 1, *,
 
 
 def make_manifest(method: str, projector, superpixel: int = 1, *,
-                  graycode: bool | None = None, channels: int = 1) -> Manifest:
+                  graycode: bool | None = None, channels: int = 1,
+                  ramp_levels: int = 0) -> Manifest:
     """The patterns bigT projects for ``method``.
 
     Parameters
@@ -283,9 +323,14 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
         raise AcquisitionError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
     if isinstance(channels, bool) or channels not in CHANNEL_COUNTS:
         raise AcquisitionError(f"channels must be 1 (grey) or 3 (R, G, B), got {channels!r:.40}")
+    if not _valid_ramp_levels(ramp_levels):
+        raise AcquisitionError(f"{{option}} must be 0 (no ramp) or {MIN_RAMP_LEVELS} to "
+                               f"{MAX_RAMP_LEVELS}, got {ramp_levels!r:.40}",
+                               option="ramp_levels")
     projector = (int(projector[0]), int(projector[1]))
     check_geometry(projector, superpixel)
-    checked_pattern_count(method, projector, superpixel, graycode=graycode, channels=channels)
+    checked_pattern_count(method, projector, superpixel, graycode=graycode, channels=channels,
+                          ramp_levels=ramp_levels)
     graycode = method == "graycode" or bool(graycode)
     gh, gw = projector[0] // superpixel, projector[1] // superpixel
     primaries = (None,) if channels == 1 else PRIMARIES
@@ -295,6 +340,12 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
                 for j in primaries]
 
     patterns = [Pattern("black.png", "black"), Pattern("white.png", "white")]
+    if ramp_levels:
+        width = len(str(ramp_levels - 1))
+        for j in primaries:
+            for i, level in enumerate(ramp_values(ramp_levels)):
+                patterns.append(Pattern(f"ramp_{i:0{width}d}{'' if j is None else '_' + j}.png",
+                                        "ramp", primary=j, level=level))
     if method == "brute-force":
         width = len(str(gh * gw - 1))
         for k in range(gh * gw):
@@ -311,7 +362,8 @@ def make_manifest(method: str, projector, superpixel: int = 1, *,
                     name = f"gray_{axis}_{bit:02d}{'_inv' if inverted else ''}.png"
                     patterns.append(Pattern(name, "graycode", axis=axis, bit=bit,
                                             inverted=inverted))
-    return Manifest(projector, int(superpixel), method, graycode, tuple(patterns), channels)
+    return Manifest(projector, int(superpixel), method, graycode, tuple(patterns), channels,
+                    int(ramp_levels))
 
 
 def write_manifest(folder: Path, manifest: Manifest) -> Path:

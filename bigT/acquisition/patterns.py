@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..images import write_image
 from ..progress import progress_bar
-from . import rgb_files
 from .manifest import Manifest, Pattern, write_manifest
 
 #: A pixel is in shadow unless white - black exceeds this many standard deviations of
@@ -64,7 +64,7 @@ def lit_superpixels(manifest: Manifest, pattern: Pattern) -> np.ndarray:
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
     if pattern.kind == "black":
         return np.zeros((gh, gw), dtype=bool)
-    if pattern.kind == "white":
+    if pattern.kind in ("white", "ramp"):  # a ramp lights all, at its level
         return np.ones((gh, gw), dtype=bool)
     if pattern.kind == "superpixel":
         return (rows * gw + cols) == pattern.index
@@ -83,13 +83,17 @@ def pattern_image(manifest: Manifest, pattern: Pattern) -> np.ndarray:
 
     Returns
     -------
-    ndarray, float64 in {0, 1}: shape manifest.projector (grey set), or
+    ndarray, float64 in {0, 1} (a ramp pattern: its level): shape manifest.projector
+        (grey set), or
         (*manifest.projector, 3) (colour set: lit in the pattern's primary only, or in all
         three when it has none)
     """
     s = manifest.superpixel
-    lit = lit_superpixels(manifest, pattern)
-    image = np.repeat(np.repeat(lit, s, axis=0), s, axis=1).astype(np.float64)
+    if pattern.kind == "ramp":  # uniform at its level
+        image = np.full(manifest.projector, float(pattern.level))
+    else:
+        lit = lit_superpixels(manifest, pattern)
+        image = np.repeat(np.repeat(lit, s, axis=0), s, axis=1).astype(np.float64)
     if manifest.channels == 1:
         return image
     primaries = np.ones(3) if pattern.primary is None else np.eye(3)[pattern.primary_index]
@@ -108,7 +112,7 @@ def write_patterns(folder, manifest: Manifest, *, progress: bool | None = None) 
     folder.mkdir(parents=True, exist_ok=True)
     for pattern in progress_bar(manifest.patterns, progress=progress, desc="patterns",
                                 unit="image"):
-        rgb_files.write(folder / pattern.file, pattern_image(manifest, pattern), bits=8)
+        write_image(folder / pattern.file, pattern_image(manifest, pattern), bits=8)
     return write_manifest(folder, manifest)
 
 

@@ -20,6 +20,20 @@ camera here adds no mixing of its own: gain and exposure are the same for its ch
 The camera's model is written beside the captures as ``simulation.json`` (a file bigT
 acquire build ignores), so the T a build recovers can be compared with
 ``exposure * diag(mean gain of each group) * T_scene`` (:meth:`CameraModel.expected_scale`).
+
+The nonlinear rig (``rig``, a :class:`bigT.calibration.NonlinearRig`) replaces the
+linear projector and camera: each pattern's values v go through the projector's
+response r(v) (a gamma over a black level, under a soft shoulder: black is r(0) > 0
+everywhere a pattern is dark), the scene's light is captured at each of ``exposures``
+seconds with shot and read noise, clipped at the full well, through the camera's
+response and quantised to its bits (PNG). One exposure writes ``<pattern>.png``, several
+the bracket layout ``<pattern>@<seconds>.png`` (:mod:`.brackets`). The radiance is
+scaled so that the white pattern's brightest pixel fills :data:`PEAK` of the full well
+in the *shortest* exposure; the longer ones saturate the direct light and lift the
+faint interreflection out of the quantisation. A build of these captures recovers
+``expected_scale * T_scene * (1 - b)`` (the black capture, b, subtracted; of a colour
+T, primary j's column scaled by its own 1 - b_j). ``simulation.json`` records the rig
+(``rig``) and the exposures.
 """
 
 from __future__ import annotations
@@ -27,15 +41,17 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from ..atomic import atomic_output
+from ..calibration import NonlinearRig
 from ..errors import AcquisitionError
+from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..storage import PixelOrder
 from ..storage import open as open_store
-from . import rgb_files
 from .correspondence import Correspondence
 from .manifest import Manifest, patterns_folder, read_manifest
 
@@ -125,12 +141,14 @@ class CameraModel:
         return linear
 
 
-def _pattern_vectors(manifest: Manifest, folder: Path, patterns, order: PixelOrder) -> np.ndarray:
-    """The projector images of ``patterns``, averaged over super-pixels, in matrix order:
-    (n, K)."""
+def _pattern_vectors(manifest: Manifest, folder: Path, patterns, order: PixelOrder,
+                     light=None) -> np.ndarray:
+    """The projector's light for ``patterns`` (``light(values)``, the identity for a
+    linear projector), averaged over super-pixels, in matrix order: (n, K)."""
     s = manifest.superpixel
     gh, gw = manifest.grid
-    images = np.stack([_pattern_file(folder / p.file, manifest)
+    light = light or (lambda values: values)
+    images = np.stack([light(_pattern_file(folder / p.file, manifest))
                        .reshape(gh, s, gw, s, -1).mean(axis=(1, 3)) for p in patterns])
     return order.to_matrix(images if manifest.channels > 1 else images[..., 0])
 
@@ -138,7 +156,7 @@ def _pattern_vectors(manifest: Manifest, folder: Path, patterns, order: PixelOrd
 def _pattern_file(path: Path, manifest: Manifest) -> np.ndarray:
     """A pattern image as written: (H, W) grey, (H, W, 3) colour; refused (naming it)
     when it is not the projector's size or the set's channels."""
-    image = rgb_files.to_unit(rgb_files.read_raw(path), path)
+    image = read_image(path)
     channels = 1 if image.ndim == 2 else image.shape[2]
     if image.shape[:2] != tuple(manifest.projector) or channels != manifest.channels:
         raise AcquisitionError(
@@ -150,7 +168,8 @@ def _pattern_file(path: Path, manifest: Manifest) -> np.ndarray:
 
 def simulate_captures(scene_path, patterns, output, *, camera, noise=0.0,
                       black: float = 0.0, gamma: float = 1.0, fmt: str = "png16", seed: int = 0,
-                      progress: bool | None = None) -> CameraModel:
+                      progress: bool | None = None, rig: NonlinearRig | None = None,
+                      exposures: Sequence[float] = (1.0,)) -> CameraModel:
     """Write the captures of every pattern of ``patterns`` for the scene at ``scene_path``.
 
     Parameters
@@ -164,8 +183,13 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise=0.0,
     camera : (int, int), the camera's (Hc, Wc)
     noise : float, or three (R, G, B) for colour: the camera's noise std
     black, gamma : the camera's black level and gamma
-    fmt : one of :data:`FORMATS`
+    fmt : one of :data:`FORMATS` (with a rig: ``png8`` or ``png16``, its bits)
     seed : of the noise
+    rig : NonlinearRig, optional
+        A nonlinear projector and camera (module docstring) instead of the linear ones;
+        ``noise``, ``black`` and ``gamma`` are the linear camera's and must stay 0, 0, 1.
+    exposures : sequence of float, seconds, rising
+        The rig's exposure bracket (one: single captures ``<pattern>.png``).
 
     Returns
     -------
@@ -189,28 +213,80 @@ def simulate_captures(scene_path, patterns, output, *, camera, noise=0.0,
     if fmt not in FORMATS:
         raise AcquisitionError(f"unknown capture format {fmt!r} (one of {', '.join(FORMATS)})")
     noise = _checked_noise(noise, order.channels)
+    exposures = _checked_rig(rig, exposures, fmt, noise, black, gamma)
     model = CameraModel(tuple(camera), manifest.grid, noise=noise, black=black, gamma=gamma)
     white = T.matmul(np.ones(order.n), order="matrix")
     sp = model.superpixel_of()
     brightest = order.to_images(white).reshape(order.pixels, -1).max(axis=1)  # of R, G, B
     peak = (model.gain() * np.where(sp >= 0, brightest[np.maximum(sp, 0)], 0)).max()
-    model = CameraModel(model.camera, model.grid, PEAK / peak, noise, black, gamma)
+    # with a rig, the white pattern's brightest pixel fills PEAK of the full well in
+    # the shortest exposure (its light at full scale is 1, r(1) = 1)
+    model = CameraModel(model.camera, model.grid, PEAK / peak / exposures[0], noise, black,
+                        gamma)
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     folder, suffix = Path(patterns), FORMATS[fmt]
+    bits = 8 if fmt == "png8" else 16
+    index = {p.stem: k for k, p in enumerate(manifest.patterns)}
     batches = [manifest.patterns[k:k + BATCH] for k in range(0, len(manifest.patterns), BATCH)]
     for batch in progress_bar(batches, progress=progress, desc="captures", unit="batch"):
-        light = order.to_images(T.matmul(_pattern_vectors(manifest, folder, batch, order),
-                                          order="matrix"))
+        vectors = _pattern_vectors(manifest, folder, batch, order,
+                                   None if rig is None else rig.project)
+        light = order.to_images(T.matmul(vectors, order="matrix"))
         light = light.reshape(len(batch), *order.frame_shape)
         for p, image in zip(batch, model.render(light, rng)):
-            rgb_files.write(out / (p.stem + suffix), image, bits=8 if fmt == "png8" else 16)
+            if rig is None:
+                write_image(out / (p.stem + suffix), image, bits=bits)
+                continue
+            for t in exposures:  # image: the radiance, per second
+                name = p.stem + ("" if len(exposures) == 1 else f"@{t:g}") + suffix
+                write_image(out / name, rig.capture(image, t, frame=index[p.stem]), bits=bits)
+    record = {"scene": str(Path(scene_path).resolve()), "format": fmt, "seed": seed,
+              **asdict(model)}
+    if rig is not None:
+        record.update(rig=rig_record(rig), exposures=list(exposures))
     with atomic_output(out / SIMULATION, "the simulation's camera model") as tmp:
         with open(tmp, "w") as f:
-            json.dump({"scene": str(Path(scene_path).resolve()), "format": fmt, "seed": seed,
-                       **asdict(model)}, f, indent=1)
+            json.dump(record, f, indent=1)
     return model
+
+
+def rig_record(rig: NonlinearRig) -> dict:
+    """The rig's parameters as ``simulation.json`` records them (``camera``: its
+    response, as ``--camera-response`` spells it)."""
+    camera = rig.camera
+    spelt = {"linear": "linear", "srgb": "srgb"}.get(
+        camera.kind, f"gamma:{camera.gamma:g}" if camera.kind == "gamma" else camera.describe())
+    return {"projector_gamma": rig.projector_gamma, "projector_black": rig.projector_black,
+            "projector_shoulder": rig.projector_shoulder, "camera_response": spelt,
+            "full_well_electrons": rig.full_well_electrons, "read_noise": rig.read_noise,
+            "bits": rig.bits}
+
+
+def _checked_rig(rig: NonlinearRig | None, exposures, fmt: str, noise, black: float,
+                 gamma: float) -> tuple[float, ...]:
+    """The exposures, rising and positive; with a rig, the linear camera's settings at
+    their defaults and the format the rig's PNG."""
+    times = tuple(float(t) for t in exposures)
+    if not times or not all(np.isfinite(t) and t > 0 for t in times) or any(
+            b <= a for a, b in zip(times, times[1:])):
+        raise AcquisitionError(f"exposures must be positive seconds, rising strictly, got "
+                               f"{list(times)!r:.80}", option="exposures")
+    if rig is None:
+        if len(times) > 1:
+            raise AcquisitionError("exposure brackets ({option}) are the nonlinear rig's: give "
+                                   "its camera too (--camera-response, --bits ...)",
+                                   option="exposures")
+        return times
+    if np.any(np.asarray(noise)) or black or gamma != 1.0:
+        raise AcquisitionError("--noise, --black and --gamma are the linear camera's; the "
+                               "nonlinear rig's noise is its full well and read noise, its "
+                               "curve {option}", option="camera_response")
+    if fmt != f"png{rig.bits}":
+        raise AcquisitionError(f"the rig's {rig.bits}-bit camera writes png{rig.bits} "
+                               f"captures, not {fmt}", option="format")
+    return times
 
 
 def _check_channels(store_channels: int, pattern_channels: int, path: Path) -> None:

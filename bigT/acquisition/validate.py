@@ -17,7 +17,7 @@ import numpy as np
 from ..figures import pyplot, save_figure
 from ..scenes.preview import distinct_rows
 from ..storage import open as open_store
-from .build import ACQUISITION_KEY, load_correspondence
+from .build import ACQUISITION_KEY, load_camera_response, load_correspondence
 from .captures import Captures, grey_view
 from .correspondence import Correspondence
 from .manifest import read_manifest
@@ -48,7 +48,8 @@ def check_white(store) -> WhiteCheck:
     s = T.metadata[ACQUISITION_KEY]
     manifest = read_manifest(s["patterns"])
     cap = Captures(manifest, Path(s["captures"]), gamma=s["gamma"],
-                   black_file=Path(s["black"]) if s["black"] else None)
+                   black_file=Path(s["black"]) if s["black"] else None,
+                   camera_response=load_camera_response(store))
     corr = Correspondence(load_correspondence(store).astype(np.int64), manifest.grid,
                           s["correspondence"])
     order = T.pixel_order

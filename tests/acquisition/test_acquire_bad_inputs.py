@@ -431,7 +431,8 @@ def test_a_huge_projector_is_refused_at_once(work, capsys, step):
                           capture_output=True, text=True, timeout=120, preexec_fn=limit)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
-    assert "needs 10000000002 patterns" in lines[0] and "--superpixel" in lines[0]
+    # 10^10 super-pixels, black and white, and the default ramp of 17 levels
+    assert "needs 10000000019 patterns" in lines[0] and "--superpixel" in lines[0]
     if step == "build":
         assert lines[0].startswith(f"bigT acquire build: error: {manifest}: not a valid")
     assert _fingerprint(work) == before
@@ -448,7 +449,8 @@ def test_an_edited_pattern_entry(work, capsys):
 
 def test_the_written_manifest_reads_back(work):
     m = read_manifest(work / "bf-patterns")
-    assert m.projector == (24, 32) and m.grid == (12, 16) and len(m.patterns) == 194
+    # 194 patterns of brute force and Gray code, and the default ramp of 17 levels
+    assert m.projector == (24, 32) and m.grid == (12, 16) and len(m.patterns) == 194 + 17
 
 
 # --- 8. Gray code alone -----------------------------------------------------------------

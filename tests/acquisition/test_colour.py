@@ -16,10 +16,10 @@ from bigT import scenes
 from bigT.acquisition import (Captures, build_transport, load_correspondence, make_manifest,
                               pattern_image, read_manifest, simulate_captures, write_patterns)
 from bigT.acquisition.mixing import Mixing
-from bigT.acquisition.rgb_files import read_raw
 from bigT.acquisition.validate import check_white
 from bigT.cli import main
 from bigT.errors import AcquisitionError, ShapeMismatchError
+from bigT.images import read_raw_image, write_image
 from bigT.storage import PixelOrder
 from bigT.storage import open as open_store
 
@@ -105,7 +105,7 @@ def test_a_colour_set_lists_each_transport_pattern_once_per_primary(tmp_path):
     want = np.zeros(PROJECTOR + (3,))
     want[0:2, 2:4, 1] = 1
     assert np.array_equal(lit, want)
-    assert np.array_equal(read_raw(tmp_path / sp_[4].file), (want * 255).astype(np.uint8))
+    assert np.array_equal(read_raw_image(tmp_path / sp_[4].file), (want * 255).astype(np.uint8))
     white, gray = pattern_image(m, m.single("white")), pattern_image(m, m.of_kind("graycode")[0])
     assert (white == 1).all() and (gray[..., 0] == gray[..., 1]).all()
 
@@ -131,7 +131,7 @@ def test_colour_brute_force_recovers_the_colour_T(colour_T, pattern_sets, tmp_pa
     (test_build), every 3x3 block with its cross-talk."""
     model = _simulate(colour_T, pattern_sets["brute-force", True], tmp_path / "cap",
                       fmt="png16")
-    assert read_raw(tmp_path / "cap" / "sp_05_B.png").shape == CAMERA + (3,)
+    assert read_raw_image(tmp_path / "cap" / "sp_05_B.png").shape == CAMERA + (3,)
     report = build_transport(pattern_sets["brute-force", True], tmp_path / "cap",
                              tmp_path / "T.zarr", progress=False)
     built = open_store(tmp_path / "T.zarr")
@@ -255,9 +255,8 @@ def test_captures_read_rgb_in_every_format(tmp_path):
     for suffix, fmt, tol in ((".png", "png8", 0.5 / 255), (".png", "png16", 0.5 / 65535),
                              (".tif", "tif", 1e-7), (".npy", "npy", 1e-7)):
         folder = tmp_path / fmt
-        from bigT.acquisition.rgb_files import write
         for stem, image in images.items():
-            write(folder / (stem + suffix), image, bits=8 if fmt == "png8" else 16)
+            write_image(folder / (stem + suffix), image, bits=8 if fmt == "png8" else 16)
         cap = Captures(m, folder)
         assert cap.channels == 3 and cap.shape == (5, 7)
         p = m.of_kind("superpixel")[4]
