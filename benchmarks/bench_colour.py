@@ -7,8 +7,12 @@ colour mixing global, with cross-talk) and on the grey Cornell box of the same g
   every product over 3n x 3n) and the global-mixing path (three grey inverses between
   two per-pixel un-mixings), the same terms and pruning; seconds, entries of X, and the
   ratios to grey the issue sets goals for (general <= 10x, global <= 3.5x).
-* **What the camera sees**: for a white target (the case colour bleeding spoils) and a
-  colour test pattern, the seen image T clip(l) against the desired one, uncompensated
+* **What the camera sees**: the targets are what the surfaces show *lit directly* (F l,
+  F the per-pixel 3x3 first bounce) by a uniform projector image and by a colour test
+  pattern: in every pixel's gamut (a white target on the red wall is not: no projector
+  image makes it white), so what is left is the colour mixing and the bleeding of
+  interreflected light (red and green walls tinting the white ones). The seen image
+  T clip(l) against the target: uncompensated
   (l = desired), per-pixel 3x3 only (term 0, F^-1: the classic colour method of Nayar et
   al. 2003) and 1-4 terms of the unpruned series (applied matrix-free: F^-1 sum M^k, M =
   I - T F^-1, so each count is exact for its terms), then the pruned 4-term X of both
@@ -37,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bigT  # noqa: E402
 from bigT import scenes  # noqa: E402
+from bigT.cli.demo_cmd import colour_test_pattern, direct_view  # noqa: E402
 from bigT.metrics import image_metrics  # noqa: E402
 
 from _results import Results, run_name  # noqa: E402
@@ -44,7 +49,9 @@ from _results import Results, run_name  # noqa: E402
 #: Pruning of every inverse here: the dense 384x512 settings of the grey benchmarks.
 PRUNE = {"prune": 3e-6, "prune_feed": 1e-4, "prune_operator": 1e-5}
 TERMS = 4
-WHITE_LEVEL = 0.3
+#: The projector images whose direct view is the target (docs in the module's header).
+UNIFORM_LEVEL = 0.5
+PATTERN_RANGE = (0.2, 0.8)
 
 
 @dataclass(frozen=True)
@@ -83,17 +90,6 @@ def invert(T_path: Path, out: Path, label: str, **kw) -> InverseRun:
     seconds = time.perf_counter() - t0
     X = bigT.open(out)
     return InverseRun(label, seconds, int(X.nnz), out, rep.describe().splitlines()[0])
-
-
-def colour_test_pattern(shape) -> np.ndarray:
-    """(H, W, 3) linear light in [0.06, 0.4]: hue ramp, a ring and bars."""
-    H, W = shape
-    y, x = np.mgrid[0:H, 0:W] / np.array([max(H - 1, 1), max(W - 1, 1)])[:, None, None]
-    hue = 2 * np.pi * x
-    rgb = np.stack([0.5 + 0.5 * np.cos(hue - k * 2 * np.pi / 3) for k in range(3)], -1)
-    ring = (np.abs(np.hypot(y - 0.5, x - 0.5) - 0.22) < 0.04)[..., None]
-    img = np.where(ring, 0.9, 0.35 + 0.6 * rgb * (0.3 + 0.7 * y[..., None]))
-    return 0.06 + 0.34 * img
 
 
 def series_images(T, desired: np.ndarray, terms: int) -> list[np.ndarray]:
@@ -141,7 +137,7 @@ def write_video(path: Path, frames: int, shape, fps: float = 30.0) -> None:
     from bigT.compensation.video import VideoSink
 
     H, W = shape
-    base = colour_test_pattern(shape)
+    base = colour_test_pattern(shape, *PATTERN_RANGE)
     with VideoSink(path, shape, fps, 8, channels=3) as sink:
         for k in range(frames):
             sink.write(np.roll(base, 4 * k, axis=1)[None] ** (1 / 2.2))
@@ -193,9 +189,10 @@ def main(argv=None) -> int:
     header = ["target", "projector image", "rel. error", "PSNR dB", "SSIM", "dE2000 mean",
               "dE2000 p95", "% clipped"]
     rows = []
-    white = np.full((H, W, 3), WHITE_LEVEL)
-    rows += metrics_rows(colour.T, runs[1:], white, f"white {WHITE_LEVEL}")
-    rows += metrics_rows(colour.T, runs[1:], colour_test_pattern((H, W)), "test pattern")
+    uniform = direct_view(colour.F, np.full((H, W, 3), UNIFORM_LEVEL))
+    rows += metrics_rows(colour.T, runs[1:], uniform, f"F {UNIFORM_LEVEL}")
+    pattern = direct_view(colour.F, colour_test_pattern((H, W), *PATTERN_RANGE))
+    rows += metrics_rows(colour.T, runs[1:], pattern, "F test pattern")
     for r in rows:
         print("  ".join(str(v) for v in r))
     res.table("seen", "What the camera sees on the colour Cornell box (T clip(l) against "

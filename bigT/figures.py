@@ -121,23 +121,24 @@ def colour_views(path, views: dict, delta_e: dict, *, suptitle: str | None = Non
     path : str or os.PathLike, the PNG written
     views : dict of title -> (H, W, 3) linear light, shown sRGB-encoded from [0, vmax]
     delta_e : dict of title -> (H, W) Delta E map, drawn under the view of the same
-        title on one shared scale (0 to the largest 99th percentile) with a colour bar;
-        a view without one gets an empty cell
+        title, each on its own scale (0 to its 99th percentile, at least 1: a difference
+        of about 1 is the least a person sees) with its colour bar; a view without one
+        gets an empty cell
     """
     plt = pyplot()
     H, W = next(iter(views.values())).shape[:2]
-    top = max((float(np.percentile(m, 99)) for m in delta_e.values()), default=1.0) or 1.0
     fig, axes = plt.subplots(2, len(views), figsize=(2.9 * len(views), 2 * (2.9 * H / W) + 1),
                              squeeze=False)
-    shown = None
     for k, (title, img) in enumerate(views.items()):
         axes[0, k].imshow(encode(np.clip(np.asarray(img) / vmax, 0, 1), "srgb"),
                           interpolation="nearest")
         axes[0, k].set_title(title, fontsize=8)
         if title in delta_e:
             m = delta_e[title]
+            top = max(1.0, float(np.percentile(m, 99)))
             shown = axes[1, k].imshow(m, cmap="magma", vmin=0, vmax=top,
                                       interpolation="nearest")
+            fig.colorbar(shown, ax=axes[1, k], fraction=0.046, pad=0.02)
             axes[1, k].set_title(f"dE2000 mean {np.mean(m):.2f}, p95 "
                                  f"{np.percentile(m, 95):.2f}", fontsize=8)
         else:
@@ -145,8 +146,6 @@ def colour_views(path, views: dict, delta_e: dict, *, suptitle: str | None = Non
         for ax in axes[:, k]:
             ax.set_xticks([])
             ax.set_yticks([])
-    if shown is not None:
-        fig.colorbar(shown, ax=list(axes[1]), fraction=0.02, pad=0.01, label="dE2000")
     if suptitle:
         fig.suptitle(suptitle, fontsize=10)
     return save_figure(fig, path)

@@ -38,6 +38,18 @@ DEMO_TERMS = 4
 #: Grey level of the constant target: low enough that the compensated projector input
 #: stays below 1 where the corner receives the least light.
 DEMO_CONSTANT = 0.4
+#: The colour part: an RGB Cornell box (red and green walls bleed colour onto the white
+#: ones) small enough to add a few seconds; its inverse takes the global-mixing path.
+DEMO_COLOUR_SIZE = (48, 64)
+#: Its form-factor cut and threshold: ~50 entries per row of T (a Cornell box's patches
+#: all see each other; at the grey demo's cut T would be nearly dense, and its inverse
+#: take minutes instead of seconds).
+DEMO_COLOUR_FF_CUT = 1e-2
+DEMO_COLOUR_THRESHOLD = 1e-5
+#: The colour target is the test pattern as the surfaces would show it lit directly (F l,
+#: F the per-pixel 3x3 first bounce): in every pixel's gamut, so compensation cancels
+#: the colour mixing and the bleeding, not clipping. The pattern's range:
+DEMO_COLOUR_RANGE = (0.2, 0.8)
 
 
 def register(subparsers) -> None:
@@ -70,6 +82,25 @@ def test_pattern(shape, lo: float = 0.08, hi: float = 0.42) -> np.ndarray:
     bars = ((x // max(W // 16, 1)) % 2 == 0) & (y > 0.72 * H)
     img = 0.45 * ramp + 0.55 * np.maximum(ring, bars)
     return lo + (hi - lo) * img
+
+
+def colour_test_pattern(shape, lo: float = 0.06, hi: float = 0.36) -> np.ndarray:
+    """An RGB test image (H, W, 3) of linear light in [lo, hi]: a hue ramp across,
+    darkening downwards, with a grey ring, so colour and grey errors both show."""
+    H, W = shape
+    y, x = np.mgrid[0:H, 0:W] / np.array([max(H - 1, 1), max(W - 1, 1)])[:, None, None]
+    hue = 2 * np.pi * x
+    rgb = np.stack([0.5 + 0.5 * np.cos(hue - k * 2 * np.pi / 3) for k in range(3)], -1)
+    ring = (np.abs(np.hypot(y - 0.5, x - 0.5) - 0.22) < 0.04)[..., None]
+    img = np.where(ring, 0.9, 0.35 + 0.6 * rgb * (0.3 + 0.7 * y[..., None]))
+    return lo + (hi - lo) * img
+
+
+def direct_view(F: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """What the camera sees of projector image ``light`` (H, W, 3) by direct light only:
+    each pixel's 3x3 first bounce F (H W, 3, 3) applied to its RGB."""
+    H, W, _ = light.shape
+    return np.einsum("pij,pj->pi", F, light.reshape(-1, 3)).reshape(H, W, 3)
 
 
 class _Tee(io.TextIOBase):
@@ -117,7 +148,7 @@ def _step(title: str, argv: list[str], log: list) -> None:
 
 #: What a demo writes in its folder; a rerun replaces exactly these.
 DEMO_OUTPUTS = ("T.zarr", "X.zarr", "inputs", "compensated", "bounces", "report.md",
-                "T-preview.png", "invert.json")
+                "T-preview.png", "invert.json", "colour")
 #: Written first into the demo folder, so that a rerun (even after an interrupted demo)
 #: knows the folder is the demo's.
 DEMO_MARKER = ".bigT-demo"
@@ -203,13 +234,59 @@ def _run_demo(args) -> int:
         "bounces", str(T_path), str(X_path), str(inputs / "white.png"), "--bounces", "3",
         "-o", str(out / "bounces"), "--format", "tif"] + quiet, log)
 
+    colour_figures = _colour_part(out / "colour", quiet, log)
+
     total = time.perf_counter() - t_start
-    report = _write_report(out, scene, log, total)
+    report = _write_report(out, scene, log, total, colour_figures)
     print(f"\n== demo finished in {total:.1f} s; report -> {report}")
     return 0
 
 
-def _write_report(out: Path, scene, log, total: float) -> Path:
+def _colour_part(out: Path, quiet: list, log: list) -> list:
+    """The colour Cornell box: its scene, the per-pixel 3x3 inverse (term 0, the classic
+    colour method) and 4 terms, a colour test pattern compensated by each with the
+    camera's view simulated; the views and their CIEDE2000 maps drawn in one figure.
+    Returns the report's (caption, path) figures."""
+    from ..metrics import delta_e_map, image_metrics
+    from ..figures import colour_views
+    from ..images import read_image
+    from ..scenes import load
+
+    H, W = DEMO_COLOUR_SIZE
+    out.mkdir()
+    T_path = out / "T.zarr"
+    _step("colour: an RGB Cornell box (red and green walls)", [
+        "scene", "cornell", "--colour", "--size", f"{H}x{W}", "-o", str(T_path),
+        "--ff-cut", f"{DEMO_COLOUR_FF_CUT:g}", "--threshold", f"{DEMO_COLOUR_THRESHOLD:g}",
+        "--overwrite"] + quiet, log)
+    scene = load(T_path)
+    pattern = colour_test_pattern((H, W), *DEMO_COLOUR_RANGE)
+    desired = direct_view(scene.F, pattern)
+    write_image(out / "test_pattern.png", desired, bits=16)  # 16-bit: linear light
+    views = {"desired": desired}
+    views["uncompensated (T l)"] = scene.T.matmul(desired.ravel()).reshape(desired.shape)
+    for terms, label in ((0, "per-pixel 3x3 (term 0)"), (DEMO_TERMS, f"{DEMO_TERMS} terms")):
+        X = out / f"X{terms}.zarr"
+        _step(f"colour: inverse, {label}", ["invert", str(T_path), "-o", str(X), "--terms",
+                                            str(terms)] + quiet, log)
+        _step(f"colour: compensation with {label}", [
+            "compensate", str(X), str(out / "test_pattern.png"), "-o",
+            str(out / f"projector{terms}.png"), "--simulate", str(T_path)] + quiet, log)
+        views[label] = read_image(out / f"projector{terms}_seen.png", channels=3)
+    maps = {k: delta_e_map(v, desired) for k, v in views.items() if k != "desired"}
+    lines = [f"{k}: {image_metrics(v, desired).describe()}" for k, v in views.items()
+             if k != "desired"]
+    log.append(("colour: what the camera sees against the desired image",
+                "bigT.metrics.image_metrics", "\n".join(lines) + "\n", 0.0))
+    figure = colour_views(out / "views.png", views, maps,
+                          suptitle="colour Cornell box: the camera's view of a test pattern "
+                                   "(top) and its CIEDE2000 difference from the desired image")
+    return [("colour Cornell box: T 1", scene.preview),
+            ("colour: desired | uncompensated | per-pixel 3x3 only | 4 terms, with dE2000 "
+             "maps", figure)]
+
+
+def _write_report(out: Path, scene, log, total: float, more_figures=()) -> Path:
     figures = [
         ("the scene: T 1 and scan lines", scene.preview),
         ("test pattern: desired | seen without | projector input | seen with compensation",
@@ -218,6 +295,7 @@ def _write_report(out: Path, scene, log, total: float) -> Path:
         ("constant target, centre scan line (paper Fig. 10)",
          out / "compensated" / "constant_scanline.png"),
         ("bounce separation of a white image", out / "bounces" / "bounces.png"),
+        *more_figures,
     ]
     lines = ["# bigT demo report", "",
              f"Finished in {total:.1f} s. Each step below but the error line is a `bigT` "
