@@ -406,6 +406,22 @@ def summary_video(rec: Record | None) -> list[str]:
         if parts else []
 
 
+def summary_colour(rec: Record | None) -> list[str]:
+    """The colour paths' time against grey, and the seen error per term count."""
+    if rec is None or rec.table("inverse") is None:
+        return [f"Colour (RGB transport): {NOT_MEASURED}."]
+    out = [f"{rec.table('inverse').title}: the general path took "
+           f"{fmt(rec.value('general_over_grey'))}× and the global-mixing path "
+           f"{fmt(rec.value('global_over_grey'))}× the grey inverse's time."]
+    seen = rec.table("seen")
+    if seen is not None:
+        rows = [r for r in _rows(seen) if r.get("target") == "F test pattern"]
+        parts = [f"{r.get('projector image')} {fmt(r.get('dE2000 mean'))}" for r in rows]
+        if parts:
+            out.append("CIEDE2000 ΔE (mean) of the seen test pattern: " + ", ".join(parts) + ".")
+    return out
+
+
 def summary_target(rec: Record | None) -> list[str]:
     """The range of --target-error's time over the best fixed setting's."""
     table = rec.table("target") if rec else None
@@ -447,6 +463,7 @@ def summary(records: dict[str, Record]) -> list[str]:
          + summary_distributed(records.get("distributed"))),
         ("Kernels and throughput", summary_kernels(records.get("kernels"))
          + summary_video(records.get("video"))),
+        ("Colour", summary_colour(records.get("colour"))),
         ("The paper's figures", summary_paper(records.values(), "paper" in records)),
     ]
     lines = ["## Summary", ""]

@@ -62,6 +62,8 @@ FULL = [
                        "power:3e-6:1e-4:3e-5", "--sample", "2048",
                        "--memory-limit", "2GiB", "--workdir", "bench-out/inverse"]),
     ("video", ["bench_video.py", "--out", "bench-out/video"]),
+    # the colour Cornell box at 384x512: grey vs general vs global-mixing, seen ΔE, video
+    ("colour", ["bench_colour.py", "--workdir", "bench-out/colour"]),
     ("compensate", ["bench_compensate.py", "--skip", "throughput"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("store", ["bench_store.py"]),
@@ -88,6 +90,7 @@ QUICK = [
                      "--workdir", "bench-out/distributed-quick"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "32768", "--memory-limit", "2GiB"]),
     ("store", ["bench_store.py", "--n", "20000", "--nnz-per-row", "20"]),
+    ("colour", ["bench_colour.py", "--quick", "--workdir", "bench-out/colour-quick"]),
 ]
 
 
