@@ -43,6 +43,9 @@ import scipy.sparse as sp
 
 from .. import config
 from ..atomic import atomic_output, refuse_overwriting_inputs
+# what build stores beside T is read by compensation too, so its reader lives there
+from ..compensation.rig import (ACQUISITION_KEY, CORRESPONDENCE,
+                                load_correspondence)  # noqa: F401 (acquisition's API)
 from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
@@ -52,9 +55,6 @@ from .captures import Captures, grey_view
 from .correspondence import Correspondence, GroupMeans, from_graycode, from_maximum_response
 from .manifest import Manifest, patterns_folder, read_manifest
 from .mixing import MIXING_KEY, Mixing, read_mixing
-
-ACQUISITION_KEY = "acquisition"
-CORRESPONDENCE = "correspondence.npy"
 
 
 class AcquisitionWarning(UserWarning):
@@ -369,15 +369,6 @@ def _save_correspondence(store: Path, corr: Correspondence) -> None:
     with atomic_output(folder / CORRESPONDENCE, "the correspondence map") as tmp:
         with open(tmp, "wb") as f:
             np.save(f, corr.labels.astype(np.int32))
-
-
-def load_correspondence(store) -> np.ndarray:
-    """The correspondence map saved with an acquired T, shape (Hc, Wc), int32."""
-    path = Path(store) / ACQUISITION_KEY / CORRESPONDENCE
-    if not path.is_file():
-        raise StoreError("holds no correspondence map (not built by bigT acquire build)",
-                         Path(store))
-    return np.load(path, allow_pickle=False)
 
 
 # --- filling the tile rows ---------------------------------------------------------
