@@ -12,7 +12,8 @@ full scale cannot be emitted, it is clipped and counted).
 :class:`ProjectorEncoder` gives exactly the codes of ``ProjectorResponse.encode``, from
 lookup tables (one per channel) built once: the code a light rounds to is the number of
 half-code boundaries below it (``np.searchsorted`` on the response's own dense table,
-the one its inverse interpolates on), ~10x faster than inverting value by value, which
+the one its inverse interpolates on), about 3x faster than inverting value by value
+(65 against 210 ms a 384x512 colour frame, 8-bit ordered, on this machine), which
 a video's frames need. :meth:`ProjectorEncoder.emitted` is the other way: the light
 (above black) the projector sends for codes, what ``compensate --simulate`` relights
 through T so that the loop closes through the same projector.
