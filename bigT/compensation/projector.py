@@ -248,7 +248,7 @@ def projector_encoder(response, *, bits: int | None = None, dither: str = "none"
     else:
         path = found if isinstance(response, str) and response == "auto" else Path(response)
         loaded = load_projector_response(path)
-        source = f"{path} (stored with T)" if response == "auto" else str(path)
+        source = f"{path}, stored with T," if response == "auto" else str(path)
     return ProjectorEncoder(loaded, 8 if bits is None else bits, dither, seed, source)
 
 

@@ -191,7 +191,7 @@ def test_response_stored_with_T_is_found(scene, tmp_path, capsys):
     write_image(tmp_path / "d.npy", np.full((H, W), 0.4))
     assert main(["compensate", "-", str(tmp_path / "d.npy"), "-o", str(tmp_path / "p.png"),
                  "--matrix-free", str(stored), "--no-progress"]) == 0
-    assert "(stored with T)" in capsys.readouterr().out
+    assert "projector_response.json, stored with T, (black 0.02" in capsys.readouterr().out
     assert main(["compensate", "-", str(tmp_path / "d.npy"), "-o", str(tmp_path / "q.npy"),
                  "--matrix-free", str(stored), "--projector-response", "none",
                  "--no-progress"]) == 0
