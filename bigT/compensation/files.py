@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import config
 from ..atomic import refuse_overwriting_inputs
-from ..errors import ImageError
+from ..errors import ImageError, Option
 from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
 from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
@@ -702,6 +702,7 @@ def _output_bits(bits, projection: Projection):
     if encoder is None:
         return bits
     if bits is not None and bits != encoder.bits:
-        raise ImageError(f"--bits {bits} and --projector-bits {encoder.bits} disagree: the "
-                         "projector's values are written at its own depth")
+        raise ImageError(f"an output depth of {bits} bits disagrees with the projector's "
+                         f"{encoder.bits}: its values are written at its own depth (give "
+                         "{option})", option=Option("projector_bits", bits))
     return encoder.bits

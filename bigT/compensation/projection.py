@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ImageError
+from ..errors import ImageError, Option
 from ..images import declared_shape
 from ..storage import as_store
 from .encoding import FrameEncoding
@@ -165,8 +165,8 @@ def projection_for(X, T, grid, channels: int, *, response="auto", bits: int | No
     found = None if rig is None else stored_response_path(rig)
     encoder = projector_encoder(response, bits=bits, dither=dither, seed=seed, found=found)
     if encoder is None and bits is not None:
-        raise ImageError(f"--projector-bits {bits} needs a projector response "
-                         "(--projector-response FILE, or one stored with T)")
+        raise ImageError("a projector depth ({option}) needs a projector response: give "
+                         "one, or store it with T", option=Option("projector_bits", bits))
     if encoder is not None and encoder.channels != channels:
         raise ImageError(f"the projector response has {encoder.channels} channel(s) but the "
                          f"transport {channels}: give the response of this rig")

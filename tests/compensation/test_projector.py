@@ -175,11 +175,13 @@ def test_cli_refuses_projector_bits_without_a_response(scene, tmp_path, capsys):
     assert main(["compensate", str(d / "X.zarr"), str(tmp_path / "d.npy"), "-o",
                  str(tmp_path / "p.png"), "--projector-bits", "16", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "needs a projector response" in err and len(err.strip().splitlines()) == 1
+    assert "needs a projector response" in err and "--projector-bits 16" in err
+    assert len(err.strip().splitlines()) == 1
     assert main(["compensate", str(d / "X.zarr"), str(tmp_path / "d.npy"), "-o",
                  str(tmp_path / "p.png"), "--projector-response", str(d / "response.json"),
                  "--bits", "16", "--no-progress"]) == 2
-    assert "disagree" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "disagrees" in err and "--projector-bits 16" in err
     assert not (tmp_path / "p.png").exists()
 
 
