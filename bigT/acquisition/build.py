@@ -43,6 +43,9 @@ import scipy.sparse as sp
 
 from .. import config
 from ..atomic import atomic_output, refuse_overwriting_inputs
+# what build stores beside T is read by compensation too, so its reader lives there
+from ..compensation.rig import (ACQUISITION_KEY, CORRESPONDENCE,
+                                load_correspondence)  # noqa: F401 (acquisition's API)
 from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
 from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
@@ -56,12 +59,9 @@ from .manifest import Manifest, patterns_folder, read_manifest
 from .mixing import MIXING_KEY, Mixing, read_mixing
 from .ramp import PROJECTOR_RESPONSE_FILE, PROJECTOR_RESPONSE_KEY, fit_ramp, save_response
 
-ACQUISITION_KEY = "acquisition"
-CORRESPONDENCE = "correspondence.npy"
 #: The camera response a build applied, kept beside the correspondence (JSON,
 #: ``CameraResponse.save``): a recovered one is measured once.
 CAMERA_RESPONSE = "camera_response.json"
-
 
 class AcquisitionWarning(UserWarning):
     """Something in the captures that makes T less accurate (saturated pixels)."""
@@ -442,15 +442,6 @@ def load_camera_response(store) -> CameraResponse | None:
     ``acquisition/camera_response.json``; None when the build had none (``gamma``)."""
     path = Path(store) / ACQUISITION_KEY / CAMERA_RESPONSE
     return parse_camera_response(str(path)) if path.is_file() else None
-
-
-def load_correspondence(store) -> np.ndarray:
-    """The correspondence map saved with an acquired T, shape (Hc, Wc), int32."""
-    path = Path(store) / ACQUISITION_KEY / CORRESPONDENCE
-    if not path.is_file():
-        raise StoreError("holds no correspondence map (not built by bigT acquire build)",
-                         Path(store))
-    return np.load(path, allow_pickle=False)
 
 
 # --- filling the tile rows ---------------------------------------------------------

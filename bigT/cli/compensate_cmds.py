@@ -53,6 +53,33 @@ def add_encoding(p: argparse.ArgumentParser, what: str) -> None:
                    "linear for 16-bit, floating-point and grey ones")
 
 
+def add_projector(p: argparse.ArgumentParser) -> None:
+    """The projector's response, depth and dither, and the rig's smoothing."""
+    p.add_argument("--projector-response", dest="projector_response", metavar="FILE",
+                   default="auto",
+                   help="the projector's response (JSON, docs/CALIBRATION.md): the output "
+                   "is the projector's integer values, the linear light encoded through its "
+                   "inverse. Default: the one stored with T (acquire build's, found through "
+                   "X's record or the T given); 'none' for linear light, as without one")
+    p.add_argument("--projector-bits", dest="projector_bits", type=int, choices=(8, 16),
+                   default=None, help="the projector's input depth (default 8; with a "
+                   "projector response only)")
+    p.add_argument("--dither", choices=("none", "ordered", "random"), default="none",
+                   help="dither of the projector's values: ordered (8x8 Bayer, the same "
+                   "every frame) or random; the expected light is the one asked (default "
+                   "none: the nearest value)")
+    p.add_argument("--smooth", action="store_true",
+                   help="with an acquired T (a rig's correspondence): the projector's image "
+                   "interpolated bilinearly between super-pixel centres, not in blocks")
+
+
+def _projector_options(args) -> dict:
+    """The projector options of a compensation, from the command line."""
+    response = None if args.projector_response == "none" else args.projector_response
+    return dict(projector_response=response, projector_bits=args.projector_bits,
+                dither=args.dither, smooth=args.smooth)
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "compensate", help="projector inputs that make the camera see the desired images",
@@ -111,6 +138,7 @@ def register(sub) -> None:
                    help="frames per second of a video written from a folder of frames "
                    "(default 30; a video input keeps its own)")
     add_encoding(p, "image or video")
+    add_projector(p)
     add_json(p, "the report (with --simulate: PSNR, SSIM, ΔE2000 too)")
     add_progress(p)
     p.set_defaults(func=run_compensate)
@@ -194,7 +222,8 @@ def _run_simulate(args, X) -> int:
     job = FileSimulation(X, args.desired, args.output, args.simulate, path=args.path,
                          matrix_free=args.matrix_free, terms=args.terms, clip=args.clip,
                          batch=args.batch, bits=args.bits, cache_bytes=args.cache_bytes,
-                         scheduler=args.scheduler, encoding=args.encoding)
+                         scheduler=args.scheduler, encoding=args.encoding,
+                         **_projector_options(args))
     head, *rest = job.describe().splitlines()
     say(args, f"bigT compensate: {head}")
     for line in rest:
@@ -220,7 +249,8 @@ def _run_stream(args, X, Tm) -> int:
         X, args.desired, args.output, T=Tm, path=args.path, terms=args.terms, clip=args.clip,
         batch=args.batch, bits=args.bits, fps=args.fps, resident=not args.stream,
         memory_limit=args.memory_limit, precision=args.precision,
-        cache_bytes=args.cache_bytes, scheduler=args.scheduler, encoding=args.encoding)
+        cache_bytes=args.cache_bytes, scheduler=args.scheduler, encoding=args.encoding,
+        **_projector_options(args))
     head, *rest = job.describe().splitlines()
     say(args, f"bigT compensate: {head}")
     for line in rest:

@@ -31,12 +31,14 @@ import numpy as np
 
 from .. import config
 from ..atomic import refuse_overwriting_inputs
-from ..errors import ImageError
+from ..errors import ImageError, Option
 from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
 from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
 from .core import CompensationReport, choose_path, relight
 from .encoding import FrameEncoding, source_encoding
+from .projection import Projection, image_sizes, projection_for
+from .projector import ResponseClipping
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
                        video_batches)
 from .simulation import (SimulationReport, clipped_dict, clipped_summary, simulate_batches,
@@ -58,6 +60,10 @@ class FileCompensationReport:
         channel too)
     clip : (lo, hi) or None
     encoding : FrameEncoding, of the input, and so of the projector input written
+        without a projector response
+    projector : ResponseClipping or None
+        With a projector response: the values it could not emit, per channel
+    projector_bits : int or None, the projector's depth the values were written in
     """
 
     output: Path
@@ -67,6 +73,8 @@ class FileCompensationReport:
     compensation: CompensationReport
     clip: tuple | None
     encoding: FrameEncoding = FrameEncoding("linear", "grey input")
+    projector: ResponseClipping | None = None
+    projector_bits: int | None = None
 
     def describe(self) -> str:
         s = self.stream
@@ -78,8 +86,7 @@ class FileCompensationReport:
             c = self.compensation
             lines.append(clipped_summary(c.clipped_low, c.clipped_high, c.pixels, self.clip,
                                          c.clipped_shares_by_channel))
-        encoded = "" if self.encoding.linear else f" ({self.encoding.name}-encoded, as the input)"
-        lines.append(f"wrote projector input{encoded} -> {self.output}")
+        lines += written_lines(self.output, self.encoding, self.projector, self.projector_bits)
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
@@ -93,7 +100,27 @@ class FileCompensationReport:
                 "resident": self.residency.resident, "precision": self.residency.precision,
                 "residency_reason": self.residency.reason,
                 "encoding": self.encoding.name, "encoding_reason": self.encoding.reason,
-                "clip": None if self.clip is None else list(self.clip), **clipped_dict(c)}
+                "clip": None if self.clip is None else list(self.clip), **clipped_dict(c),
+                **projector_dict(self.projector, self.projector_bits)}
+
+
+def written_lines(output, encoding: FrameEncoding, projector: ResponseClipping | None,
+                  bits: int | None) -> list[str]:
+    """The closing lines: what was written, and what the projector clipped."""
+    if projector is not None:
+        return [projector.describe(),
+                f"wrote the projector's values ({bits}-bit, through its response) -> {output}"]
+    encoded = "" if encoding.linear else f" ({encoding.name}-encoded, as the input)"
+    return [f"wrote projector input{encoded} -> {output} (linear light, no projector "
+            "response)"]
+
+
+def projector_dict(projector: ResponseClipping | None, bits: int | None) -> dict:
+    """The projector encoding's part of a JSON report."""
+    if projector is None:
+        return {"projector_response": False}
+    return {"projector_response": True, "projector_bits": bits,
+            "projector_clipped": projector.to_dict()}
 
 
 class FileCompensation:
@@ -128,13 +155,32 @@ class FileCompensation:
     cache_bytes : int, optional
         Tile cache of a streamed X (default ``config.COMPENSATE_CACHE_BYTES``).
     scheduler : as :func:`bigT.schedule.runner.open_runner`, optional.
+    projector_response : ``"auto"``, None, a path or a ProjectorResponse
+        The projector's response the output is encoded through
+        (:mod:`bigT.compensation.projector`); ``"auto"`` (default): the one stored
+        with T (the matrix-free T, else the one X's record names), else none: linear
+        light written in the input's encoding, as before. With one, ``clip`` (0, 1) is
+        its range (light above black, 0 = black, 1 = full scale): what lies outside is
+        clipped by the encoding and counted per channel in the report.
+    projector_bits : 8 or 16, the projector's depth (default 8; only with a response).
+        The values written are the codes over 2^bits - 1 (a PNG or video of that depth
+        holds the codes themselves).
+    dither : ``"none"``, ``"ordered"`` or ``"random"``, of the projector's codes
+    seed : int, of ``"random"`` dither
+    smooth : bool, bilinear super-pixels on the projector (a rig's T)
+
+    The rig's resolutions (:mod:`bigT.compensation.rig`): when the T found holds the
+    correspondence of ``bigT acquire build``, the desired images are the camera's
+    (or the super-pixels' own) and the output is the projector's full image.
     """
 
     def __init__(self, X, desired, output, *, T=None, path: str = "auto",
                  terms: int | None = None, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
                  bits: int | None = None, fps: float | None = None, resident: bool = True,
                  memory_limit: int | None = None, precision: str = "float32",
-                 cache_bytes: int | None = None, scheduler=None, encoding: str = "auto"):
+                 cache_bytes: int | None = None, scheduler=None, encoding: str = "auto",
+                 projector_response="auto", projector_bits: int | None = None,
+                 dither: str = "none", seed: int = 0, smooth: bool = False):
         self.X = None if X is None else as_store(X, "X")
         self.T = None if T is None else as_store(T, "T")
         self.choice = choose_path(self.X, self.T if path != "explicit" else None, terms, path)
@@ -142,17 +188,19 @@ class FileCompensation:
         self.shape = image_shape_of(store)
         self.channels = channels_of(store)
         check_same_images(self.shape, (self.X, "X"), (self.T, "T"))
-        self.clip, self.batch = clip, int(batch)
+        self.batch = int(batch)
         self.video_in = is_video_file(desired)
-        self.source = (VideoSource(desired, self.shape, channels=self.channels)
-                       if self.video_in else ImageSource(desired, self.shape, self.channels))
-        if not self.video_in:  # every frame, before X is read or anything written
-            check_frame_shapes(self.source.files, self.shape, self.channels)
+        self.projection, self.source = _projected_source(
+            desired, self.video_in, self.X, self.T, self.shape, self.channels,
+            response=projector_response, bits=projector_bits, dither=dither, seed=seed,
+            smooth=smooth)
+        self.clip = _projector_clip(clip, self.projection)
         self.encoding = source_encoding(self.source, self.channels, encoding)
         self.output = Path(output)
         stores = store_paths(self.X, self.T)
-        self._sink = _sink_for(self.source, self.output, self.video_in, bits, fps, stores,
-                               self.channels)
+        self._sink = _sink_for(self.source, self.output, self.video_in,
+                               _output_bits(bits, self.projection), fps, stores,
+                               self.channels, self.projection.output_shape(self.shape))
         self._options = dict(memory_limit=memory_limit, precision=precision,
                              resident=resident and scheduler is None,
                              cache_bytes=cache_budget(cache_bytes))
@@ -188,8 +236,10 @@ class FileCompensation:
         is not read yet)."""
         src = self.source
         count = self.frames
+        sizes = self.projection.describe_sizes()
+        image = sizes or (f"image {self.shape[0]}x{self.shape[1]}" if self.shape else None)
         head = (f"{'~' if self.video_in else ''}{count if count else 'the'} frame(s) from "
-                f"{src.path}" + (f", image {self.shape[0]}x{self.shape[1]}" if self.shape else "")
+                f"{src.path}" + (f", {image}" if image else "")
                 + (f", video {src.info.codec} {src.info.pix_fmt} at {src.info.fps:g} frames/s"
                    if self.video_in else ""))
         lines = [head]
@@ -200,6 +250,7 @@ class FileCompensation:
         lines.append(describe_path(self.choice))
         if self.channels == 3 or not self.encoding.linear:
             lines.append(self.encoding.describe())
+        lines.append(self.projection.describe_encoding(self.encoding))
         return "\n".join(lines)
 
     def describe_residency(self) -> str:
@@ -221,14 +272,19 @@ class FileCompensation:
         comp = self._entered()
         batches = (video_batches(self.source, self.batch) if self.video_in
                    else image_batches(self.source, self.batch))
-        encoding = self.encoding
+        encoding, projection = self.encoding, self.projection
         with self._sink as write:
-            # decoded in the reader's thread, encoded in the writer's (beside the products)
-            stream = run_stream(in_light(batches, encoding), comp,
-                                lambda names, frames: write(names, encoding.from_light(frames)),
-                                batch=self.batch, overlap=overlap, on_batch=on_batch)
-        return FileCompensationReport(self._sink.path, self.batch, stream, comp.residency,
-                                      comp.report, self.clip, encoding)
+            # decoded (and averaged onto the super-pixels) in the reader's thread, encoded
+            # (and expanded onto the projector) in the writer's, beside the products
+            stream = run_stream(
+                in_light(batches, encoding, projection), comp,
+                lambda names, frames: write(names, projection.to_values(frames, encoding)),
+                batch=self.batch, overlap=overlap, on_batch=on_batch)
+        encoder = projection.encoder
+        return FileCompensationReport(
+            self._sink.path, self.batch, stream, comp.residency, comp.report, self.clip,
+            encoding, None if encoder is None else encoder.clipping,
+            None if encoder is None else encoder.bits)
 
     def _entered(self) -> Compensator:
         if self.compensator is None:
@@ -255,12 +311,14 @@ def channels_of(store) -> int:
     return int(getattr(store, "channels", 1) or 1)
 
 
-def in_light(batches, encoding: FrameEncoding):
-    """(names, frames) batches with the frames decoded to linear light (closing this
-    generator closes ``batches``: a video's decoder stops)."""
+def in_light(batches, encoding: FrameEncoding, projection: Projection | None = None):
+    """(names, frames) batches with the frames decoded to linear light, and a camera's
+    averaged onto T's super-pixels (closing this generator closes ``batches``: a
+    video's decoder stops)."""
     try:
         for names, frames in batches:
-            yield names, encoding.to_light(frames)
+            light = encoding.to_light(frames)
+            yield names, light if projection is None else projection.to_superpixels(light)
     finally:
         close = getattr(batches, "close", None)
         if close is not None:
@@ -300,6 +358,9 @@ class FileSimulationReport:
     figures : (Path, Path), the side-by-side comparison and the scan lines (PNG)
     batch : int
     seconds : float, wall time of the whole run
+    projector_clipping : ResponseClipping or None, with a projector response: the values
+        it could not emit
+    projector_bits : int or None, the projector's depth, with a response
     """
 
     simulation: SimulationReport
@@ -308,22 +369,29 @@ class FileSimulationReport:
     figures: tuple[Path, Path]
     batch: int
     seconds: float
+    projector_clipping: ResponseClipping | None = None
+    projector_bits: int | None = None
 
     def to_dict(self) -> dict:
         """The report as JSON-ready values (``compensate --simulate --json``)."""
         return {**self.simulation.to_dict(), "batch": self.batch,
                 "seconds_in_all": self.seconds, "projector": str(self.projector),
-                "seen": str(self.seen), "figures": [str(f) for f in self.figures]}
+                "seen": str(self.seen), "figures": [str(f) for f in self.figures],
+                **projector_dict(self.projector_clipping, self.projector_bits)}
 
     def describe(self) -> str:
         r = self.simulation
+        seen = ("simulated camera (T times the projector's light for its values)"
+                if self.projector_clipping is not None else "simulated camera (T l_in)")
         return "\n".join([
             f"{r.frames} frame(s) in {r.seconds:.2f} s of products "
             f"({r.frames_per_second:.1f} frames/s, batch {self.batch}); {self.seconds:.2f} s "
             "in all (the simulation's passes over T included)",
-            f"wrote projector input -> {self.projector}",
-            f"simulated camera (T l_in) -> {self.seen}",
+            *written_lines(self.projector, FrameEncoding("linear", ""),
+                           self.projector_clipping, self.projector_bits)[-1:],
+            f"{seen} -> {self.seen}",
             *r.describe().splitlines(),
+            *([self.projector_clipping.describe()] if self.projector_clipping else []),
             f"figures -> {self.figures[0]}, {self.figures[1]}"])
 
 
@@ -344,12 +412,20 @@ class FileSimulation:
         the camera's view is written in the input's encoding too, and the metrics are of
         the images in it
     metrics : bool, PSNR, SSIM and ΔE in the report (:func:`simulate_batches`)
+    projector_response, projector_bits, dither, seed, smooth : as
+        :class:`FileCompensation` (``"auto"``: the response stored with ``T``). With a
+        response, the camera's view is simulated through the same projector: T times
+        the light its codes send (the loop closes through its nonlinearity). With a
+        rig's T, the camera's view is written at the camera's resolution for a camera
+        input.
     """
 
     def __init__(self, X, desired, output, T, *, path: str = "auto", matrix_free=None,
                  terms: int | None = None, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
                  bits: int | None = None, cache_bytes: int | None = None, scheduler=None,
-                 encoding: str = "auto", metrics: bool = True):
+                 encoding: str = "auto", metrics: bool = True, projector_response="auto",
+                 projector_bits: int | None = None, dither: str = "none", seed: int = 0,
+                 smooth: bool = False):
         self.X = None if X is None else as_store(X, "X")
         self.T = as_store(T, "T")
         self.Tm = self.T if matrix_free is None else as_store(matrix_free, "T")
@@ -362,23 +438,28 @@ class FileSimulation:
         if is_video_file(desired):
             raise ImageError("a simulation takes an image or a folder of frames, not a video",
                              desired)
-        self.source = ImageSource(desired, self.shape, self.channels)
-        check_frame_shapes(self.source.files, self.shape, self.channels)
+        self.projection, self.source = _projected_source(
+            desired, False, self.X, self.T, self.shape, self.channels,
+            response=projector_response, bits=projector_bits, dither=dither, seed=seed,
+            smooth=smooth)
         self.encoding = source_encoding(self.source, self.channels, encoding)
         self.metrics = bool(metrics)
         out = Path(output)
         stores = store_paths(self.X, self.T, self.Tm)
         self.figures = (sibling_path(out, "compare", ".png"), sibling_path(out, "scanline", ".png"))
         refuse_overwriting_inputs(self.figures, [desired, *stores])
-        self._sink = ImageSink(out, self.source, bits=bits, inputs=stores)
+        out_bits = _output_bits(bits, self.projection)
+        self._sink = ImageSink(out, self.source, bits=out_bits, inputs=stores)
         self._seen = ImageSink(sibling_path(out, "seen"), self.source, bits=bits, inputs=stores)
-        self.clip, self.batch = clip, int(batch)
+        self.clip, self.batch = _projector_clip(clip, self.projection), int(batch)
         self._options = dict(cache_bytes=cache_bytes, scheduler=scheduler)
 
     def describe(self) -> str:
         """The input, the stores (each once) and the path."""
+        sizes = self.projection.describe_sizes()
+        image = sizes or (f"image {self.shape[0]}x{self.shape[1]}" if self.shape else None)
         lines = [f"{len(self.source)} frame(s) from {self.source.path}"
-                 + (f", image {self.shape[0]}x{self.shape[1]}" if self.shape else "")]
+                 + (f", {image}" if image else "")]
         shown = []
         for st, name in ((self.X, "X"), (self.Tm if self.choice.path == "matrix-free"
                                          else None, "T"), (self.T, "T")):
@@ -388,30 +469,39 @@ class FileSimulation:
         lines.append(describe_path(self.choice))
         if self.channels == 3 or not self.encoding.linear:
             lines.append(self.encoding.describe())
+        lines.append(self.projection.describe_encoding(self.encoding))
+        if self.projection.encoder is not None:
+            lines.append("the camera's view is simulated through the same projector: T times "
+                         "the light its codes send")
         return "\n".join(lines)
 
     def run(self, *, progress: bool = False,
             on_batch: Callable[[int], None] | None = None) -> FileSimulationReport:
         """Compensate and simulate every frame, write both and the figures."""
-        encoding = self.encoding
+        encoding, projection = self.encoding, self.projection
 
-        def write(files, projector, seen):
-            self._sink.write(files, encoding.from_light(projector))
-            self._seen.write(files, encoding.from_light(seen))
+        def write(files, written, seen):
+            self._sink.write(files, written if projection.encoder is not None
+                             else encoding.from_light(written))
+            self._seen.write(files, encoding.from_light(projection.seen_on_camera(seen)))
             if on_batch is not None:
                 on_batch(len(files))
 
         t0 = time.perf_counter()
         report = simulate_batches(
-            in_light(self.source.batches(self.batch), encoding), self.X, self.T,
+            in_light(self.source.batches(self.batch), encoding, projection), self.X, self.T,
             clip=self.clip, path=self.choice.path, matrix_free=self.Tm,
             terms=self.choice.terms, progress=progress, on_batch=write,
-            metrics=encoding.name if self.metrics else None, **self._options)
+            metrics=encoding.name if self.metrics else None, project=projection.sent,
+            **self._options)
         seconds = time.perf_counter() - t0
         tag = f" (frame {report.first.name})" if self.source.is_folder else ""
         figures = simulation_figures(report, *self.figures, tag=tag)
+        encoder = projection.encoder
         return FileSimulationReport(report, self._sink.path, self._seen.path, tuple(figures),
-                                    self.batch, seconds)
+                                    self.batch, seconds,
+                                    None if encoder is None else encoder.clipping,
+                                    None if encoder is None else encoder.bits)
 
 
 def sibling_path(path: Path, tag: str, suffix: str | None = None) -> Path:
@@ -551,13 +641,14 @@ class _Sink:
 
 
 def _sink_for(source, out_path: Path, video_in: bool, bits, fps, stores=(),
-              channels: int = 1) -> _Sink:
+              channels: int = 1, output_shape=None) -> _Sink:
     """The output of a compensation, its kind and format checked before X is read, and
-    refused where it would destroy the source or one of ``stores``."""
+    refused where it would destroy the source or one of ``stores``; ``output_shape``
+    the (H, W) of the frames written (default the input's)."""
     if video_in or (source.is_folder and is_video_file(out_path)):
         fps = source.info.fps if video_in else (fps or DEFAULT_FPS)
         bits = bits or (source.info.bits if video_in else 8)
-        shape = source.info.shape if video_in else _frame_shape(source)
+        shape = output_shape or (source.info.shape if video_in else _frame_shape(source))
         video = VideoSink(out_path, shape, fps, bits, channels=channels)
         return _Sink(source, out_path, video, bits, stores)
     if source.is_folder:
@@ -573,3 +664,45 @@ def _sink_for(source, out_path: Path, video_in: bool, bits, fps, stores=(),
 def _frame_shape(source):
     """(H, W) of a folder's frames: the store's, else the first frame's."""
     return source.shape or read_image(source.files[0]).shape[:2]
+
+
+def _projected_source(desired, video_in: bool, X, T, grid, channels: int, **projector):
+    """(Projection, the source of desired frames at the size it takes), every frame's
+    size checked before X is read or anything written."""
+    if video_in:
+        probe = VideoSource(desired, None, channels=channels)
+        sizes = [(tuple(probe.info.shape), probe.path)]
+    else:
+        probe = ImageSource(desired, None, channels)
+        sizes = image_sizes(probe.files)
+    projection = projection_for(X, T, grid, channels, frame_sizes=sizes, **projector)
+    shape = projection.input_shape(grid)
+    if video_in:
+        if shape is not None and tuple(probe.info.shape) != tuple(shape):
+            raise ImageError(f"frames of shape {probe.info.shape} do not match the "
+                             f"transport's image shape {tuple(shape)}", probe.path)
+        return projection, probe
+    source = ImageSource(desired, shape, channels)
+    check_frame_shapes(source.files, shape, channels)
+    return projection, source
+
+
+def _projector_clip(clip, projection: Projection):
+    """The compensation's clip: with a projector response, (0, 1) is the response's own
+    range (black to full scale), clipped and counted by the encoding instead."""
+    if projection.encoder is not None and clip is not None and tuple(clip) == (0, 1):
+        return None
+    return clip
+
+
+def _output_bits(bits, projection: Projection):
+    """The depth of the images written: the projector's with a response (a different
+    ``bits`` is refused), else ``bits``."""
+    encoder = projection.encoder
+    if encoder is None:
+        return bits
+    if bits is not None and bits != encoder.bits:
+        raise ImageError(f"an output depth of {bits} bits disagrees with the projector's "
+                         f"{encoder.bits}: its values are written at its own depth (give "
+                         "{option})", option=Option("projector_bits", bits))
+    return encoder.bits

@@ -298,7 +298,8 @@ def simulate_batches(batches: Iterable[tuple[Sequence | None, np.ndarray]], X, T
                      terms: int | None = None, cache_bytes: int | None = None,
                      scheduler=None, progress: bool = False,
                      on_batch: Callable | None = None,
-                     metrics: str | None = "linear") -> SimulationReport:
+                     metrics: str | None = "linear",
+                     project: Callable | None = None) -> SimulationReport:
     """:func:`simulate` for frames that come one batch at a time.
 
     Parameters
@@ -316,6 +317,12 @@ def simulate_batches(batches: Iterable[tuple[Sequence | None, np.ndarray]], X, T
         Report PSNR, SSIM and CIEDE2000 ΔE (:func:`frame_metrics`, averaged over the
         frames) of the images encoded so (the input files' encoding); None: skip them
         (scikit-image's ΔE takes ~0.1 s a 384x512 frame).
+    project : callable, optional
+        ``project(l_in) -> (written, sent)``: the projector's image as it is written and
+        the light it sends, on T's images, which is what T relights
+        (:meth:`bigT.compensation.projection.Projection.sent`: a projector's response,
+        a rig's resolutions). Default: both are l_in, a linear projector. ``on_batch``
+        gets ``written``; the report's first frame holds ``sent``.
 
     Returns
     -------
@@ -338,11 +345,11 @@ def simulate_batches(batches: Iterable[tuple[Sequence | None, np.ndarray]], X, T
                                               cache_bytes=cache, runner=runner)
                 seconds += time.perf_counter() - t0
                 counts.frames += len(frames)
-                seen, uncompensated = _relight_both(T, projector, frames, cache, runner,
-                                                    progress)
-                sums.add(names, frames, uncompensated, projector, seen)
+                written, sent = (projector, projector) if project is None else project(projector)
+                seen, uncompensated = _relight_both(T, sent, frames, cache, runner, progress)
+                sums.add(names, frames, uncompensated, sent, seen)
                 if on_batch is not None:
-                    on_batch(names, projector, seen)
+                    on_batch(names, written, seen)
         finally:
             forget_tiles(runner, X, T, T_series)
     if sums.first is None:
@@ -363,7 +370,7 @@ def simulate_batches(batches: Iterable[tuple[Sequence | None, np.ndarray]], X, T
 def _relight_both(T, projector, desired, cache, runner, progress):
     """(T l_in, T l_desired), both the frames' shape, in one pass over T."""
     order = pixel_order_of(T, desired.shape[1:])
-    both = np.concatenate([projector, desired])
+    both = np.concatenate([projector, desired]).astype(desired.dtype, copy=False)
     seen_all = to_frames(stream_matmul(T, to_vectors(both, order, compute_dtype(T)),
                                        progress=progress, desc="T pass", cache_bytes=cache,
                                        runner=runner), order)

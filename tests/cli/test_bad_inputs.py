@@ -40,7 +40,7 @@ NONSENSE = ("abc", "nan", "inf", "-1")
 #: Options that take free text (paths, names); every other option taking a value must
 #: have a ``type`` or ``choices`` for the option walk to check.
 FREE_TEXT = {"-o", "--output", "--var", "--json", "--first-bounce", "--simulate",
-             "--matrix-free", "--dir"}
+             "--matrix-free", "--dir", "--projector-response"}
 
 
 # --- the parser ---------------------------------------------------------------------------
