@@ -351,3 +351,53 @@ def test_matrix_free_apply_and_first_bounce_shapes(tmp_path, scene):
     F = first_bounce_from_inverse(bigT.open(tmp_path / "X.zarr"))
     X_stored = read(tmp_path / "X.zarr", order="matrix")
     np.testing.assert_allclose(F, np.linalg.inv(blocks_of(X_stored)), rtol=1e-12)
+
+
+def test_memory_sizes_of_colour_operands_bound_what_they_hold(tmp_path):
+    """The memory plan's sizes of S = F X and of M's rows (a colour F mixes each
+    pixel's 3 rows, so they hold up to 3x the stored entries per row) are at least
+    what the operands hold once read: a row of X per channel with its own columns is
+    the worst case (F X's pixel rows take the union)."""
+    from bigT.schedule.cache import TileCache
+    from bigT.schedule.memory import stored_bytes
+    from bigT.schedule.operators import MOperand, StoreOperand
+
+    rng = np.random.default_rng(2)
+    H, W = 4, 6
+    n = 3 * H * W
+    X = sp.random(n, n, density=0.1, random_state=rng, format="csr")  # rows differ
+    X.setdiag(1.0)
+    blocks = np.linalg.inv(np.eye(3) + 0.2 * rng.random((n // 3, 3, 3)))
+    Xs = store(tmp_path, X.toarray(), (H, W), "X.zarr", order="row-major", tile_size=24)
+    S = StoreOperand(Xs, row_scale=blocks)
+    whole = S.whole()
+    assert whole.nnz > X.nnz  # the union: F X holds more than X
+    assert S.nbytes >= stored_bytes(whole.nnz, n, whole.dtype.itemsize)
+    for j in range(Xs.grid[0]):
+        row = S.row(j)
+        assert S.row_bytes(j) >= stored_bytes(row.nnz, row.shape[0], row.dtype.itemsize)
+    # M = D - T F^-1 from T's rows: T F^-1 spreads each entry over its pixel's columns
+    T = store(tmp_path, X.toarray(), (H, W), "T.zarr", order="row-major", tile_size=24)
+    M = MOperand(T, blocks, np.ones(n, bool), True, TileCache(1 << 30))
+    for a in range(0, n, 24):
+        rows = M.rows(a, a + 24)
+        assert rows.nnz > sp.csr_array(X)[a:a + 24].nnz
+        assert M.row_bytes(a, a + 24) >= stored_bytes(rows.nnz, 24, rows.dtype.itemsize)
+
+
+def test_memory_limit_holds_a_colour_run(tmp_path, scene):
+    """A limit the process can meet runs a colour inverse to the dense result; its plan
+    counts M's rows as 3x T's entries (one tile row of M, in the refusal's words)."""
+    from bigT.errors import MemoryLimitError
+    from bigT.schedule.memory import resident_bytes
+
+    T = store(tmp_path, scene, (6, 8))
+    enough = resident_bytes() + (256 << 20)
+    stratified_inverse(T, tmp_path / "X.zarr", terms=3, prune=0, memory_limit=enough,
+                       progress=False)
+    np.testing.assert_allclose(read(tmp_path / "X.zarr"), dense_colour_stratified(scene, 3),
+                               atol=1e-12)
+    widest = max(T.get_tile_row(j).nnz for j in range(T.grid[0]))
+    with pytest.raises(MemoryLimitError, match=rf"one tile row of M, {3 * widest} entries"):
+        stratified_inverse(T, tmp_path / "Y.zarr", terms=2, memory_limit="64MiB",
+                           progress=False)
