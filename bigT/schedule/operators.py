@@ -217,12 +217,10 @@ class MOperand:
     def abs_matvec_rows(self, a: int, b: int, V) -> np.ndarray:
         """Rows ``a:b`` of |M| V (|M|: M's entries' absolute values), V of shape (n, k):
         from M's rows, cached (or admitted) by :meth:`rows` (|M| mixes the signs of
-        T F^-1's entries, so T's rows alone do not give it); the absolute values share
-        the rows' structure."""
-        M = self.rows(a, b)
+        T F^-1's entries, so T's rows alone do not give it); the kernel takes each
+        entry's absolute value as it reads it."""
         out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
-        absolute = sp.csr_array((np.abs(M.data), M.indices, M.indptr), shape=M.shape)
-        spmm_dense(absolute, V, out=out, n_threads=1)
+        spmm_dense(self.rows(a, b), V, out=out, n_threads=1, absolute=True)
         return out
 
     def matvec_rows(self, a: int, b: int, V, minus_finv_v=None) -> np.ndarray:
