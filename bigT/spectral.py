@@ -50,8 +50,8 @@ signs cancel in M: by about 0.75 of the pixel-to-pixel variation of the colour m
 (2 % for a 2 % variation, 8 % for 10 %: tests/test_spectral.py), some 10 % where the
 bands' albedos differ as well (tests/algorithms/test_colour_inverse.py), more under
 strong cross-talk that varies. It is taken (method ``"collatz-wielandt-abs"``)
-when its top is under ``config.SPECTRAL_RADIUS_ABS_ACCEPT``; above, ARPACK finds rho
-(M)'s value as for any operator, the bracket's products counted with its own.
+when its top is under ``config.SPECTRAL_RADIUS_ABS_ACCEPT``; above, ARPACK computes
+rho(M) itself as for any operator, the bracket's products counted with its own.
 
 Which estimator runs, and what its number means:
 
