@@ -77,6 +77,12 @@ SPECTRAL_RADIUS_CW_SUPPORT = 0.01
 #: and the iteration shifted by this fraction of the upper bound (v <- |M| v + s v keeps
 #: v > 0 and breaks the +-rho oscillation of two walls that only see each other).
 SPECTRAL_RADIUS_CW_SHIFT = 0.1
+#: Where M has entries of both signs (colour: F^-1's blocks have negative entries), the
+#: bracket's top on rho(|M|) >= rho(M) is taken as rho's upper bound when under this:
+#: the series then provably converges, its error falling at least 10 % per term; nearer
+#: 1, where 1 - rho sets the terms needed (and the bound may hold 1 while rho does not),
+#: ARPACK computes rho itself.
+SPECTRAL_RADIUS_ABS_ACCEPT = 0.9
 #: A term whose residual estimate grew from the previous term's and exceeds the smallest
 #: one so far by this factor stops the run (the series diverges). Not any growth: a
 #: convergent series with a non-normal M (rho < 1 <= ||M||) or at its pruning floor may

@@ -35,6 +35,37 @@ T's rows times F^-1, which agree to that). It is taken when it is narrow
 ``config.SPECTRAL_RADIUS_CW_WIDE``, and does not hold 1; near 1, where the error's
 rate 1 - rho needs rho's digits, or beyond, ARPACK decides, as above (its products
 counted with the bracket's).
+
+An upper bound where M has entries of both signs (``apply_abs``: products with |M|,
+M's entries' absolute values). A colour transport's F^-1 (the inverses of the pixels'
+3x3 colour-mixing blocks) has negative entries, so M = I - T F^-1 has positive ones
+and the bracket above does not apply to M; but |lambda| <= rho(|M|) for every
+eigenvalue lambda of M (Wielandt: |M x| <= |M| |x| entrywise, and |M| >= 0 is
+monotone), and the bracket does apply to the nonnegative |M|. Its top is a rigorous
+upper bound on rho(M), enough for the series' convergence and for the rate at which
+its error falls; its bottom bounds rho(|M|), not rho(M), from below. The iteration
+narrows the bracket to ``config.SPECTRAL_RADIUS_CW_RTOL`` whatever its height (only the
+top is used), so the bound is rho(|M|) to about 2 %; rho(|M|) exceeds rho(M) where
+signs cancel in M: by about 0.75 of the pixel-to-pixel variation of the colour mixing
+(2 % for a 2 % variation, 8 % for 10 %: tests/test_spectral.py), some 10 % where the
+bands' albedos differ as well (tests/algorithms/test_colour_inverse.py), more under
+strong cross-talk that varies. It is taken (method ``"collatz-wielandt-abs"``)
+when its top is under ``config.SPECTRAL_RADIUS_ABS_ACCEPT``; above, ARPACK computes
+rho(M) itself as for any operator, the bracket's products counted with its own.
+
+Which estimator runs, and what its number means:
+
+============================  ==========================================  ===============
+when                          estimator                                   uncertainty
+============================  ==========================================  ===============
+at most DENSE_MAX unknowns    every eigenvalue (``"dense"``)              rounding
+M has no positive entry       Collatz-Wielandt on -M, taken when narrow   the bracket
+                              or low (``"collatz-wielandt"``)             (rigorous)
+M of both signs, given |M|    Collatz-Wielandt on |M|, taken when its     an upper bound
+                              top is under ABS_ACCEPT                     (rigorous); rho
+                              (``"collatz-wielandt-abs"``)                may be lower
+otherwise, or undecided       ARPACK (``"arnoldi"``)                      Ritz residual
+============================  ==========================================  ===============
 """
 
 from __future__ import annotations
@@ -51,6 +82,9 @@ from . import config
 #: apply(V) multiplies the operator by V of shape (n, p) and returns (n, p).
 BlockProduct = Callable[[np.ndarray], np.ndarray]
 
+#: The method name of the upper bound rho(M) <= rho(|M|) (module docstring).
+ABS_BOUND = "collatz-wielandt-abs"
+
 
 @dataclass(frozen=True)
 class SpectralRadius:
@@ -66,7 +100,9 @@ class SpectralRadius:
     products : int
         Operator products it took (one per vector; a block of p vectors counts p).
     method : str
-        ``"dense"``, ``"collatz-wielandt"``, ``"arnoldi"`` or ``"zero"`` (no unknowns).
+        ``"dense"``, ``"collatz-wielandt"``, ``"collatz-wielandt-abs"`` (value +-
+        uncertainty brackets rho(|M|), whose top bounds rho(M) from above),
+        ``"arnoldi"`` or ``"zero"`` (no unknowns).
     converged : bool
     """
 
@@ -87,6 +123,9 @@ class SpectralRadius:
         if not self.converged:
             return (f"undetermined (ARPACK did not converge in {self.products} products"
                     + ("" if math.isnan(self.value) else f"; at least {self.value:.4f}") + ")")
+        if self.method == ABS_BOUND:
+            return (f"at most {self.upper:.4f} (rho(|M|) in [{self.value - self.uncertainty:.4f}, "
+                    f"{self.upper:.4f}], {self.method}, {self.products} products)")
         return (f"{self.value:.4f} +- {self.uncertainty:.1e} "
                 f"({self.method}, {self.products} products)")
 
@@ -107,6 +146,11 @@ def spectral_meaning(method: str | None, value: float | None,
         return (f"a rigorous Collatz-Wielandt bracket [{value - uncertainty:.4f}, "
                 f"{value + uncertainty:.4f}] on rho, enough to tell that the series "
                 "converges, not rho to these digits")
+    if method == ABS_BOUND and value is not None and uncertainty is not None:
+        return (f"rho(M) <= rho(|M|) in [{value - uncertainty:.4f}, {value + uncertainty:.4f}] "
+                "(Collatz-Wielandt on |M|; rigorous upper bound, M is not sign-definite): "
+                "the series converges and its error falls at least that fast per term; "
+                "rho(M) itself may be lower")
     if method == "arnoldi":
         return ("the largest eigenvalue modulus, computed by ARPACK to convergence "
                 "(+- its Ritz residual)")
@@ -119,7 +163,8 @@ def spectral_meaning(method: str | None, value: float | None,
 
 def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = None,
                     rtol: float | None = None, max_products: int | None = None,
-                    seed: int = 0, nonpositive: bool = False) -> SpectralRadius:
+                    seed: int = 0, nonpositive: bool = False,
+                    apply_abs: BlockProduct | None = None) -> SpectralRadius:
     """rho of the operator ``apply`` restricted to the unknowns ``active``.
 
     Parameters
@@ -141,6 +186,11 @@ def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = Non
     nonpositive : bool
         The caller knows that no entry of the operator is positive: the
         Collatz-Wielandt bracket (module docstring) is tried before ARPACK.
+    apply_abs : callable, optional
+        ``apply_abs(V)``: the product with |M| (the operator's entries' absolute
+        values), as ``apply``. Where the operator is not known to be nonpositive, the
+        bracket of rho(|M|) is tried first, its top taken as an upper bound on rho
+        when under ``config.SPECTRAL_RADIUS_ABS_ACCEPT`` (module docstring).
 
     Returns
     -------
@@ -151,11 +201,14 @@ def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = Non
     if m == 0:
         return SpectralRadius(0.0, 0.0, 0, "zero")
 
-    def apply_active(V_active: np.ndarray) -> np.ndarray:
-        V = np.zeros((n, V_active.shape[1]))
-        V[idx] = V_active
-        return np.asarray(apply(V), dtype=np.float64)[idx]
+    def restricted(product: BlockProduct) -> BlockProduct:
+        def on_active(V_active: np.ndarray) -> np.ndarray:
+            V = np.zeros((n, V_active.shape[1]))
+            V[idx] = V_active
+            return np.asarray(product(V), dtype=np.float64)[idx]
+        return on_active
 
+    apply_active = restricted(apply)
     if m <= max(config.SPECTRAL_RADIUS_DENSE_MAX, 3):  # ARPACK needs k < m - 1
         return _dense(apply_active, m)
     spent = 0
@@ -164,6 +217,11 @@ def spectral_radius(apply: BlockProduct, n: int, active: np.ndarray | None = Non
         if _narrow_enough(bracket.upper, bracket.upper - 2 * bracket.uncertainty):
             return bracket
         spent = bracket.products
+    elif apply_abs is not None:
+        bound = _abs_bound(restricted(apply_abs), m)
+        if bound.upper < config.SPECTRAL_RADIUS_ABS_ACCEPT:
+            return bound
+        spent = bound.products
     rho = _arnoldi(apply_active, m,
                    config.SPECTRAL_RADIUS_RTOL if rtol is None else rtol,
                    config.SPECTRAL_RADIUS_MAX_PRODUCTS if max_products is None
@@ -195,10 +253,13 @@ def _dense(apply_active: BlockProduct, m: int) -> SpectralRadius:
 _ENTRY_ROUNDING = 2 * float(np.finfo(np.float32).eps)
 
 
-def _collatz_wielandt(apply_nonneg: BlockProduct, m: int) -> SpectralRadius:
+def _collatz_wielandt(apply_nonneg: BlockProduct, m: int,
+                      done: Callable[[float, float], bool] | None = None) -> SpectralRadius:
     """rho of a nonnegative operator A (``apply_nonneg`` multiplies it by (m, k)
     blocks) bracketed by Collatz-Wielandt bounds (module docstring): value +-
-    uncertainty is the bracket."""
+    uncertainty is the bracket. The iteration stops once ``done(hi, lo)``
+    (:func:`_narrow_enough` by default) or after the products allowed."""
+    done = _narrow_enough if done is None else done
     v = np.ones(m)
     w = apply_nonneg(v[:, None])[:, 0]  # A v, shape (m,)
     if not w.any():
@@ -213,12 +274,22 @@ def _collatz_wielandt(apply_nonneg: BlockProduct, m: int) -> SpectralRadius:
         if products >= 8 and products % 4 == 0:
             lo = max(lo, _subinvariant_bound(apply_nonneg, v))
             products += 1
-            if _narrow_enough(hi, lo):
+            if done(hi, lo):
                 break
     # the sums' rounding (as in _dense) and float32 entries' (module docstring)
     hi *= 1 + m * np.finfo(np.float64).eps + _ENTRY_ROUNDING
     lo *= 1 - _ENTRY_ROUNDING
     return SpectralRadius((hi + lo) / 2, (hi - lo) / 2, products, "collatz-wielandt")
+
+
+def _abs_bound(apply_abs_active: BlockProduct, m: int) -> SpectralRadius:
+    """The Collatz-Wielandt bracket of rho(|M|) (``apply_abs_active`` multiplies |M| by
+    (m, k) blocks): its top bounds rho(M) from above (module docstring)."""
+    # only the top matters (it is the bound reported): the bracket is narrowed
+    # whatever its height, not left wide when low as rho's own bracket may be
+    bracket = _collatz_wielandt(apply_abs_active, m,
+                                lambda hi, lo: hi - lo <= config.SPECTRAL_RADIUS_CW_RTOL * hi)
+    return dataclasses.replace(bracket, method=ABS_BOUND)
 
 
 def _subinvariant_bound(apply_nonneg: BlockProduct, v: np.ndarray) -> float:

@@ -151,3 +151,85 @@ def test_a_bracket_holding_one_goes_to_arnoldi():
     assert _bracket(-M).value - _bracket(-M).uncertainty < 1 <= _bracket(-M).upper
     rho = _radius(M)
     assert rho.method == "arnoldi" and abs(rho.value - _exact(M)) <= rho.uncertainty + 1e-12
+
+
+# --- the upper bound rho(M) <= rho(|M|) (M of both signs: colour) --------------------
+
+#: Camera sensitivities and projector primaries with a real device's cross-talk (as in
+#: tests/algorithms/test_colour_inverse.py).
+_CAMERA = np.array([[0.80, 0.15, 0.05], [0.10, 0.80, 0.10], [0.05, 0.20, 0.75]])
+_PROJECTOR = np.array([[0.90, 0.10, 0.00], [0.08, 0.85, 0.07], [0.02, 0.10, 0.88]])
+
+
+def _colour_m(pixels, rho_grey, seed, spread=0.1, mixing=_CAMERA @ _PROJECTOR):
+    """M = I - T F^-1 of a colour T = (per-pixel gain) kron(K_grey, mixing) + its
+    diagonal blocks: F = T's 3x3 diagonal blocks, so M's diagonal blocks are 0 and its
+    off-diagonal ones are -T_pq F_q^-1, of both signs (F_q^-1 has negative entries)."""
+    rng = np.random.default_rng(seed)
+    K = _perron(pixels, rho_grey, seed, density=0.1)
+    np.fill_diagonal(K, 1.0)
+    gain = (1 + spread * rng.standard_normal((pixels, 3, 3))).clip(0.5)
+    T = np.einsum("pq,pij->piqj", K, gain * mixing).reshape(3 * pixels, 3 * pixels)
+    F = np.zeros_like(T)
+    for p in range(pixels):
+        F[3 * p:3 * p + 3, 3 * p:3 * p + 3] = T[3 * p:3 * p + 3, 3 * p:3 * p + 3]
+    M = np.eye(3 * pixels) - T @ np.linalg.inv(F)
+    for p in range(pixels):
+        M[3 * p:3 * p + 3, 3 * p:3 * p + 3] = 0.0  # I - F_p F_p^-1, rounding dropped
+    return M
+
+
+def _with_abs(M, active=None):
+    return spectral_radius(lambda V: M @ V, M.shape[0], active,
+                           apply_abs=lambda V: np.abs(M) @ V)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("rho_grey", [0.2, 0.5])
+@pytest.mark.parametrize("spread,slack", [(0.02, 1.03), (0.05, 1.05), (0.1, 1.1)])
+def test_abs_bound_is_above_every_eigenvalue_and_tight_for_small_cross_talk(
+        seed, rho_grey, spread, slack):
+    """rho(M) = rho_grey here (M is similar to the grey one); the bound's excess comes
+    from the pixels' mixing varying (``spread``): about 0.75 of it."""
+    M = _colour_m(150, rho_grey, seed, spread=spread)
+    assert M.max() > 0 and M.min() < 0  # not sign-definite: the plain bracket is out
+    exact = _exact(M)
+    rho = _with_abs(M)
+    assert rho.method == "collatz-wielandt-abs"
+    assert exact <= rho.upper <= slack * exact
+    # and it brackets rho(|M|) itself, the number it bounds
+    assert _holds(rho, _exact(np.abs(M)))
+    assert rho.products <= config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS + 1
+    assert "rigorous upper bound" in rho.meaning() and "at most" in rho.describe()
+
+
+def test_abs_bound_holds_under_strong_cross_talk():
+    """Cross-talk that cancels in M leaves the bound loose, never below rho."""
+    rng = np.random.default_rng(4)
+    mixing = np.eye(3) + 0.4 * rng.uniform(-1, 1, (3, 3))
+    M = _colour_m(120, 0.3, 4, spread=0.3, mixing=mixing)
+    rho = _with_abs(M)
+    assert rho.upper >= _exact(M)
+
+
+def test_abs_bound_near_one_goes_to_arnoldi():
+    """A bound at or above ABS_ACCEPT tells too little (rho(M) may be far lower, or the
+    bound may hold 1 while rho does not): ARPACK computes rho, the bound's products
+    counted with its own."""
+    M = _colour_m(150, 0.95, 0)
+    bound = _collatz_wielandt(lambda V: np.abs(M) @ V, M.shape[0])
+    assert bound.upper >= config.SPECTRAL_RADIUS_ABS_ACCEPT
+    rho = _with_abs(M)
+    assert rho.method == "arnoldi" and rho.converged
+    assert abs(rho.value - _exact(M)) <= max(rho.uncertainty, 1e-9)
+    assert rho.products > bound.products
+
+
+def test_abs_bound_counts_only_active_unknowns():
+    M = _colour_m(150, 0.3, 1)
+    active = np.ones(M.shape[0], bool)
+    active[:90] = False
+    M[3:6, 60:63] = 50.0  # a large entry in a left-out row: ignored
+    rho = _with_abs(M, active)
+    assert rho.method == "collatz-wielandt-abs"
+    assert _exact(M, active) <= rho.upper <= 1.1 * _exact(M, active)

@@ -1,8 +1,9 @@
 """The engine's two refusals of a diverging series; ``force`` skips both.
 
 Before term 0, rho(M) is estimated once per store (:func:`bigT.spectral.spectral_radius`:
-a Collatz-Wielandt bracket where M = -|M|, as for any transport without negative
-entries; else Arnoldi) and kept in the store's record; the run is refused unless
+a Collatz-Wielandt bracket where M = -|M|, as for any grey transport without negative
+entries; where M has both signs, as with colour, the rigorous upper bound rho(|M|) when
+it is well under 1; else Arnoldi) and kept in the store's record; the run is refused unless
 rho + its uncertainty < 1. After every term, a residual that grew and exceeds the
 smallest so far ``config.RESIDUAL_GROWTH`` times is refused before the term is
 published (not any growth: with a non-normal M, or at the pruning floor, a convergent
@@ -47,11 +48,16 @@ def recorded_radius(record: SeriesRecord) -> SpectralRadius | None:
 
 
 def estimate_radius(matvecs: MatVecs, seed: int) -> SpectralRadius:
-    """rho(M) from products with M on the runner (the bracket when M has no positive
-    entry)."""
+    """rho(M) from products with M on the runner: the bracket when M has no positive
+    entry; else (colour, or a first bounce other than diag T) the upper bound
+    rho(|M|) from products with |M| when it is well under 1, ARPACK otherwise (the
+    engine needs only the bound: the refusal asks rho < 1, and the report says which
+    kind of number it holds)."""
     lay = matvecs.layout
+    nonpositive = matvecs.m_nonpositive()
     return spectral_radius(matvecs.apply_M, lay.n, lay.fb.active, seed=seed,
-                           nonpositive=matvecs.m_nonpositive())
+                           nonpositive=nonpositive,
+                           apply_abs=None if nonpositive else matvecs.apply_abs_M)
 
 
 def with_radius(record: SeriesRecord, rho: SpectralRadius) -> SeriesRecord:

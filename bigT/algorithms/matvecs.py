@@ -1,6 +1,6 @@
 """The engine's products of M = I - T F^-1 and of a term's X with dense blocks, run on
 the runner one task per row block (:func:`bigT.schedule.matvec.matvec`): the spectral
-radius's products with M, and the residual estimate's with M and X."""
+radius's products with M (or |M|), and the residual estimate's with M and X."""
 
 from __future__ import annotations
 
@@ -28,6 +28,15 @@ class MatVecs:
                            lay.tile_size, lay.T.dtype, memory=lay.policy, T=lay.T_path,
                            first_bounce=lay.fb.digest, zero_diagonal=lay.fb.zero_diagonal,
                            largest=largest)
+        return matvec(self.runner, spec, V, lay.shared)
+
+    def apply_abs_M(self, V: np.ndarray) -> np.ndarray:
+        """|M| V, shape (n, p), for V of shape (n, p): the products of rho(M)'s upper
+        bound rho(|M|) where M has entries of both signs (colour)."""
+        lay = self.layout
+        spec = matvec_spec("matvec-absM", lay.T_path, lay.n, lay.tile_size, lay.T.dtype,
+                           memory=lay.policy, T=lay.T_path, first_bounce=lay.fb.digest,
+                           zero_diagonal=lay.fb.zero_diagonal, absolute=True)
         return matvec(self.runner, spec, V, lay.shared)
 
     def m_nonpositive(self) -> bool:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 from ..schedule.memory import human_bytes
-from ..spectral import spectral_meaning
+from ..spectral import ABS_BOUND, spectral_meaning
 from .records import TermRecord
 from .settings import Thresholds
 
@@ -115,7 +115,9 @@ class InverseReport:
         if self.spectral_radius is None:
             return "spectral radius of M = I - T F^-1: -"
         value = f"{self.spectral_radius:.4f}"
-        if self.spectral_uncertainty is not None:
+        if self.spectral_method == ABS_BOUND and self.spectral_uncertainty is not None:
+            value = f"at most {self.spectral_radius + self.spectral_uncertainty:.4f}"
+        elif self.spectral_uncertainty is not None:
             value += f" +- {self.spectral_uncertainty:.1e}"
         return (f"spectral radius of M = I - T F^-1: {value}, "
                 + spectral_meaning(self.spectral_method, self.spectral_radius,

@@ -90,7 +90,8 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     """
     T_path = _tasks_path(T, runner, settings.progress)
     fb = resolve_first_bounce(T, first_bounce)
-    policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1], max_row_nnz(T))
+    policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1],
+                          max_row_nnz(T) * fb.channels)
     plans = runner.plans(policy)
     created = not store.path.exists() or settings.overwrite
     params = inverse_fingerprint(T, fb, settings.thresholds, series.name)
@@ -130,7 +131,8 @@ def choose_tile_size(n: int, tile_size: int, threads: int, channels: int = 1) ->
 
 
 def max_row_nnz(T) -> int:
-    """Entries of T's widest tile row."""
+    """Entries of T's widest tile row (a tile row of M holds up to ``channels`` times
+    as many: the caller scales it)."""
     indptr = np.asarray(T.tile_indptr)
     tile_nnz = np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0)
     row_nnz = np.add.reduceat(tile_nnz, indptr[:-1]) * (np.diff(indptr) > 0)

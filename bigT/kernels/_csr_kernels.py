@@ -395,9 +395,18 @@ def diagonal_internal(indptr, indices, data, out):
         out[i] = s
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _entry(a, absolute):
+    """An entry of A as the product uses it: |a| when ``absolute`` (a loop invariant,
+    so the branch costs nothing measurable in the gather-bound loops)."""
+    return abs(a) if absolute else a
+
+
 @njit(nogil=True, cache=True)
-def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
-    """out[r0:r1] += A[r0:r1] @ x for a dense x of shape (n_cols, k), C-contiguous.
+def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out, absolute=False):
+    """out[r0:r1] += A[r0:r1] @ x for a dense x of shape (n_cols, k), C-contiguous;
+    |A| (entries' absolute values) for A when ``absolute``. ``data`` may be float32
+    with a float64 x (each entry is widened as it is used, no copy of A is made).
 
     Each row is summed in a k-vector that stays in L1 (float64 for k = 1, x's dtype
     for k > 1) and added to ``out`` once. The input checks are fused into the loop,
@@ -445,16 +454,16 @@ def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
                 bad |= (jmin < 0) | (jmax >= n_cols)
                 if bad:
                     break
-                s0 += np.float64(data[p]) * x[j0, 0]
-                s1 += np.float64(data[p + 1]) * x[j1, 0]
-                s2 += np.float64(data[p + 2]) * x[j2, 0]
-                s3 += np.float64(data[p + 3]) * x[j3, 0]
+                s0 += np.float64(_entry(data[p], absolute)) * x[j0, 0]
+                s1 += np.float64(_entry(data[p + 1], absolute)) * x[j1, 0]
+                s2 += np.float64(_entry(data[p + 2], absolute)) * x[j2, 0]
+                s3 += np.float64(_entry(data[p + 3], absolute)) * x[j3, 0]
                 p += 4
             while p < stop and not bad:
                 j0 = indices[p]
                 bad |= (j0 < 0) | (j0 >= n_cols)
                 if not bad:
-                    s0 += np.float64(data[p]) * x[j0, 0]
+                    s0 += np.float64(_entry(data[p], absolute)) * x[j0, 0]
                 p += 1
             if bad:
                 return CSR_INDEX_OUT_OF_RANGE, i
@@ -470,7 +479,7 @@ def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out):
         for c in range(k):
             tmp[c] = 0.0
         for p in range(start, stop):
-            a = data[p]
+            a = _entry(data[p], absolute)
             xrow = x[indices[p]]
             for c in range(k):
                 tmp[c] += a * xrow[c]

@@ -124,8 +124,9 @@ def add_diag_scaled(a, d, b, dtype):
     return _keep(C, dtype, 0.0)
 
 
-def spmm_dense(indptr, indices, data, X, out):
-    """``spmm_dense_rows_internal`` over all rows: out += A @ X; (status, row).
+def spmm_dense(indptr, indices, data, X, out, absolute=False):
+    """``spmm_dense_rows_internal`` over all rows: out += A @ X (|A| @ X when
+    ``absolute``); (status, row).
 
     A row whose sum is not finite is reported and, as in the kernel, it and the rows
     after it are not added.
@@ -142,7 +143,8 @@ def spmm_dense(indptr, indices, data, X, out):
         return CSR_INDEX_OUT_OF_RANGE, int(np.searchsorted(indptr, out_of_range[0], "right") - 1)
     # k = 1 sums in float64, k > 1 in X's dtype (the kernel's accumulators)
     acc = np.float64 if k == 1 else X.dtype
-    A = sp.csr_array((data[:len(used)].astype(acc), used, indptr),
+    values = data[:len(used)].astype(acc)
+    A = sp.csr_array((np.abs(values) if absolute else values, used, indptr),
                      shape=(len(indptr) - 1, n_cols))
     Y = A @ X.astype(acc)
     bad = np.flatnonzero(~np.isfinite(Y).all(axis=1))

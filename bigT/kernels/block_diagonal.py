@@ -4,9 +4,11 @@ The first bounce F of a colour transport (and F^-1) is block-diagonal with one 3
 colour-mixing block per pixel, the rows and columns 3 p .. 3 p + 2 of pixel p; a grey
 F is diagonal. :class:`BlockDiagonal` holds either and applies it to dense blocks and
 to CSR row blocks, from the left or the right. Products with a block-diagonal factor
-are O(b nnz): vectorised numpy for dense blocks, one scipy product with the
-(n, n) CSR of the blocks for sparse ones (b^2 entries a row; the b = 1 cases are the
-scale kernels of :mod:`.csr`, so a grey F costs what it always did).
+are O(b nnz): vectorised numpy for dense blocks, numba kernels for CSR row blocks
+(:mod:`._block_kernels`: two passes, the output allocated once; scipy's product with
+the (n, n) CSR of the blocks and the sort after it took three times as long and held
+three copies; the b = 1 cases are the scale kernels of :mod:`.csr`, so a grey F costs
+what it always did).
 """
 
 from __future__ import annotations
@@ -79,15 +81,41 @@ class BlockDiagonal:
         if self.b == 1:
             return scale_rows(A, np.asarray(self.values[start:start + r], dtype=dtype))
         self._check_start(start, r)
-        local = _block_csr(self.values[start // self.b:(start + r) // self.b], dtype)
-        return _canonical(local @ A)
+        if self.b != 3:  # no kernel: scipy's product (no colour F is other than 3 x 3)
+            local = _block_csr(self.values[start // self.b:(start + r) // self.b], dtype)
+            return _canonical(local @ A)
+        A = _sorted(A)
+        indptr, indices, data = _kernels().scale_rows_blocks_internal(
+            A.indptr, A.indices, A.data, np.ascontiguousarray(self.values), start // 3,
+            np.dtype(dtype))
+        return _csr(indptr, indices, data, A.shape)
 
-    def scale_cols(self, A) -> sp.csr_array:
-        """A times B, A of shape (r, n); shape (r, n), sorted indices."""
+    def scale_cols(self, A, negate: bool = False,
+                   drop_diagonal_blocks_at: int | None = None) -> sp.csr_array:
+        """A times B, A of shape (r, n); shape (r, n), sorted indices, exact zeros
+        dropped. ``negate``: -(A B). ``drop_diagonal_blocks_at``: A's first row is this
+        global row (a multiple of b), and the entries of the result's b x b diagonal
+        blocks are left out (M = -T F^-1 off its diagonal blocks, in one pass)."""
         A = sp.csr_array(A)
+        start = drop_diagonal_blocks_at
         if self.b == 1:
-            return scale_cols(A, np.asarray(self.values, dtype=A.dtype))
-        return _canonical(A @ self.csr(A.dtype))
+            out = scale_cols(A, np.asarray(self.values, dtype=A.dtype))  # a new array
+            if negate:
+                out.data *= -1
+            return out if start is None else off_block_diagonal(out, start, 1)
+        if start is not None:
+            self._check_start(start, A.shape[0])
+        if self.b != 3:  # no kernel: scipy's product (no colour F is other than 3 x 3)
+            out = _canonical(A @ self.csr(A.dtype))
+            if negate:
+                out.data *= -1
+            return out if start is None else off_block_diagonal(out, start, self.b)
+        A = _sorted(A)
+        indptr, indices, data = _kernels().scale_cols_blocks_internal(
+            A.indptr, A.indices, A.data, np.ascontiguousarray(self.values),
+            0 if start is None else start, start is not None, -1.0 if negate else 1.0,
+            A.dtype)
+        return _csr(indptr, indices, data, A.shape)
 
     def rows(self, start: int, stop: int, dtype) -> sp.csr_array:
         """Rows ``start:stop`` of B as CSR of shape (stop - start, n), global columns,
@@ -107,6 +135,34 @@ class BlockDiagonal:
         if self._csr is None or self._csr.dtype != np.dtype(dtype):
             self._csr = _block_csr(self.values, dtype)
         return self._csr
+
+
+def _kernels():
+    # numba's kernels: compiled (or loaded from cache) on first use, off the import path
+    from . import _block_kernels
+    return _block_kernels
+
+
+def _sorted(A: sp.csr_array) -> sp.csr_array:
+    """A with sorted indices (a sorted copy when they are not): the kernels find a
+    pixel's b columns adjacent."""
+    if A.has_sorted_indices:
+        return A
+    A = A.copy()
+    A.sort_indices()
+    return A
+
+
+def _csr(indptr, indices, data, shape) -> sp.csr_array:
+    """A kernel's output as a csr_array: sorted and duplicate-free by construction,
+    its row pointers in the indices' dtype (int32 where it holds them: the memory
+    plan counts int32 indices)."""
+    if indices.dtype == np.int32 and (len(indptr) == 0 or indptr[-1] < 2**31):
+        indptr = indptr.astype(np.int32)
+    out = sp.csr_array((data, indices, indptr), shape=shape)
+    out.has_sorted_indices = True
+    out.has_canonical_format = True
+    return out
 
 
 def _block_csr(blocks: np.ndarray, dtype) -> sp.csr_array:
@@ -130,22 +186,14 @@ def _canonical(A) -> sp.csr_array:
     return A
 
 
-def _block_of_entries(A: sp.csr_array, start: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-    """(global row, column) of each stored entry of the row block A whose first row is
-    global row ``start``: int64 arrays of A.nnz."""
-    row = start + np.repeat(np.arange(A.shape[0], dtype=np.int64), np.diff(A.indptr))
-    return row, np.asarray(A.indices[:A.indptr[-1]], dtype=np.int64)
-
-
 def off_block_diagonal(A, start: int, b: int) -> sp.csr_array:
     """The row block A (first row: global row ``start``, a multiple of b) without the
     entries of its b x b diagonal blocks: (i, j) with i // b == j // b are dropped."""
     A = sp.csr_array(A)
-    row, col = _block_of_entries(A, start, b)
-    keep = (row // b) != (col // b)
-    counts = np.bincount(row[keep] - start, minlength=A.shape[0])
-    indptr = np.concatenate([[0], np.cumsum(counts)])
-    out = sp.csr_array((A.data[:A.indptr[-1]][keep], A.indices[:A.indptr[-1]][keep], indptr),
+    indptr, indices, data = _kernels().off_block_diagonal_internal(
+        A.indptr, A.indices, A.data, int(start), int(b))
+    out = sp.csr_array((data, indices, indptr.astype(A.indptr.dtype)
+                        if indptr[-1] < np.iinfo(A.indptr.dtype).max else indptr),
                        shape=A.shape)
     out.has_sorted_indices = A.has_sorted_indices
     return out
@@ -159,8 +207,6 @@ def diagonal_blocks(A, start: int, b: int) -> np.ndarray:
     if start % b or r % b:
         raise ShapeMismatchError(f"rows {start}:{start + r} do not cover whole {b}x{b} "
                                  "blocks")
-    row, col = _block_of_entries(A, start, b)
-    on = (row // b) == (col // b)
     out = np.zeros((r // b, b, b), dtype=np.result_type(A.dtype, np.float32))
-    np.add.at(out, ((row[on] - start) // b, row[on] % b, col[on] % b), A.data[:A.indptr[-1]][on])
+    _kernels().diagonal_blocks_internal(A.indptr, A.indices, A.data, int(start), int(b), out)
     return out

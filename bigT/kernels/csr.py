@@ -452,8 +452,9 @@ def spgemm(
     return _csr_result((m, p), indptr, indices, data, out_idt)
 
 
-def spmm_dense(A, X, out=None, *, n_threads=None):
-    """A @ X for a sparse A and a dense batch X (images as columns).
+def spmm_dense(A, X, out=None, *, n_threads=None, absolute=False):
+    """A @ X for a sparse A and a dense batch X (images as columns); |A| @ X (A's
+    entries' absolute values, A itself untouched) when ``absolute``.
 
     Parameters
     ----------
@@ -463,6 +464,9 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
         When given, ``out += A @ X`` in place and ``out`` is returned. Must be a
         writeable float32/float64 array; C-contiguous is fastest.
     n_threads : int, optional
+    absolute : bool
+        Multiply by |A| instead (the products of the spectral radius's upper bound
+        rho(|M|), without a copy of M's values).
 
     Returns
     -------
@@ -492,7 +496,11 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
     idt = choose_index_dtype(max(m, n), A.nnz)
     indptr = np.ascontiguousarray(A.indptr, dtype=idt)
     indices = np.ascontiguousarray(A.indices, dtype=idt)
-    data = np.ascontiguousarray(A.data, dtype=fdt)
+    # A's values as stored when float32 or float64 (the kernel widens each as it uses
+    # it): a cast would copy every entry per product, which for a row block of a colour
+    # M (float32, ~10^7 entries) cost a third of a mat-vec with float64 vectors
+    data = np.ascontiguousarray(A.data, dtype=A.data.dtype if A.data.dtype in
+                                (np.float32, np.float64) else fdt)
     if indptr.shape != (m + 1,) or indices.shape != data.shape or indices.ndim != 1:
         raise InvalidMatrixError("A: malformed CSR arrays (indptr/indices/data shapes)")
     if data.dtype.kind == "c":
@@ -518,7 +526,7 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
         if not (target.flags.c_contiguous and np.shares_memory(target, out)):
             target = np.ascontiguousarray(target).copy()
     if m and k and indices.shape[0] and _small_enough(indices.shape[0] * k):
-        statuses = [_small.spmm_dense(indptr, indices, data, X2, target)]
+        statuses = [_small.spmm_dense(indptr, indices, data, X2, target, absolute)]
     elif m and k and indices.shape[0]:
         K = _numba()
         n_threads = thread_count(n_threads)
@@ -530,7 +538,8 @@ def spmm_dense(A, X, out=None, *, n_threads=None):
         else:
             bounds = _split_rows(np.diff(indptr).astype(np.int64) + 1, n_chunks)
         statuses = _run_ranges(
-            lambda r0, r1: K.spmm_dense_rows_internal(r0, r1, indptr, indices, data, X2, target),
+            lambda r0, r1: K.spmm_dense_rows_internal(r0, r1, indptr, indices, data, X2, target,
+                                                      bool(absolute)),
             bounds,
             n_threads,
         )

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._backend import (BlockDiagonal, add_diag_scaled, off_block_diagonal, prune,
-                       scale_cols_off_diagonal, spgemm)
+from ._backend import (BlockDiagonal, add_diag_scaled, prune, scale_cols_off_diagonal,
+                       spgemm)
 
 
 @dataclass
@@ -127,11 +127,12 @@ def _m_rows_blocks(T_rows: sp.csr_array, start: int, finv: BlockDiagonal,
     b columns of its pixel (O(b nnz)); the rows of pixels left out are empty (their X
     rows are 0 whatever M holds there, and M's other rows never reach them: F^-1's
     columns for them are 0), so the products skip them."""
-    M = finv.scale_cols(T_rows)
-    M.data *= -1
     if zero_diagonal:
-        M = off_block_diagonal(M, start, finv.b)
+        M = finv.scale_cols(T_rows, negate=True, drop_diagonal_blocks_at=start)
+        if np.all(active_rows):  # the kernel's output is canonical, zeros dropped
+            return _narrow_indices(M)
     else:
+        M = finv.scale_cols(T_rows, negate=True)
         rows = np.flatnonzero(active_rows)
         D = sp.csr_array((np.ones(len(rows), M.dtype), (rows, rows + start)), shape=M.shape)
         M = sp.csr_array(M + D)

@@ -20,6 +20,11 @@ def m_matvec_task(ctx: TaskContext) -> BlockStats:
     return ctx.stats(y=y)
 
 
+def m_abs_matvec_task(ctx: TaskContext) -> BlockStats:
+    """Rows of |M| V (:meth:`~.operators.MOperand.abs_matvec_rows`)."""
+    return ctx.stats(y=ctx.M.abs_matvec_rows(ctx.start, ctx.stop, ctx.shared["V"]))
+
+
 def m_largest_task(ctx: TaskContext) -> BlockStats:
     """The largest entry of each of the block's rows of M, shape (rows, 1)
     (:meth:`~.operators.MOperand.largest_entries`; the pass's V is not used)."""
@@ -50,15 +55,18 @@ def matvec_spec(op: str, store_path: str, n: int, block_rows: int, dtype, *,
                 memory: MemoryPolicy | None = None, cache_bytes: int | None = None,
                 T: str | None = None, first_bounce: str = "",
                 zero_diagonal: bool = False, cache_tiles: bool = True,
-                largest: bool = False) -> PassSpec:
-    """The spec of A V for the store at ``store_path`` (``T`` given: of M V, or of the
-    largest entry of each row of M when ``largest``). ``cache_bytes`` 0 caches nothing
-    and leaves the tile cache as it is."""
+                largest: bool = False, absolute: bool = False) -> PassSpec:
+    """The spec of A V for the store at ``store_path`` (``T`` given: of M V, of |M| V
+    when ``absolute``, or of the largest entry of each row of M when ``largest``).
+    ``cache_bytes`` 0 caches nothing and leaves the tile cache as it is."""
     if cache_bytes == 0:
         cache_bytes, cache_tiles = None, False
+    if T:
+        task = m_largest_task if largest else m_abs_matvec_task if absolute else m_matvec_task
+    else:
+        task = store_matvec_task
     return PassSpec(
-        op=op, term=0,
-        task=(m_largest_task if largest else m_matvec_task) if T else store_matvec_task,
+        op=op, term=0, task=task,
         T=T or store_path, first_bounce=first_bounce, zero_diagonal=zero_diagonal, n=n,
         block_rows=block_rows, dtype=np.dtype(dtype).name,
         memory=memory or MemoryPolicy(None, 1, n, 0), inputs=(("A", store_path),),

@@ -58,15 +58,21 @@ class StoreOperand:
         self._whole = None
         self._row_len = None
         self._lock = threading.Lock()
+        # a block-diagonal F (colour, b x b blocks) mixes each pixel's b rows of B, so
+        # a row of F B holds up to b times a row's entries (the union of the b rows'):
+        # the sizes the memory plan reads are B's counts times that bound
+        self.fill = _block_size(row_scale)
         self._row_nnz = np.add.reduceat(np.append(np.asarray(store.tile_nnz), 0),
-                                        indptr[:-1]) * self.nonempty
+                                        indptr[:-1]) * self.nonempty * self.fill
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the whole matrix in memory (CSR)."""
-        return stored_bytes(self.nnz, self.shape[0], self.dtype.itemsize)
+        """Bytes of the whole matrix in memory (CSR): for F B with a colour F, the most
+        it may hold (``fill`` times B's entries)."""
+        return stored_bytes(self.nnz * self.fill, self.shape[0], self.dtype.itemsize)
 
     def row_bytes(self, j) -> int:
+        """Bytes of tile row j in memory (at most, for F B with a colour F)."""
         a, b = self.store.tile_row_range(j)
         return stored_bytes(int(self._row_nnz[j]), b - a, self.dtype.itemsize)
 
@@ -139,6 +145,12 @@ class StoreOperand:
             self._whole = None
 
 
+def _block_size(scale) -> int:
+    """b of a block-diagonal scale given as (n/b, b, b) blocks; 1 for a diagonal (n,) or
+    none."""
+    return int(np.shape(scale)[1]) if np.ndim(scale) == 3 else 1
+
+
 class MOperand:
     """M = D - T F^-1 (paper eq. 13 with the preconditioner F), never stored: its row
     blocks are made from T's rows when first needed and kept in the cache (every term
@@ -169,7 +181,9 @@ class MOperand:
         self._key = (str(T.path), version, "M", bool(zero_diagonal), digest)
         row_nnz = np.add.reduceat(np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0),
                                   np.asarray(T.tile_indptr)[:-1])
-        self._row_nnz = row_nnz * (np.diff(np.asarray(T.tile_indptr)) > 0)
+        # T F^-1 with a colour F spreads each entry of T over its pixel's b columns: a
+        # row of M holds up to b times T's row's entries
+        self._row_nnz = row_nnz * (np.diff(np.asarray(T.tile_indptr)) > 0) * _block_size(finv)
 
     def _make_rows(self, a, b):
         return blocks.m_rows(T_rows=sp.csr_array(self.T.get_rows(a, b)), start=a,
@@ -181,7 +195,8 @@ class MOperand:
         return self.cache.get(self._key + (int(a), int(b)), lambda: self._make_rows(a, b))
 
     def row_bytes(self, a: int, b: int) -> int:
-        """Estimated bytes of rows ``a:b`` of M (T's tile-row nnz, pro rata)."""
+        """Estimated bytes of rows ``a:b`` of M (T's tile-row nnz, pro rata; times b
+        for a colour F's b x b blocks: at most)."""
         ts = self.T.tile_size
         nnz = sum(self._row_nnz[i] * (min(b, (i + 1) * ts) - max(a, i * ts))
                   / (self.T.tile_row_range(i)[1] - i * ts)
@@ -197,6 +212,15 @@ class MOperand:
         if len(filled):
             top = np.maximum.reduceat(M.data[:M.indptr[-1]], M.indptr[filled])
             out[filled, 0] = np.maximum(top, 0.0)
+        return out
+
+    def abs_matvec_rows(self, a: int, b: int, V) -> np.ndarray:
+        """Rows ``a:b`` of |M| V (|M|: M's entries' absolute values), V of shape (n, k):
+        from M's rows, cached (or admitted) by :meth:`rows` (|M| mixes the signs of
+        T F^-1's entries, so T's rows alone do not give it); the kernel takes each
+        entry's absolute value as it reads it."""
+        out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
+        spmm_dense(self.rows(a, b), V, out=out, n_threads=1, absolute=True)
         return out
 
     def matvec_rows(self, a: int, b: int, V, minus_finv_v=None) -> np.ndarray:

@@ -41,7 +41,9 @@ class MemoryPolicy:
 
     ``limit`` caps the process (None: no cap beyond a worker's own limit); ``threads``
     is the tasks in flight in a process of the local scheduler (a cluster worker uses
-    its own thread count); ``max_row_nnz`` the entries of T's widest tile row.
+    its own thread count); ``max_row_nnz`` the entries of M's widest tile row as made
+    from T's (T's, times 3 for a colour F, whose 3x3 blocks spread each entry of T over
+    its pixel's 3 columns: at most).
     """
 
     limit: int | None

@@ -58,3 +58,51 @@ def test_rows_must_cover_whole_blocks():
         B.apply(np.ones((3, 1)), start=1)
     with pytest.raises(ShapeMismatchError, match=r"\(n,\) or \(m, b, b\)"):
         BlockDiagonal(np.ones((4, 3)))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_kernels_on_hard_rows(case, dtype):
+    """Unsorted rows, empty rows, a zero block (a pixel left out: its columns and rows
+    hold nothing, zeros dropped), float32 entries with float64 blocks; the products
+    negated and without their diagonal blocks, in one pass, as M = -T F^-1 is made."""
+    b, _, _, A = case
+    rng = np.random.default_rng(7)
+    values = rng.standard_normal((10, b, b)) if b > 1 else rng.standard_normal(10)
+    values[4] = 0  # pixel 4 left out
+    B, dense = BlockDiagonal(values), _dense(values)
+    A = sp.csr_array(A, dtype=dtype)
+    A.indptr[2 * b:] = A.indptr[2 * b]  # ... rows 2b.. emptied, then
+    A = sp.csr_array((A.data[:A.indptr[-1]], A.indices[:A.indptr[-1]], A.indptr[:4 * b + 1]),
+                     shape=A.shape)
+    A = sp.csr_array(A + sp.random(4 * b, 10 * b, density=0.2, random_state=rng,
+                                   format="csr", dtype=dtype))
+    A.indices, A.data = A.indices.copy(), A.data.copy()
+    for i in range(A.shape[0]):  # reverse each row: unsorted indices
+        a, z = A.indptr[i], A.indptr[i + 1]
+        A.indices[a:z], A.data[a:z] = A.indices[a:z][::-1].copy(), A.data[a:z][::-1].copy()
+    A.has_sorted_indices = False
+    start = 3 * b
+    tol = 1e-5 if dtype == np.float32 else 1e-13
+    prod = A.toarray().astype(np.float64) @ dense
+    got = B.scale_cols(A)
+    assert got.has_sorted_indices and got.dtype == dtype
+    assert b == 1 or not np.any(got.data == 0)  # grey keeps the scale kernel's zeros
+    np.testing.assert_allclose(got.toarray(), prod, atol=tol)
+    off = -prod
+    for k in range(4):
+        p = start // b + k
+        off[b * k:b * k + b, b * p:b * p + b] = 0
+    got = B.scale_cols(A, negate=True, drop_diagonal_blocks_at=start)
+    np.testing.assert_allclose(got.toarray(), off, atol=tol)
+    rows = slice(start, start + A.shape[0])
+    got = B.scale_rows(A, start, dtype=np.float64)
+    assert got.dtype == np.float64 and (b == 1 or not np.any(got.data == 0))
+    np.testing.assert_allclose(got.toarray(), dense[rows, rows] @ A.toarray(), atol=tol)
+
+
+def test_diagonal_blocks_sum_duplicates():
+    """A row block that is not canonical (a duplicate entry) has its blocks summed."""
+    A = sp.csr_array((np.array([1.0, 2.0, 5.0]), np.array([4, 4, 0]), np.array([0, 2, 3, 3])),
+                     shape=(3, 9))
+    blocks = diagonal_blocks(A, 3, 3)
+    assert blocks[0, 0, 1] == 3.0 and blocks.sum() == 3.0

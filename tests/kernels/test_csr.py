@@ -355,6 +355,24 @@ def test_spmm_dense_threads_and_strided_out():
     np.testing.assert_allclose(spmm_dense(A, x, n_threads=2), A @ x, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("shape", [(12, 9), (3000, 2000)])  # the small path, numba's
+@pytest.mark.parametrize("k", [1, 5])
+@pytest.mark.parametrize("da", [np.float32, np.float64])
+def test_spmm_dense_absolute(shape, k, da):
+    """|A| @ X (entries of both signs), A left as it was; float32 A with float64 X."""
+    rng = np.random.default_rng(11)
+    A = sp.random_array(shape, density=0.05, format="csr", rng=rng,
+                        data_sampler=rng.standard_normal).astype(da)
+    before = A.data.copy()
+    X = rng.standard_normal((shape[1], k))
+    want = np.abs(_dense64(A)) @ X
+    Y = spmm_dense(A, X, n_threads=2, absolute=True)
+    np.testing.assert_allclose(Y, want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(A.data, before)
+    np.testing.assert_allclose(spmm_dense(A, X, n_threads=2), _dense64(A) @ X,
+                               rtol=1e-12, atol=1e-12)
+
+
 def test_spmm_dense_checks():
     A = sp.csr_array(np.eye(3))
     with pytest.raises(ShapeMismatchError, match="X has 2 rows"):
