@@ -11,8 +11,8 @@ into the direct light (T's diagonal; of a colour T, each pixel's 3x3 diagonal bl
 the interreflected light (every other entry), over the super-pixels seen. Where the
 captures are a simulation's (``simulation.json`` names the scene whose T made them), the
 same split of the scene's own T says how much of the interreflection the floor dropped:
-light the compensation will not cancel. The two are compared relative to their direct
-light, which a camera's gain scales alike.
+light the compensation will not cancel. The two are compared row by row relative to
+their direct light, which a camera's gain scales alike.
 """
 
 from __future__ import annotations
@@ -115,7 +115,8 @@ def _count(value: float) -> str:
 
 
 def _percent(share: float) -> str:
-    """``62 %``, ``1.4 %``, ``0.031 %``: two significant digits below 10 %."""
+    """``62 %``, ``1.4 %``, ``0.031 %``: whole percents from 10 %, one decimal from 1 %,
+    two significant digits below."""
     value = 100 * share
     if abs(value) >= 10:
         return f"{value:.0f} %"
