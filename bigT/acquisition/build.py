@@ -338,7 +338,7 @@ def _checked_mixing(mixing, manifest: Manifest) -> Mixing | None:
         return None
     if manifest.channels == 1:
         raise AcquisitionError("a colour mixing ({option}) is for a colour pattern set; these "
-                               "patterns are grey (write them with --channels 3)",
+                               "patterns are grey (write them in colour, 3 channels)",
                                mixing if not isinstance(mixing, Mixing) else None,
                                option="mixing")
     return mixing if isinstance(mixing, Mixing) else read_mixing(mixing)
@@ -522,7 +522,7 @@ class _Budget:
             warnings.warn(MemoryLimitWarning(
                 f"tile row {rows.tiles[0]} of T alone holds more entries than the memory "
                 f"limit of {self.nbytes} bytes for one pass; it is gathered whole (a "
-                "smaller --tile-size or a larger --memory-limit keeps to the limit)"),
+                "smaller tile size or a larger memory limit keeps to the limit)"),
                 stacklevel=2)
 
 

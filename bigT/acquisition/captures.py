@@ -197,13 +197,15 @@ class Captures:
         try:
             if spec is not None:
                 if self.gamma != 1.0:
-                    raise CalibrationError("give the camera's response once: --gamma G is "
-                                           "--camera-response gamma:G")
+                    raise CalibrationError("give the camera's response once: a gamma G "
+                                           "is {option}",
+                                           option=("camera_response", "gamma:G"))
                 return parse_camera_response(spec)
             return (CameraResponse() if self.gamma == 1.0 else
                     CameraResponse("gamma", gamma=float(self.gamma)))
         except CalibrationError as exc:
-            raise AcquisitionError(exc.template, exc.path, option="camera_response") from None
+            raise AcquisitionError(exc.template, exc.path,
+                                   option=exc.option or "camera_response") from None
 
     def _recover(self, spec: str) -> CameraResponse:
         """The response recovered (OpenCV) from the brackets of the white and ramp
@@ -499,7 +501,8 @@ def _checked_channels(raw: np.ndarray, path: Path, channels: int) -> np.ndarray:
     if channels == 1:
         raise AcquisitionError(
             f"a colour capture ({found} channels) of a grey pattern set: capture every "
-            "pattern in grayscale (one channel), or write the patterns with --channels 3", path)
+            "pattern in grayscale (one channel), or write the patterns with {option}", path,
+            option=("channels", 3))
     raise AcquisitionError(
         "a grey capture of a colour pattern set (channels 3): capture every pattern in "
         "RGB", path)

@@ -22,7 +22,7 @@ The means are fitted by :func:`bigT.calibration.fit_projector_response` (isotoni
 regression, then PCHIP; refused when not monotone or flat). With the black level the
 build subtracts -- the black pattern's capture -- the ramp's level 0 is 0: the fitted
 curve is the projector's light *above black*, in units of a full-scale pattern's, the
-units of T (docs/CALIBRATION.md "T and the response"). A ``--black`` frame that is the
+units of T (docs/CALIBRATION.md, T and the response). A ``--black`` frame that is the
 camera's own dark level (lens capped) keeps the projector's black in the fit instead.
 """
 

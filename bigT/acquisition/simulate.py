@@ -47,7 +47,7 @@ import numpy as np
 
 from ..atomic import atomic_output
 from ..calibration import NonlinearRig
-from ..errors import AcquisitionError
+from ..errors import UNSET, AcquisitionError, Option
 from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..storage import PixelOrder
@@ -275,12 +275,14 @@ def _checked_rig(rig: NonlinearRig | None, exposures, fmt: str, noise, black: fl
                                f"{list(times)!r:.80}", option="exposures")
     if rig is None:
         if len(times) > 1:
-            raise AcquisitionError("exposure brackets ({option}) are the nonlinear rig's: give "
-                                   "its camera too (--camera-response, --bits ...)",
-                                   option="exposures")
+            raise AcquisitionError(
+                f"exposure brackets ({len(times)} exposures) are the nonlinear rig's: give its "
+                "camera too ({option})",
+                option=Option("rig", UNSET, python="rig=NonlinearRig(...)",
+                              cli="--camera-response, --bits ..."))
         return times
     if np.any(np.asarray(noise)) or black or gamma != 1.0:
-        raise AcquisitionError("--noise, --black and --gamma are the linear camera's; the "
+        raise AcquisitionError("noise, black and gamma are the linear camera's; the "
                                "nonlinear rig's noise is its full well and read noise, its "
                                "curve {option}", option="camera_response")
     if fmt != f"png{rig.bits}":
@@ -295,9 +297,10 @@ def _check_channels(store_channels: int, pattern_channels: int, path: Path) -> N
         return
     if store_channels == 3:
         raise AcquisitionError("a colour transport (3 channels) and grey patterns: write the "
-                               "patterns with --channels 3", path)
+                               "patterns with {option}", path, option=("channels", 3))
     raise AcquisitionError("a grey transport and colour patterns (channels 3): write the "
-                           "patterns without --channels, or simulate a colour transport", path)
+                           "patterns with {option}, or simulate a colour transport", path,
+                           option=("channels", 1))
 
 
 def _checked_noise(noise, channels: int) -> float | tuple[float, ...]:

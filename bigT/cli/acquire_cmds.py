@@ -278,15 +278,16 @@ def build_cmd(args) -> int:
                           "saturated_pixels": report.saturated_pixels,
                           "seconds": report.seconds,
                           "white_relative_error": check.relative_error,
+                          "interreflected_share": check.kept.interreflected_share,
+                          "dropped_interreflection": check.dropped_interreflection,
+                          "dropped_light": check.dropped_light,
                           "mixing": None if report.mixing is None else report.mixing.to_metadata(),
                           "projector_response": None if report.projector_response is None
                           else report.projector_response.to_document(),
                           "figures": [str(f) for f in figures]}, indent=1))
         return 0
     print(report.describe())
-    print(f"validation: T 1 against the captured white image"
-          f"{' (R, G, B)' if report.settings.channels == 3 else ''}, relative error "
-          f"{check.relative_error:.3g}")
+    print(check.describe())
     for f in figures:
         print(f"-> {f}")
     print(f"-> {report.path}")
