@@ -39,8 +39,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import BigTError
-from ..storage import InverseStore, temporary_sibling
+from ..storage import (InverseStore, StoreAttrs, create_store, finalize_store,
+                       temporary_sibling, write_tile_row)
 from ..storage import open as open_store
 from ..storage.channel_mixing import ChannelMixing
 from ..storage.inverse_store import jsonable
@@ -64,7 +64,7 @@ class ColourInverseReport(InverseReport):
 
     On the global path the per-term table is U's grey series (its nnz(X) counts U^-1's
     entries); ``nnz_X`` is the colour X's (U^-1's: X is stored factored),
-    ``seconds_split`` the streaming pass before the grey inverse and ``seconds_compose``
+    ``seconds_split`` the streaming pass before the grey inverse and ``seconds_publish``
     the publishing of X after it (linking U^-1's tiles), and ``mixing_residual`` the
     cross-channel residue the verification measured.
     """
@@ -74,7 +74,7 @@ class ColourInverseReport(InverseReport):
     mixing_residual: float | None = None
     nnz_X: int | None = None
     seconds_split: float = 0.0
-    seconds_compose: float = 0.0
+    seconds_publish: float = 0.0
 
 
 def with_colour_path(report: InverseReport, choice: ColourPathChoice,
@@ -129,14 +129,14 @@ def global_mixing_inverse(T, out, choice: ColourPathChoice, options: Mapping[str
                                                grey.path)
         X = factored_inverse(open_store(grey.path), T, mixing, store, grey_record.dir)
         publish(store, T, X, grey_record, params, mixing)
-        t_compose = time.perf_counter() - t0
+        t_publish = time.perf_counter() - t0
         store.clean(keep={grey_record.dir})
         shutil.rmtree(work, ignore_errors=True)
     finally:
         store.close()
     return with_colour_path(grey, choice, path=str(store.path), nnz_T=int(T.nnz),
                             nnz_X=int(X.nnz), seconds=time.perf_counter() - t_start,
-                            seconds_split=t_split, seconds_compose=t_compose)
+                            seconds_split=t_split, seconds_publish=t_publish)
 
 
 def global_fingerprint(T, mixing: ColourMixing, thresholds: Thresholds, method: str,
@@ -194,24 +194,33 @@ def factored_inverse(Xu, T, mixing: ColourMixing, store: InverseStore, k: int):
     T's (colour) pixel order with the ``mixing`` attribute {left: P^-1, right: C^-1}
     (docs/FORMAT.md, "Colour"), so X holds U^-1's entries, not a dense 3x3 block per
     pixel pair. A store an interrupted run left there is rebuilt (links are cheap).
+    Where the grey engine cut U in tiles that are not whole pixels (it may halve T's
+    tile size), U^-1's rows are rewritten in T's tiles instead (a copy, still factored).
     Returns X, opened."""
-    if Xu.tile_size % 3 or Xu.shape != T.shape:
-        raise BigTError(f"the grey inverse of U is {Xu.shape[0]}x{Xu.shape[1]} in tiles of "
-                        f"{Xu.tile_size}: not T's colour grid ({T.shape[0]}, tiles a multiple "
-                        "of 3)", Xu.path)
     attrs = Xu.attrs.replace(
         pixel_order=T.pixel_order,
         mixing=ChannelMixing(mixing.projector_inverse, mixing.camera_inverse),
         metadata={"inverse": {"term": k, "complete": False, "colour_path": "global"}})
     path = store.term_path(k, "X")
     aside = temporary_sibling(path)
-    shutil.copytree(Xu.path, aside, copy_function=_link_or_copy,
-                    ignore=shutil.ignore_patterns(READER_LEASE, WRITER_LOCK))
-    write_root_attrs(aside, attrs)
+    if Xu.tile_size % 3 == 0:
+        shutil.copytree(Xu.path, aside, copy_function=_link_or_copy,
+                        ignore=shutil.ignore_patterns(READER_LEASE, WRITER_LOCK))
+        write_root_attrs(aside, attrs)
+    else:
+        _retiled(Xu, attrs.replace(tile_size=T.tile_size, complete=False, nnz=None), aside)
     if path.exists():
         shutil.rmtree(path)
     os.rename(aside, path)
-    return open_store(path)
+    return finalize_store(path)  # the linked copy is complete already: opened
+
+
+def _retiled(Xu, attrs: StoreAttrs, path: Path) -> None:
+    """Xu's rows written at ``path`` as a store of ``attrs`` (its tile size), every tile
+    row complete (finalized once it is moved into place)."""
+    create_store(path, attrs)
+    for i in range(attrs.grid[0]):
+        write_tile_row(path, attrs, i, Xu.get_rows(*attrs.tile_row_range(i)))
 
 
 def _link_or_copy(src: str, dst: str) -> None:

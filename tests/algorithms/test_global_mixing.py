@@ -216,3 +216,20 @@ def test_the_global_path_keeps_x_factored_and_every_reader_applies_it(tmp_path):
     parts = bigT.separate_bounces(T, X, image)
     np.testing.assert_allclose(parts.sum(axis=0), (A @ image.ravel()).reshape(H, W, 3),
                                atol=1e-10)
+
+
+def test_a_grey_tiling_of_u_that_splits_pixels_is_rewritten_in_t_tiles(tmp_path, monkeypatch):
+    """The grey engine may halve U's tile size to one that is not whole pixels (12 -> 8
+    here, forced): X is then U^-1's rows in T's tiles, still factored and exact."""
+    from bigT.algorithms import run_setup
+
+    monkeypatch.setattr(run_setup, "choose_tile_size", lambda n, ts, threads, channels=1:
+                        8 if channels == 1 else ts)
+    A = mixed(band_transports(6))
+    T = colour_store(tmp_path / "T.zarr", A)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=31, prune=0,
+                            method="newton-schulz", progress=False, colour_path="global")
+    X = bigT.open(tmp_path / "X.zarr")
+    exact = np.linalg.inv(A)
+    assert X.tile_size == T.tile_size and X.mixing is not None and X.nnz == 3 * N * N
+    np.testing.assert_allclose(X.to_scipy().toarray(), exact, atol=1e-12 * np.abs(exact).max())
