@@ -107,7 +107,7 @@ GLOBAL_MIXING_MAX_COND = 1e4
 #: makes this many tries (another reference block and random combination each).
 GLOBAL_MIXING_CANDIDATES = 256
 GLOBAL_MIXING_TRIES = 4
-#: Entries of T (or of X) un-mixed (or composed) at once: ~25 bytes each in flight.
+#: Entries of T un-mixed at once (the global path's split): ~25 bytes each in flight.
 GLOBAL_MIXING_CHUNK_ENTRIES = 1 << 21
 
 #: A pass has at least this many row blocks (tasks) per thread of the scheduler: the

@@ -24,6 +24,7 @@ from .. import config
 from ..errors import InvalidMatrixError, ShapeMismatchError, short_reason
 from ..kernels import BlockDiagonal, diagonal_blocks
 from ..storage import as_store
+from ..storage.channel_mixing import mixed_blocks
 
 #: ``first_bounce=`` names: T's diagonal (blocks), the same leaving out the pixels
 #: whose colour block is singular or ill-conditioned, and the identity.
@@ -347,13 +348,14 @@ def _pixel_name(T, p: int) -> str:
 def stored_diagonal_blocks(A) -> np.ndarray:
     """The b x b diagonal blocks of a colour store A (b = ``A.channels``), (n/b, b, b)
     float64 in A's stored order, from its diagonal tiles only (a tile size that is a
-    multiple of b keeps every block inside one)."""
+    multiple of b keeps every block inside one); of the matrix A represents, L S_pp R,
+    for a factored store (``A.mixing``)."""
     b = int(A.channels)
     out = np.zeros((A.shape[0] // b, b, b))
     for i in range(min(A.grid)):
         a, stop = A.tile_row_range(i)
         out[a // b:stop // b] = diagonal_blocks(A.get_tile(i, i), 0, b)
-    return out
+    return mixed_blocks(getattr(A, "mixing", None), out)
 
 
 def _as_blocks(spec, m: int, b: int, source) -> np.ndarray:

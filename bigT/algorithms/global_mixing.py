@@ -10,22 +10,26 @@ colour inverse is then
    on U is the general path's series on T seen through C (M_U = I - U diag(U)^-1 and
    M_T = I - T F^-1 with F the 3x3 diagonal blocks are similar), so without pruning
    both give the same X, at a ninth of the entries in every product;
-3. the composition X = (I (x) P^-1) U^-1 (I (x) C^-1), tile row by tile row: each
-   pixel pair (p, q) with an entry in U^-1 becomes a dense 3x3 block of X, a colour
-   store with T's pixel order, published as the output's term like the engine's.
+3. X = (I (x) P^-1) U^-1 (I (x) C^-1) kept factored: U^-1's tiles, hard-linked, under
+   T's pixel order with the store attribute ``mixing`` {left: P^-1, right: C^-1}
+   (docs/FORMAT.md, "Colour"; every product of the store applies it), published as the
+   output's term like the engine's. Composed, every pixel pair with an entry in U^-1
+   would be a dense 3x3 block: three times the entries, and slower than the general
+   path.
 
 The output is an inverse store like any other (docs/FORMAT.md, "The inverse store"):
 its record holds the grey series' record, T's fingerprint, ``colour_path: "global"``
 and the mixing. The work (U and its grey inverse) lives in the hidden directory
 ``.global-mixing`` inside the output: a fixed name (not a writer's hidden sibling,
 whose PID would change) so that a rerun after an interruption finds it and the grey
-inverse resumes; it is deleted once X is published. The composition is idempotent
-(complete tile rows are kept).
+inverse resumes; it is deleted once X is published (X's tiles are links to its
+files, so they stay).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -35,11 +39,14 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import scipy.sparse as sp
 
-from .. import config
-from ..storage import InverseStore, StoreAttrs, finalize_store, write_tile_row
+from ..storage import (InverseStore, StoreAttrs, create_store, finalize_store,
+                       temporary_sibling, write_tile_row)
 from ..storage import open as open_store
+from ..storage.channel_mixing import ChannelMixing
 from ..storage.inverse_store import jsonable
-from ..storage.writer import BlockCSRWriter, completed_rows
+from ..storage.locks import READER_LEASE, WRITER_LOCK
+from ..storage.replace import write_root_attrs
+from ..storage.writer import BlockCSRWriter
 from .first_bounce import FirstBounce
 from .fingerprint import inverse_fingerprint
 from .mixing import ColourMixing, ColourPathChoice, pixel_blocks, row_chunks, unmix
@@ -56,8 +63,9 @@ class ColourInverseReport(InverseReport):
     """An :class:`InverseReport` of a colour inverse, with the path it took and why.
 
     On the global path the per-term table is U's grey series (its nnz(X) counts U^-1's
-    entries); ``nnz_X`` is the colour X's, ``seconds_split`` and ``seconds_compose``
-    the two streaming passes around the grey inverse, and ``mixing_residual`` the
+    entries); ``nnz_X`` is the colour X's (U^-1's: X is stored factored),
+    ``seconds_split`` the streaming pass before the grey inverse and ``seconds_publish``
+    the publishing of X after it (linking U^-1's tiles), and ``mixing_residual`` the
     cross-channel residue the verification measured.
     """
 
@@ -66,7 +74,7 @@ class ColourInverseReport(InverseReport):
     mixing_residual: float | None = None
     nnz_X: int | None = None
     seconds_split: float = 0.0
-    seconds_compose: float = 0.0
+    seconds_publish: float = 0.0
 
 
 def with_colour_path(report: InverseReport, choice: ColourPathChoice,
@@ -119,16 +127,16 @@ def global_mixing_inverse(T, out, choice: ColourPathChoice, options: Mapping[str
         t0 = time.perf_counter()
         grey_record = SeriesRecord.from_stored(InverseStore(grey.path).read_record(),
                                                grey.path)
-        X = compose(open_store(grey.path), T, mixing, store, grey_record.dir)
+        X = factored_inverse(open_store(grey.path), T, mixing, store, grey_record.dir)
         publish(store, T, X, grey_record, params, mixing)
-        t_compose = time.perf_counter() - t0
+        t_publish = time.perf_counter() - t0
         store.clean(keep={grey_record.dir})
         shutil.rmtree(work, ignore_errors=True)
     finally:
         store.close()
     return with_colour_path(grey, choice, path=str(store.path), nnz_T=int(T.nnz),
                             nnz_X=int(X.nnz), seconds=time.perf_counter() - t_start,
-                            seconds_split=t_split, seconds_compose=t_compose)
+                            seconds_split=t_split, seconds_publish=t_publish)
 
 
 def global_fingerprint(T, mixing: ColourMixing, thresholds: Thresholds, method: str,
@@ -178,45 +186,49 @@ def _unmixed_rows(rows: sp.csr_array, mixing: ColourMixing) -> sp.csr_array:
     return sp.csr_array((u.ravel(), (r, c)), shape=rows.shape)
 
 
-# --- 3. the composition ------------------------------------------------------------
+# --- 3. X, factored ----------------------------------------------------------------
 
-def compose(Xu, T, mixing: ColourMixing, store: InverseStore, k: int):
-    """X = (I (x) P^-1) Xu (I (x) C^-1) into term ``k``'s store ``X`` of ``store``: T's
-    shape, dtype, tile size and (colour) pixel order. Complete tile rows left by an
-    interrupted composition are kept. Returns X, finalized."""
-    attrs = StoreAttrs(T.shape, T.tile_size, Xu.dtype, pixel_order=T.pixel_order,
-                       metadata={"inverse": {"term": k, "complete": False,
-                                             "colour_path": "global"}})
-    path = store.prepare_term_store(k, "X", attrs)
-    done = set(completed_rows(path, attrs.grid[0]))
-    chunk = _chunk_rows(Xu)
+def factored_inverse(Xu, T, mixing: ColourMixing, store: InverseStore, k: int):
+    """X = (I (x) P^-1) U^-1 (I (x) C^-1) kept factored as term ``k``'s store ``X`` of
+    ``store``: U^-1's tiles (hard links, a copy where the file system cannot link) under
+    T's (colour) pixel order with the ``mixing`` attribute {left: P^-1, right: C^-1}
+    (docs/FORMAT.md, "Colour"), so X holds U^-1's entries, not a dense 3x3 block per
+    pixel pair. A store an interrupted run left there is rebuilt (links are cheap).
+    Where the grey engine cut U in tiles that are not whole pixels (it may halve T's
+    tile size), U^-1's rows are rewritten in T's tiles instead (a copy, still factored).
+    Returns X, opened."""
+    attrs = Xu.attrs.replace(
+        pixel_order=T.pixel_order,
+        mixing=ChannelMixing(mixing.projector_inverse, mixing.camera_inverse),
+        metadata={"inverse": {"term": k, "complete": False, "colour_path": "global"}})
+    path = store.term_path(k, "X")
+    aside = temporary_sibling(path)
+    if Xu.tile_size % 3 == 0:
+        shutil.copytree(Xu.path, aside, copy_function=_link_or_copy,
+                        ignore=shutil.ignore_patterns(READER_LEASE, WRITER_LOCK))
+        write_root_attrs(aside, attrs)
+    else:
+        _retiled(Xu, attrs.replace(tile_size=T.tile_size, complete=False, nnz=None), aside)
+    if path.exists():
+        shutil.rmtree(path)
+    os.rename(aside, path)
+    return finalize_store(path)  # the linked copy is complete already: opened
+
+
+def _retiled(Xu, attrs: StoreAttrs, path: Path) -> None:
+    """Xu's rows written at ``path`` as a store of ``attrs`` (its tile size), every tile
+    row complete (finalized once it is moved into place)."""
+    create_store(path, attrs)
     for i in range(attrs.grid[0]):
-        if i in done:
-            continue
-        a, b = attrs.tile_row_range(i)
-        parts = [_composed_rows(Xu.get_rows(s, min(s + chunk, b)), mixing)
-                 for s in range(a, b, chunk)]
-        write_tile_row(path, attrs, i, sp.vstack(parts, format="csr"))
-    return finalize_store(path)
+        write_tile_row(path, attrs, i, Xu.get_rows(*attrs.tile_row_range(i)))
 
 
-def _chunk_rows(Xu) -> int:
-    """Rows of X composed at once: a multiple of 3 holding about
-    ``config.GLOBAL_MIXING_CHUNK_ENTRIES`` entries of X (3 for each of Xu's)."""
-    per_row = 3 * max(1, Xu.nnz // max(1, Xu.shape[0]))
-    return max(3, (config.GLOBAL_MIXING_CHUNK_ENTRIES // per_row) // 3 * 3)
-
-
-def _composed_rows(rows: sp.csr_array, mixing: ColourMixing) -> sp.csr_array:
-    """Rows of X from the same rows of U^-1 (channel-diagonal): each pixel pair's
-    three values x_k become the 3x3 block P^-1 diag(x) C^-1."""
-    p, q, blocks = pixel_blocks(rows)
-    x = np.einsum("bkk->bk", blocks)
-    composed = np.einsum("ik,bk,kj->bij", mixing.projector_inverse, x, mixing.camera_inverse)
-    i = np.arange(3)
-    r = np.broadcast_to((3 * p[:, None, None] + i[:, None]), composed.shape).ravel()
-    c = np.broadcast_to((3 * q[:, None, None] + i[None, :]), composed.shape).ravel()
-    return sp.csr_array((composed.ravel(), (r, c)), shape=rows.shape)
+def _link_or_copy(src: str, dst: str) -> None:
+    """``dst`` a hard link of ``src`` (tiles are never edited in place), else a copy."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 # --- publishing --------------------------------------------------------------------

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..schedule.matvec import matvec, matvec_spec
 from ..schedule.runner import ClusterRunner, ThreadRunner
+from ..storage.channel_mixing import mixed_product
 from .run_setup import RunLayout
 
 
@@ -51,4 +52,6 @@ class MatVecs:
         cached: the next term replaces it)."""
         spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,
                            memory=self.layout.policy, cache_tiles=False)
-        return matvec(self.runner, spec, V)
+        # a factored colour X (docs/FORMAT.md "Colour") is L S R; its tiles are S
+        return mixed_product(getattr(X, "mixing", None),
+                             lambda W: matvec(self.runner, spec, np.ascontiguousarray(W)), V)

@@ -23,7 +23,7 @@ This module finds (C, P) and checks that they hold:
 * :func:`choose_colour_path`: which path ``stratified_inverse`` takes, and why.
 
 The per-pixel blocks of a tile row are gathered by :func:`pixel_blocks`, which the
-split and the composition (:mod:`.global_mixing`) share.
+split (:mod:`.global_mixing`) and the mixing estimate share.
 """
 
 from __future__ import annotations

@@ -151,8 +151,8 @@ def invert_cmd(args) -> int:
             print(f"colour path: {report.colour_reason}")
         print(report.table())
         if getattr(report, "colour_path", None) == "global":
-            print(f"global path: un-mixing T {report.seconds_split:.2f} s, composing the "
-                  f"colour X {report.seconds_compose:.2f} s, nnz(X) {report.nnz_X:,}")
+            print(f"global path: un-mixing T {report.seconds_split:.2f} s, publishing X "
+                  f"factored {report.seconds_publish:.2f} s, nnz(X) {report.nnz_X:,}")
         print(f"{report.products} tile products in {report.seconds:.1f} s -> {report.path}")
     _write_json(args.json, report.to_dict())
     return 0

@@ -39,6 +39,7 @@ from .. import config
 from ..errors import BigTError, MemoryLimitError, ShapeMismatchError
 from ..kernels.threads import run_on_threads, thread_count
 from ..schedule.memory import available_memory
+from ..storage.channel_mixing import ChannelMixing, mixed_product, mixed_rows
 
 #: Columns per panel: an index inside a panel fits uint16.
 PANEL_BITS = 16
@@ -63,6 +64,9 @@ class ResidentMatrix:
     precision : {"float32", "float16"}
     pixel_order : PixelOrder or None, the store's.
     path : str, the store it was loaded from.
+    mixing : ChannelMixing or None
+        The store's factored channel mixing: this holds S, the matrix is L S R
+        (:mod:`bigT.storage.channel_mixing`); products and ``to_scipy`` apply it.
     """
 
     shape: tuple
@@ -73,6 +77,7 @@ class ResidentMatrix:
     precision: str
     pixel_order: object
     path: str
+    mixing: ChannelMixing | None = None
 
     @property
     def nnz(self) -> int:
@@ -95,7 +100,8 @@ class ResidentMatrix:
 
     def to_scipy(self) -> sp.csr_array:
         """The decoded matrix as a float32 csr_array (reference and small products)."""
-        return _scipy_of(self)
+        S = _scipy_of(self)
+        return mixed_rows(self.mixing, S, 0) if self.mixing is not None else S
 
     def matmul(self, V: np.ndarray, out: np.ndarray | None = None,
                n_threads: int | None = None) -> np.ndarray:
@@ -111,7 +117,14 @@ class ResidentMatrix:
         -------
         ndarray, shape (n_rows,) or (n_rows, K), float32
         """
-        return _matmul(self, V, out, n_threads)
+        if self.mixing is None:
+            return _matmul(self, V, out, n_threads)
+        Y = mixed_product(self.mixing, lambda W: _matmul(self, W, None, n_threads),
+                          np.ascontiguousarray(V, dtype=np.float32))
+        if out is None:
+            return Y
+        out[...] = Y.reshape(out.shape)
+        return out
 
     def __matmul__(self, V):
         return self.matmul(V)
@@ -193,7 +206,7 @@ def load_resident(X, precision: str = "float32", *, memory_limit: int | None = N
         fill += k
     return ResidentMatrix((n_rows, n_cols), row_ptr, indices, values, row_scale,
                           precision, getattr(X, "pixel_order", None),
-                          str(getattr(X, "path", "")))
+                          str(getattr(X, "path", "")), getattr(X, "mixing", None))
 
 
 def _panel_pointers(rows: sp.csr_array, panels: int) -> np.ndarray:

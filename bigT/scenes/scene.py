@@ -256,7 +256,8 @@ def _inverse_rows(X, T):
                                  f"{T.pixel_order}", where)
 
     def rows(i):
-        return sp.csr_array(X.get_rows(*T.tile_row_range(i)), dtype=np.float64)
+        # the matrix X represents (a factored colour inverse: its mixing applied)
+        return sp.csr_array(X.represented_rows(*T.tile_row_range(i)), dtype=np.float64)
     return rows
 
 

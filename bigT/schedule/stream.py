@@ -20,6 +20,7 @@ import numpy as np
 
 from .. import config
 from ..errors import ShapeMismatchError
+from ..storage.channel_mixing import mixed_product
 
 # The runner and the passes (matvec, worker) are imported inside the functions: they
 # import dask (~0.3 s), which compensating with X held in memory never needs.
@@ -73,7 +74,13 @@ def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
     budget = 0 if cache_bytes is None else int(cache_bytes)
     spec = matvec_spec(desc, local_path(A.path), n_rows, A.tile_size, A.dtype,
                        cache_bytes=budget)
-    out = matvec(runner, spec, V, progress=progress).astype(dtype, copy=False)
+
+    def stored_product(W: np.ndarray) -> np.ndarray:  # S W of the tiles the workers read
+        W = np.ascontiguousarray(W, dtype=dtype)
+        return matvec(runner, spec, W, progress=progress).astype(dtype, copy=False)
+
+    # a factored colour store (an inverse by the global-mixing path) is L S R
+    out = mixed_product(getattr(A, "mixing", None), stored_product, V)
     return out[:, 0] if squeeze else out
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import BigTError, CorruptStoreError, IncompleteStoreError, StoreError
 from . import _format as fmt
+from .channel_mixing import ChannelMixing
 from .pixel_order import PixelOrder
 
 
@@ -48,6 +49,9 @@ class StoreAttrs:
     metadata : read-only mapping, free JSON
     pixel_order : PixelOrder or None
     version : int, the format version written
+    mixing : ChannelMixing or None
+        Colour only: the store represents (I (x) L) S (I (x) R), S its tiles
+        (:mod:`bigT.storage.channel_mixing`); None is the identity.
     """
 
     shape: tuple[int, int]
@@ -59,6 +63,7 @@ class StoreAttrs:
     metadata: Mapping[str, Any] = field(default_factory=dict)
     pixel_order: PixelOrder | None = None
     version: int = fmt.FORMAT_VERSION
+    mixing: ChannelMixing | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
@@ -94,6 +99,8 @@ class StoreAttrs:
         }
         if self.pixel_order is not None:
             out.update(self.pixel_order.to_attrs())
+        if self.mixing is not None:
+            out["mixing"] = self.mixing.to_attrs()
         return out
 
     def check_json(self, path) -> None:
@@ -131,6 +138,11 @@ class StoreAttrs:
                 raise ValueError("channels without image_shape (a colour store maps images)")
             version = fmt.check_count(attrs.get("version", fmt.FORMAT_VERSION), "version",
                                       path, low=1)
+            mixing = attrs.get("mixing")
+            if mixing is not None:
+                if pixel_order is None or pixel_order.channels != 3:
+                    raise ValueError("mixing without channels 3 (it mixes a pixel's R, G, B)")
+                mixing = ChannelMixing.from_attrs(mixing, path)
         except CorruptStoreError:
             raise
         except (KeyError, TypeError, ValueError, BigTError) as exc:
@@ -148,7 +160,8 @@ class StoreAttrs:
         if inner not in fmt.INNER_FORMATS:
             raise StoreError(f"inner_format {inner!r:.60} is not supported by this bigT "
                              f"(supported: {', '.join(fmt.INNER_FORMATS)})", path)
-        return cls(shape, tile_size, dtype, inner, nnz, complete, metadata, pixel_order, version)
+        return cls(shape, tile_size, dtype, inner, nnz, complete, metadata, pixel_order, version,
+                   mixing)
 
 
 def _checked_grid(attrs: Mapping, path) -> tuple[tuple[int, int], int]:

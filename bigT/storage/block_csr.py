@@ -9,6 +9,11 @@ row-major image order (``image.ravel()``, what ``bigT export`` writes) by defaul
 store's own order (tile-major for scenes, :mod:`bigT.storage.pixel_order`) is the
 engine's: ``order="matrix"`` / ``output_order="matrix"`` asks for it explicitly, and
 the tile methods (``get_tile``, ``get_tile_row``, ``get_rows``) speak only it.
+
+A colour store may be factored (``BlockCSR.mixing``, docs/FORMAT.md "Colour"): it
+represents (I (x) L) S (I (x) R) with S its tiles. The public products (``@``,
+``matmul``, ``to_scipy``, ``diagonal``, ``represented_rows``) are of the represented
+matrix; the tile methods read S as stored.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from ..errors import MemoryLimitError, ShapeMismatchError, StoreError
 from . import _format as fmt
 from . import checks
 from .attrs import StoreAttrs, read_raw_attrs
+from .channel_mixing import ChannelMixing, mixed_diagonal, mixed_product, mixed_rows
 from .locks import ReaderLease
 from .products import diagonal_of_tiles, matmul_tiles, reordering, to_row_major
 from .replace import recover_interrupted_replace, write_root_attrs
@@ -127,6 +133,11 @@ class BlockCSR:
     channels : int
         1 for grey; 3 for colour, where index 3 p + c is channel c (R, G, B) of the
         pixel numbered p (the vector of an (H, W, 3) image is its row-major ravel).
+    mixing : ChannelMixing or None
+        Colour only, a factored store: the matrix represented is (I (x) L) S (I (x) R)
+        with ``(L, R) = mixing`` and S the stored tiles. ``@``, ``matmul``,
+        ``to_scipy``, ``diagonal`` and ``represented_rows`` honour it; the tile and row
+        methods (``get_tile``, ``iter_tiles``, ``get_tile_row``, ``get_rows``) return S.
     metadata : dict
         Free JSON metadata (the inverse engine records term, prune, residual there).
     tile_indptr : (n_tile_rows + 1,) int64
@@ -149,6 +160,7 @@ class BlockCSR:
         self.grid = attrs.grid
         self.pixel_order = attrs.pixel_order
         self.channels = attrs.channels
+        self.mixing: ChannelMixing | None = attrs.mixing
         self.metadata = dict(attrs.metadata)
         self._index = read_tile_index(self.path, attrs, allow_incomplete=allow_incomplete)
         self.tile_indptr = self._index.indptr
@@ -258,13 +270,36 @@ class BlockCSR:
         ndarray, shape (min(shape),), of the store's dtype
         """
         order = reordering(self.pixel_order, output_order, "output_order")
-        diag = diagonal_of_tiles(self.attrs, self._diagonal_tile)
+        if self.mixing is None:
+            diag = diagonal_of_tiles(self.attrs, self._diagonal_tile)
+        else:
+            diag = mixed_diagonal(self.mixing, self._stored_pixel_blocks()).astype(self.dtype)
         return diag if order is None else diag[order.inverse_permutation]
 
     def _diagonal_tile(self, i: int) -> sp.csr_array | None:
         """Tile (i, i), or None when it is not stored."""
         k = self._position(i, i)
         return None if k < 0 else self._read_tile(i, i, k)
+
+    def _stored_pixel_blocks(self) -> np.ndarray:
+        """(n / 3, 3, 3) float64: S's 3x3 diagonal blocks of a colour store, matrix
+        order, from the diagonal tiles (a tile size that is a multiple of 3 holds each)."""
+        out = np.zeros((self.shape[0] // 3, 3, 3))
+        for i in range(min(self.grid)):
+            tile = self._diagonal_tile(i)
+            if tile is None:
+                continue
+            coo = sp.coo_array(tile)
+            same = coo.row // 3 == coo.col // 3
+            r, c = coo.row[same].astype(np.int64), coo.col[same].astype(np.int64)
+            np.add.at(out, ((i * self.tile_size + r) // 3, r % 3, c % 3), coo.data[same])
+        return out
+
+    def represented_rows(self, start: int, stop: int) -> sp.csr_array:
+        """Rows ``start:stop`` of the matrix the store represents (``get_rows`` with
+        the mixing applied: whole pixels, ``start`` and ``stop`` multiples of 3, for a
+        factored store), matrix order, global columns."""
+        return mixed_rows(self.mixing, self.get_rows(start, stop), int(start))
 
     def csr_bytes(self) -> int:
         """Bytes of the CSR arrays of the whole matrix in memory (int64 index)."""
@@ -291,7 +326,7 @@ class BlockCSR:
         """
         order = reordering(self.pixel_order, output_order, "output_order")
         limit = config.TO_SCIPY_MAX_BYTES if max_bytes is None else int(max_bytes)
-        need = self.csr_bytes()
+        need = self.csr_bytes() * (1 if self.mixing is None else 3)  # mixed: 3x3 blocks
         if need > limit:
             raise MemoryLimitError(f"to_scipy needs about {need / 2**20:.1f} MiB of CSR arrays, "
                                    f"over the limit of {limit / 2**20:.1f} MiB; stream tile rows "
@@ -300,7 +335,7 @@ class BlockCSR:
             out = sp.csr_array(self.shape, dtype=self.dtype)
         else:
             out = sp.vstack([self.get_tile_row(i) for i in range(self.grid[0])], format="csr")
-            out = sp.csr_array(out)
+            out = mixed_rows(self.mixing, sp.csr_array(out), 0)
         if order is not None:
             out = to_row_major(out, order)
         out.has_sorted_indices = True
@@ -335,10 +370,14 @@ class BlockCSR:
         X = x.reshape(self.shape[1], -1)
         if reorder is not None:
             X = X[reorder.permutation]  # row-major pixels to matrix indices (a copy)
-        Y = matmul_tiles(self.attrs, self.iter_tiles, np.ascontiguousarray(X, dtype=dtype))
+        Y = mixed_product(self.mixing, self._stored_product, np.ascontiguousarray(X, dtype=dtype))
         if reorder is not None:
             Y = Y[reorder.inverse_permutation]  # matrix indices back to row-major pixels
         return Y[:, 0] if x.ndim == 1 else Y
+
+    def _stored_product(self, X: np.ndarray) -> np.ndarray:
+        """S X of the stored tiles, X (n_cols, k) in matrix order."""
+        return matmul_tiles(self.attrs, self.iter_tiles, np.ascontiguousarray(X))
 
     def __matmul__(self, x):
         """``A @ x``: :meth:`matmul` of row-major image vectors (scipy's convention)."""

@@ -11,6 +11,8 @@ from bigT.algorithms import global_mixing
 from bigT.algorithms.mixing import (choose_colour_path, estimate_mixing, mixing_residue,
                                     mixing_tolerance)
 from bigT.cli import main
+from bigT.compensation import choose_path
+from bigT.compensation.realtime import Compensator
 from bigT.errors import BigTError
 
 H, W = 4, 6
@@ -129,7 +131,7 @@ def test_a_wrong_recorded_mixing_is_caught(tmp_path):
     assert choice.mixing.residual > 0.01
 
 
-def test_a_resumed_run_composes_once_the_grey_inverse_is_held(tmp_path, monkeypatch):
+def test_a_resumed_run_publishes_x_once_the_grey_inverse_is_held(tmp_path, monkeypatch):
     A = mixed(band_transports(5))
     T = colour_store(tmp_path / "T.zarr", A)
     out = tmp_path / "X.zarr"
@@ -138,7 +140,7 @@ def test_a_resumed_run_composes_once_the_grey_inverse_is_held(tmp_path, monkeypa
         raise KeyboardInterrupt
 
     with monkeypatch.context() as m:
-        m.setattr(global_mixing, "compose", killed)
+        m.setattr(global_mixing, "factored_inverse", killed)
         with pytest.raises(KeyboardInterrupt):
             bigT.stratified_inverse(T, out, terms=2, prune=0, progress=False)
     assert (out / global_mixing.WORK_DIR / "U_inverse").is_dir()  # kept for the rerun
@@ -165,3 +167,69 @@ def test_cli_global_path_line_then_info_and_verify(tmp_path, capsys):
     assert any(line.split()[:2] == ["colour_path", "global"] for line in info.splitlines())
     assert main(["verify", str(X)]) == 0
     assert "(term 2 of" in capsys.readouterr().out
+
+
+def test_the_global_path_keeps_x_factored_and_every_reader_applies_it(tmp_path):
+    """X = (I (x) P^-1) U^-1 (I (x) C^-1) is stored as U^-1 (channel-diagonal: 3 N^2
+    entries, where composed 3x3 blocks would hold 9 N^2) with its ``mixing`` attribute;
+    every product of X equals the dense inverse of T (a tile-major T: the mixing
+    commutes with its pixel permutation)."""
+    A = mixed(band_transports(4))
+    T = bigT.from_scipy(sp.csr_array(A), tmp_path / "T.zarr", image_shape=(H, W), channels=3,
+                        tile_size=12, dtype="float64", pixel_order="tile-major",
+                        image_tile=(2, 3))
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=31, prune=0,
+                            method="newton-schulz", progress=False, colour_path="global")
+    X = bigT.open(tmp_path / "X.zarr")
+    exact = np.linalg.inv(A)
+    tol = 1e-12 * np.abs(exact).max()
+    assert X.mixing is not None and X.nnz == 3 * N * N
+    assert np.count_nonzero(exact) == 9 * N * N  # what composing would have stored
+
+    S = X.get_rows(0, 3 * N).toarray()  # the stored tiles: U^-1, channel-diagonal
+    rows, cols = np.nonzero(S)
+    assert np.all(rows % 3 == cols % 3)
+    L, R = X.mixing
+    perm = T.pixel_order.permutation  # matrix index -> row-major value
+    stored_exact = exact[np.ix_(perm, perm)]
+    np.testing.assert_allclose(np.kron(np.eye(N), L) @ S @ np.kron(np.eye(N), R),
+                               stored_exact, atol=tol)
+
+    np.testing.assert_allclose(X.to_scipy().toarray(), exact, atol=tol)
+    np.testing.assert_allclose(X.to_scipy(output_order="matrix").toarray(), stored_exact,
+                               atol=tol)
+    np.testing.assert_allclose(X.diagonal(), np.diag(exact), atol=tol)
+    image = np.random.default_rng(5).uniform(size=(H, W, 3))
+    want = (exact @ image.ravel()).reshape(H, W, 3)
+    np.testing.assert_allclose((X @ image.ravel()).reshape(H, W, 3), want, atol=tol)
+
+    streamed = bigT.compensate(X, image, clip=None, path="explicit")
+    np.testing.assert_allclose(streamed, want, atol=1e-10)
+    resident = Compensator(X, None, choose_path(X=X, path="explicit"), clip=None)
+    assert resident.matrix is not None  # X held in memory, float32
+    np.testing.assert_allclose(resident(image[None])[0], want, rtol=1e-5,
+                               atol=1e-5 * np.abs(want).max())
+
+    blocks = np.stack([exact[3 * p:3 * p + 3, 3 * p:3 * p + 3] for p in range(N)])
+    np.testing.assert_allclose(bigT.recover_first_bounce(X), np.linalg.inv(blocks),
+                               atol=1e-9)
+    parts = bigT.separate_bounces(T, X, image)
+    np.testing.assert_allclose(parts.sum(axis=0), (A @ image.ravel()).reshape(H, W, 3),
+                               atol=1e-10)
+
+
+def test_a_grey_tiling_of_u_that_splits_pixels_is_rewritten_in_t_tiles(tmp_path, monkeypatch):
+    """The grey engine may halve U's tile size to one that is not whole pixels (12 -> 8
+    here, forced): X is then U^-1's rows in T's tiles, still factored and exact."""
+    from bigT.algorithms import run_setup
+
+    monkeypatch.setattr(run_setup, "choose_tile_size", lambda n, ts, threads, channels=1:
+                        8 if channels == 1 else ts)
+    A = mixed(band_transports(6))
+    T = colour_store(tmp_path / "T.zarr", A)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=31, prune=0,
+                            method="newton-schulz", progress=False, colour_path="global")
+    X = bigT.open(tmp_path / "X.zarr")
+    exact = np.linalg.inv(A)
+    assert X.tile_size == T.tile_size and X.mixing is not None and X.nnz == 3 * N * N
+    np.testing.assert_allclose(X.to_scipy().toarray(), exact, atol=1e-12 * np.abs(exact).max())

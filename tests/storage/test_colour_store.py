@@ -125,3 +125,72 @@ def test_convert_and_export_round_trip_on_the_command_line(tmp_path, capsys):
     assert main(["export", str(tmp_path / "T.zarr"), "-o", str(tmp_path / "back.npz")]) == 0
     back = sp.load_npz(tmp_path / "back.npz")
     assert abs(back - A).max() < 1e-6
+
+
+LEFT = np.array([[1.2, -0.1, 0.05], [-0.2, 1.1, -0.1], [0.0, -0.15, 1.3]])
+RIGHT = np.array([[0.9, 0.2, -0.05], [0.1, 1.05, 0.0], [-0.1, 0.05, 0.8]])
+
+
+def _factored_store(path, S, **kwargs):
+    """A colour store of the tiles ``S`` with the attribute mixing {LEFT, RIGHT} set."""
+    from_scipy(S, path, image_shape=(H, W), channels=3, dtype="float64", **kwargs)
+    meta_path = path / "zarr.json"
+    meta = json.loads(meta_path.read_text())
+    meta["attributes"]["bigT"]["mixing"] = {"left": LEFT.tolist(), "right": RIGHT.tolist()}
+    meta_path.write_text(json.dumps(meta))
+    return open_store(path)
+
+
+@pytest.mark.parametrize("layout", [{"tile_size": 9},
+                                    {"tile_size": 12, "pixel_order": "tile-major",
+                                     "image_tile": (2, 3)}])
+def test_a_factored_store_represents_L_S_R_in_every_product(tmp_path, layout):
+    """matmul, @, to_scipy (both orders), diagonal and represented_rows are of the dense
+    (I (x) L) S (I (x) R); the tiles and rows stay S."""
+    S = _colour_matrix(H * W, seed=3)  # row-major, as given to from_scipy
+    A = _factored_store(tmp_path / "T.zarr", S, **layout)
+    n = H * W
+    dense = np.kron(np.eye(n), LEFT) @ S.toarray() @ np.kron(np.eye(n), RIGHT)
+    assert A.mixing is not None and A.nnz == S.nnz
+    np.testing.assert_allclose(A.mixing.left, LEFT)
+    np.testing.assert_allclose(A.to_scipy().toarray(), dense, atol=1e-14)
+    x = np.random.default_rng(4).random((3 * n, 5))
+    np.testing.assert_allclose(A.matmul(x), dense @ x, atol=1e-13)
+    np.testing.assert_allclose(A @ x[:, 0], dense @ x[:, 0], atol=1e-13)
+    np.testing.assert_allclose(A.diagonal(), np.diag(dense), atol=1e-14)
+    perm = A.pixel_order.permutation  # matrix index -> row-major value
+    stored = dense[np.ix_(perm, perm)]
+    np.testing.assert_allclose(A.to_scipy(output_order="matrix").toarray(), stored, atol=1e-14)
+    np.testing.assert_allclose(A.matmul(x, order="matrix"), stored @ x, atol=1e-13)
+    np.testing.assert_allclose(A.diagonal(output_order="matrix"), np.diag(stored), atol=1e-14)
+    np.testing.assert_allclose(A.represented_rows(6, 18).toarray(), stored[6:18], atol=1e-14)
+    np.testing.assert_allclose(A.get_rows(0, 3 * n).toarray(),
+                               S.toarray()[np.ix_(perm, perm)])  # raw rows: S
+
+
+@pytest.mark.parametrize("mixing, words", [
+    ({"left": np.eye(3).tolist()}, "left and right"),
+    ({"left": np.eye(2).tolist(), "right": np.eye(3).tolist()}, "3x3"),
+    ({"left": [[1, 0, 0], [0, 1, 0], [0, 0, None]], "right": np.eye(3).tolist()}, "finite"),
+    ("identity", "left and right")])
+def test_reader_refuses_a_bad_mixing_attribute_in_one_line(tmp_path, mixing, words):
+    from_scipy(_colour_matrix(H * W), tmp_path / "T.zarr", image_shape=(H, W), channels=3,
+               tile_size=9)
+    meta_path = tmp_path / "T.zarr" / "zarr.json"
+    meta = json.loads(meta_path.read_text())
+    meta["attributes"]["bigT"]["mixing"] = mixing
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(CorruptStoreError, match=f"bad mixing attribute.*{words}") as err:
+        open_store(tmp_path / "T.zarr")
+    assert "\n" not in str(err.value)
+
+
+def test_reader_refuses_mixing_on_a_grey_store(tmp_path):
+    from_scipy(sp.eye(12, format="csr"), tmp_path / "T.zarr", image_shape=(3, 4))
+    meta_path = tmp_path / "T.zarr" / "zarr.json"
+    meta = json.loads(meta_path.read_text())
+    meta["attributes"]["bigT"]["mixing"] = {"left": np.eye(3).tolist(),
+                                            "right": np.eye(3).tolist()}
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(CorruptStoreError, match="mixing without channels 3"):
+        open_store(tmp_path / "T.zarr")
