@@ -19,7 +19,6 @@ from bigT.cli import main
 from bigT.compensation import compensate, compensate_files, relight_files, simulate
 from bigT.compensation.encoding import FrameEncoding
 from bigT.compensation.video import VideoSink, VideoSource
-from bigT.errors import BigTError
 from bigT.images import read_image, write_image
 from bigT.metrics import image_metrics
 
