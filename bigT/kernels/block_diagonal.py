@@ -54,7 +54,8 @@ class BlockDiagonal:
         return BlockDiagonal(self.values.astype(dtype))
 
     def _check_start(self, start: int, rows: int) -> None:
-        if start % self.b or not 0 <= start <= start + rows <= self.n:
+        # whole blocks only: the kernels step over rows b at a time and do no bounds checks
+        if start % self.b or rows % self.b or not 0 <= start <= start + rows <= self.n:
             raise ShapeMismatchError(f"rows {start}:{start + rows} do not cover whole "
                                      f"{self.b}x{self.b} blocks of a {self.n}x{self.n} "
                                      "block diagonal")
@@ -103,6 +104,9 @@ class BlockDiagonal:
             if negate:
                 out.data *= -1
             return out if start is None else off_block_diagonal(out, start, 1)
+        if A.shape[1] != self.n:  # the kernels index blocks by column: no bounds checks
+            raise ShapeMismatchError(f"a {A.shape[0]}x{A.shape[1]} block does not multiply "
+                                     f"a {self.n}x{self.n} block diagonal")
         if start is not None:
             self._check_start(start, A.shape[0])
         if self.b != 3:  # no kernel: scipy's product (no colour F is other than 3 x 3)
@@ -144,11 +148,13 @@ def _kernels():
 
 
 def _sorted(A: sp.csr_array) -> sp.csr_array:
-    """A with sorted indices (a sorted copy when they are not): the kernels find a
-    pixel's b columns adjacent."""
-    if A.has_sorted_indices:
+    """A with sorted, duplicate-free indices (a canonical copy when they are not): the
+    kernels find a pixel's b columns adjacent, and the row merge takes one entry per
+    column (its output is marked canonical)."""
+    if A.has_canonical_format:
         return A
     A = A.copy()
+    A.sum_duplicates()
     A.sort_indices()
     return A
 

@@ -106,3 +106,32 @@ def test_diagonal_blocks_sum_duplicates():
                      shape=(3, 9))
     blocks = diagonal_blocks(A, 3, 3)
     assert blocks[0, 0, 1] == 3.0 and blocks.sum() == 3.0
+
+
+def test_partial_blocks_and_wrong_widths_are_refused_not_read_past():
+    """Rows that do not cover whole 3x3 blocks, or a block of another width, are a
+    ShapeMismatchError: the kernels step three rows at a time without bounds checks
+    (four rows once read past the row pointers and crashed the process)."""
+    B = BlockDiagonal(np.random.default_rng(0).random((4, 3, 3)))
+    four_rows = sp.random(4, 12, density=0.5, format="csr", random_state=1)
+    with pytest.raises(ShapeMismatchError):
+        B.scale_rows(four_rows, 0)
+    with pytest.raises(ShapeMismatchError):
+        B.apply(np.ones((4, 2)))
+    with pytest.raises(ShapeMismatchError):
+        B.scale_cols(sp.random(3, 15, density=0.5, format="csr", random_state=2))
+
+
+def test_duplicate_columns_are_summed_before_the_row_merge():
+    """A row block with a repeated column gives the dense product and a canonical
+    result (no repeated index behind a canonical flag)."""
+    rng = np.random.default_rng(3)
+    B = BlockDiagonal(rng.random((2, 3, 3)))
+    A = sp.csr_array((np.array([1.0, 2.0, 3.0]), np.array([1, 1, 2]), np.array([0, 3, 3, 3])),
+                     shape=(3, 6))
+    out = B.scale_rows(A, 0)
+    dense = B.csr(np.float64).toarray()[:3, :3] @ A.toarray()
+    np.testing.assert_allclose(out.toarray(), dense)
+    for i in range(3):
+        row = out.indices[out.indptr[i]:out.indptr[i + 1]]
+        assert len(np.unique(row)) == len(row)
