@@ -101,45 +101,45 @@ class GroundTruthStats:
                 "bounce_shares": self.shares}
 
 
-def ground_truth_stats(T, A, f, G, memory_limit: int) -> GroundTruthStats:
-    """Spectral radii, bounce shares and T 1 from the stored T and A, one matrix at a
-    time held within ``memory_limit`` (streamed from disk beyond it)."""
+def _radii_and_bounces(T, A, f, G, memory_limit: int, radius_of_M, lit: np.ndarray):
+    """What both kinds of scene measure: rho(M) (``radius_of_M(times_T)``), T 1, rho(A)
+    and the bounce images of the light ``lit`` (f G lit first), T and A each held
+    within ``memory_limit`` in turn."""
     n = T.shape[0]
-    d = np.asarray(T.diagonal(output_order="matrix"), np.float64)
     times_T = stored.stored_apply(T, memory_limit)
-    rho_M = spectral_radius_T(times_T, d)
+    rho_M = radius_of_M(times_T)
     T1 = times_T(np.ones(n))
     del times_T
     times_A = stored.stored_apply(A, memory_limit)
     rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
                             max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-    white = np.ones(n)
-    b0 = f * (G @ white if G is not None else white)
+    b0 = f * (G @ lit if G is not None else lit)
     bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
                                       config.SCENE_SHARE_TOL)
+    return rho_M, T1, rho_A, bounces
+
+
+def ground_truth_stats(T, A, f, G, memory_limit: int) -> GroundTruthStats:
+    """Spectral radii, bounce shares and T 1 from the stored T and A, one matrix at a
+    time held within ``memory_limit`` (streamed from disk beyond it)."""
+    d = np.asarray(T.diagonal(output_order="matrix"), np.float64)
+    rho_M, T1, rho_A, bounces = _radii_and_bounces(
+        T, A, f, G, memory_limit, lambda times_T: spectral_radius_T(times_T, d),
+        np.ones(T.shape[0]))
     return GroundTruthStats(rho_M, rho_A, radiosity.light_shares(bounces), T1)
 
 
 def colour_ground_truth_stats(T, A, f, G, colour: ColourParts,
                                memory_limit: int) -> GroundTruthStats:
-    """:func:`_ground_truth_stats` for a colour scene: rho(M) with F the 3x3 diagonal
+    """:func:`ground_truth_stats` for a colour scene: rho(M) with F the 3x3 diagonal
     blocks of T, rho of the bands' A (that of the camera's C A C^-1), and the bounce
     shares of what the camera sees, in all and per channel.
 
     ``f`` (3 n_pixels,) and ``G`` are the bands' first bounce and blur, interleaved."""
-    n = T.shape[0]
     D = stored.diagonal_blocks(T)
-    times_T = stored.stored_apply(T, memory_limit)
-    rho_M = spectral_radius_blocks(times_T, D)
-    T1 = times_T(np.ones(n))
-    del times_T
-    times_A = stored.stored_apply(A, memory_limit)
-    rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
-                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
-    lit = colour.projector_matrix @ np.ones(n)  # the bands a white image lights
-    b0 = f * (G @ lit if G is not None else lit)
-    bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
-                                      config.SCENE_SHARE_TOL)
+    lit = colour.projector_matrix @ np.ones(T.shape[0])  # the bands a white image lights
+    rho_M, T1, rho_A, bounces = _radii_and_bounces(
+        T, A, f, G, memory_limit, lambda times_T: spectral_radius_blocks(times_T, D), lit)
     seen = [np.einsum("pik,pk->pi", colour.camera, b.reshape(-1, 3)) for b in bounces]
     per_channel = [radiosity.light_shares([s[:, c] for s in seen]) for c in range(3)]
     return GroundTruthStats(rho_M, rho_A, radiosity.light_shares(seen), T1, per_channel)
