@@ -12,8 +12,11 @@ DEFAULT_TILE_SIZE = 8192
 #: The same for a colour store (3 values per pixel): 4096 pixels, so whole default image
 #: tiles (8x8) and a multiple of 3 (a pixel's 3x3 block never straddles two tiles).
 DEFAULT_COLOUR_TILE_SIZE = 12288
-#: Elements per zarr chunk of a tile's indices/data arrays (4 MiB of float32).
-CHUNK_ELEMENTS = 1 << 20
+#: Most elements in one zarr chunk of a store's arrays (512 MiB of float32): a tile
+#: row's indptr, indices and data are each one chunk file up to this size, so a row is
+#: a handful of files whatever its entries (docs/FORMAT.md, "Why one group per tile
+#: row"); larger arrays are cut into chunks of this many.
+CHUNK_ELEMENTS = 1 << 27
 #: zstd level for the tile arrays: level 1 is close to the best ratio on index
 #: arrays at several times the speed of the default level 3.
 ZSTD_LEVEL = 1

@@ -17,7 +17,11 @@ from .. import config
 from ..errors import CorruptStoreError, StoreError
 
 FORMAT_NAME = "bigT-block-csr"
-FORMAT_VERSION = 1
+#: The layout this bigT writes: 2, one group of three arrays per tile row. Version 1
+#: (a group of three arrays per tile) is still read; writers refuse to add to it.
+FORMAT_VERSION = 2
+#: The first version whose tile rows are stored whole (:func:`row_path`'s arrays).
+ROW_LAYOUT_VERSION = 2
 #: attrs key of the root group that holds everything bigT records.
 ATTRS_KEY = "bigT"
 #: Attribute of an inverse store's root holding the engine's record.
@@ -29,6 +33,7 @@ DTYPES = ("float32", "float64")
 
 ROWS_GROUP = "rows"
 INDEX_ARRAYS = ("tile_indptr", "tile_indices", "tile_nnz")
+#: The arrays of a tile row (version 2) and of a tile (version 1), in this order.
 TILE_ARRAYS = ("indptr", "indices", "data")
 
 #: Fill values that no valid array holds, so a chunk that zarr silently reads as
@@ -36,10 +41,17 @@ TILE_ARRAYS = ("indptr", "indices", "data")
 FILL_INT = -1
 FILL_FLOAT = float("nan")
 
-#: Local column indices of a tile are int32; a tile's indptr is int64 (a tile of
-#: 46341^2 entries could overflow int32, and indptr is tiny).
+#: Column indices are int32 (version 1: local to the tile; version 2: global, so a
+#: matrix of more than 2^31 - 1 columns stores them as int64, :func:`indices_dtype`);
+#: indptr is int64 (a tile row of a dense term can pass 2^31 entries, and indptr is
+#: tiny).
 INDICES_DTYPE = np.int32
 INDPTR_DTYPE = np.int64
+
+
+def indices_dtype(n_cols: int) -> np.dtype:
+    """dtype of a version-2 tile row's global column indices for ``n_cols`` columns."""
+    return np.dtype(np.int32 if n_cols <= np.iinfo(np.int32).max else np.int64)
 
 
 def row_path(i: int) -> str:
@@ -47,6 +59,7 @@ def row_path(i: int) -> str:
 
 
 def tile_path(i: int, j: int) -> str:
+    """Version 1 only: the group of tile (i, j)."""
     return f"{ROWS_GROUP}/{i}/{j}"
 
 
@@ -357,8 +370,8 @@ def read_array_files(adir: Path, length: int | None = None, *,
             out[:] = fill
             return out.astype(dtype.newbyteorder("="), copy=False)
         try:
-            chunk_buf = np.empty(chunk, dtype)
-            max_frame = chunk_buf.nbytes * 2 + 1024 + 4  # zstd's worst case is ~raw size
+            chunk_buf = np.empty(chunk if length % chunk else 0, dtype)
+            max_frame = chunk * dtype.itemsize * 2 + 1024 + 4  # zstd's worst case is ~raw size
             for c, start in enumerate(range(0, length, chunk)):
                 stop = min(start + chunk, length)
                 name = f"{rel}/c/{c}"
@@ -370,8 +383,12 @@ def read_array_files(adir: Path, length: int | None = None, *,
                 frame, stored = raw[:-4], raw[-4:]
                 if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
                     raise ValueError(f"crc32c checksum mismatch in chunk file {name}")
-                # not decoded in place: a frame shorter than the chunk must fail here,
-                # not leave the rest of ``out`` unset
+                if stop - start == chunk:  # a whole chunk: decoded in place, no copy
+                    if _frame_content_size(frame) is None:
+                        out[start:stop] = fill  # what a short frame leaves, the checks catch
+                    _decode_chunk(frame, out[start:stop], name)
+                    continue
+                # the edge chunk through a buffer: its frame holds the padding too
                 _decode_chunk(frame, chunk_buf, name)
                 out[start:stop] = chunk_buf[:stop - start]
         finally:

@@ -1,7 +1,9 @@
 """Reading a bigT block-CSR store: :func:`open` and :class:`BlockCSR`.
 
 The tile index (which tiles of which tile row are stored, and their nnz) is read once
-on open and kept in memory; a tile read touches only that tile's three arrays.
+on open and kept in memory. A format-2 store keeps each tile row whole (three arrays,
+global columns): a tile row is one read, and a tile is cut from its row; a format-1
+store (a group per tile) is read tile by tile, as it was written.
 
 Pixel-indexed vectors and matrices the public methods take or return (``A @ x``,
 :meth:`BlockCSR.matmul`, :meth:`BlockCSR.to_scipy`, :meth:`BlockCSR.diagonal`) are in
@@ -32,12 +34,12 @@ from . import checks
 from .attrs import StoreAttrs, read_raw_attrs
 from .channel_mixing import ChannelMixing, mixed_diagonal, mixed_product, mixed_rows
 from .locks import ReaderLease
-from .products import diagonal_of_tiles, matmul_tiles, reordering, to_row_major
+from .products import diagonal_of_tiles, matmul_rows, matmul_tiles, reordering, to_row_major
 from .replace import recover_interrupted_replace, write_root_attrs
 from .rows import join_tile_row, rows_between
 from .summary import summary
 from .tile_index import read_tile_index
-from .tiles import TileReader
+from .tiles import RowReader, TileReader
 
 
 # --- the store ---------------------------------------------------------------------
@@ -168,7 +170,11 @@ class BlockCSR:
         self.tile_nnz = self._index.nnz
         self.nnz = self._index.total_nnz
         self.missing_tile_rows: list[int] = list(self._index.missing_tile_rows)
-        self._tiles = TileReader(self.path, LocalStore(self.path, read_only=True))
+        zarr_store = LocalStore(self.path, read_only=True)
+        #: True for format 2 (a tile row is stored whole), False for format 1 (tiles)
+        self.row_layout = attrs.version >= fmt.ROW_LAYOUT_VERSION
+        self._rows = RowReader(self.path, zarr_store, attrs) if self.row_layout else None
+        self._tiles = None if self.row_layout else TileReader(self.path, zarr_store)
 
     # --- geometry ------------------------------------------------------------------
 
@@ -217,7 +223,21 @@ class BlockCSR:
 
     def _read_tile(self, i: int, j: int, k: int) -> sp.csr_array:
         """Stored tile (i, j), entry ``k`` of the tile index, read and checked."""
+        if self.row_layout:
+            return self._cut_tile(self._read_row(i), j)
         return self._tiles.read(i, j, self.tile_shape(i, j), int(self.tile_nnz[k]))
+
+    def _read_row(self, i: int) -> sp.csr_array:
+        """Format 2: tile row ``i`` as stored, read and checked (global columns)."""
+        lo, hi = self.tile_indptr[i], self.tile_indptr[i + 1]
+        return self._rows.read(i, self.tile_indices[lo:hi], self.tile_nnz[lo:hi])
+
+    def _cut_tile(self, row: sp.csr_array, j: int) -> sp.csr_array:
+        """Tile column ``j`` of a tile ``row`` (global columns), local columns."""
+        c0, c1 = self.tile_col_range(j)
+        tile = sp.csr_array(row[:, c0:c1])
+        tile.has_sorted_indices = True
+        return tile
 
     def get_tile(self, i: int, j: int) -> sp.csr_array:
         """Tile (i, j) as a csr_array of shape ``tile_shape(i, j)`` (local indices).
@@ -234,17 +254,46 @@ class BlockCSR:
         ``columns``, a collection of tile columns, when given)."""
         i = self._check_tile_row(i)
         wanted = None if columns is None else {int(j) for j in columns}
+        if self.row_layout:
+            yield from self._row_tiles(i, wanted)
+            return
         for k in range(self.tile_indptr[i], self.tile_indptr[i + 1]):
             j = int(self.tile_indices[k])
             if wanted is None or j in wanted:
                 yield j, self._read_tile(i, j, int(k))
+
+    def _row_tiles(self, i: int, wanted: set[int] | None):
+        """Format 2: ``(j, tile)`` of tile row ``i``, one read of the row, split."""
+        from ..kernels.csr import split_column_tiles  # numba: only once a row is split
+
+        row = self._read_row(i)
+        if not row.nnz:
+            return
+        tiles = split_column_tiles(row.indptr, row.indices, row.data, self.tile_size)
+        for t, j in enumerate(tiles.cols):
+            j = int(j)
+            if wanted is not None and j not in wanted:
+                continue
+            part = slice(tiles.bounds[t], tiles.bounds[t + 1])
+            tile = sp.csr_array((tiles.data[part], tiles.indices[part], tiles.indptr[t]),
+                                shape=self.tile_shape(i, j))
+            tile.has_sorted_indices = True
+            yield j, tile
 
     def get_tile_row(self, i: int, columns=None) -> sp.csr_array:
         """Tile row ``i`` as a csr_array of shape (rows_i, n_cols), global columns in
         matrix order; only the tiles in ``columns`` (tile columns) when given, the
         others empty."""
         r0, r1 = self.tile_row_range(i)
-        return join_tile_row(self.iter_tiles(i, columns), r1 - r0, self.attrs, self.dtype)
+        if not self.row_layout:
+            return join_tile_row(self.iter_tiles(i, columns), r1 - r0, self.attrs, self.dtype)
+        row = self._read_row(self._check_tile_row(i))
+        if columns is None:
+            return row
+        keep = np.isin(row.indices // self.tile_size, np.asarray(list(columns), np.int64))
+        if keep.all():
+            return row
+        return _entries_kept(row, keep)
 
     def get_rows(self, start: int, stop: int) -> sp.csr_array:
         """Matrix rows ``start:stop`` as a csr_array of shape (stop - start, n_cols),
@@ -377,6 +426,8 @@ class BlockCSR:
 
     def _stored_product(self, X: np.ndarray) -> np.ndarray:
         """S X of the stored tiles, X (n_cols, k) in matrix order."""
+        if self.row_layout:
+            return matmul_rows(self.attrs, self.get_tile_row, np.ascontiguousarray(X))
         return matmul_tiles(self.attrs, self.iter_tiles, np.ascontiguousarray(X))
 
     def __matmul__(self, x):
@@ -428,3 +479,16 @@ class BlockCSR:
     def __repr__(self) -> str:
         return (f"<BlockCSR {self.shape[0]}x{self.shape[1]} {self.dtype.name} nnz={self.nnz} "
                 f"tile_size={self.tile_size} tiles={self.n_tiles_stored} at {str(self.path)!r}>")
+
+
+def _entries_kept(row: sp.csr_array, keep: np.ndarray) -> sp.csr_array:
+    """The entries of CSR ``row`` where the bool mask ``keep`` (nnz,) is set, sorted."""
+    counts = np.add.reduceat(keep.astype(np.int64), row.indptr[:-1]) if row.nnz else None
+    indptr = np.zeros(row.shape[0] + 1, np.int64)
+    if counts is not None:
+        # reduceat repeats the next value for an empty row: zero those
+        counts[np.diff(row.indptr) == 0] = 0
+        np.cumsum(counts, out=indptr[1:])
+    out = sp.csr_array((row.data[keep], row.indices[keep], indptr), shape=row.shape)
+    out.has_sorted_indices = True
+    return out

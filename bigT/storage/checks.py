@@ -1,4 +1,4 @@
-"""Whole-store checks of a block-CSR store: every chunk file a tile needs is on disk
+"""Whole-store checks of a block-CSR store: every chunk file a tile row needs is on disk
 (:func:`check_chunks_exist`, stat only) and every tile reads back as valid CSR
 (:func:`verify`, what ``bigT verify`` runs).
 
@@ -92,6 +92,13 @@ def missing_chunk_files(path: Path, attrs: StoreAttrs, index: TileIndex,
     for i in range(n_rows):
         r0, r1 = attrs.tile_row_range(i)
         rows = r1 - r0 if n_cols else 0
+        if attrs.version >= fmt.ROW_LAYOUT_VERSION:  # a tile row's three arrays
+            nnz = int(index.counts(i).sum())
+            for name, length in (("indptr", rows + 1), ("indices", nnz), ("data", nnz)):
+                missing += _missing_array_files(path, f"{fmt.row_path(i)}/{name}", length)
+            if limit and len(missing) >= limit:
+                return missing
+            continue
         for k in range(index.indptr[i], index.indptr[i + 1]):
             tile = fmt.tile_path(i, int(index.indices[k]))
             nnz = int(index.nnz[k])

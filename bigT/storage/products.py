@@ -64,6 +64,23 @@ def matmul_tiles(attrs: StoreAttrs, iter_tiles: TileRowReader, X: np.ndarray) ->
     return Y
 
 
+def matmul_rows(attrs: StoreAttrs, tile_row, X: np.ndarray) -> np.ndarray:
+    """(n_rows, k) product of the stored matrix with C-contiguous X (n_cols, k), a
+    tile row ``tile_row(i)`` (global columns) at a time."""
+    Y = np.zeros((attrs.shape[0], X.shape[1]), dtype=X.dtype)
+    spmm = _spmm_dense()
+    for i in range(attrs.grid[0]):
+        r0, r1 = attrs.tile_row_range(i)
+        row = tile_row(i)
+        if not row.nnz:
+            continue
+        if spmm is None:
+            Y[r0:r1] += row @ X
+        else:
+            spmm(row, X, out=Y[r0:r1])
+    return Y
+
+
 def diagonal_of_tiles(attrs: StoreAttrs,
                       diagonal_tile: Callable[[int], sp.csr_array | None]) -> np.ndarray:
     """(min(shape),) main diagonal in the stored order, from the diagonal tiles

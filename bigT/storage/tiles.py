@@ -1,4 +1,5 @@
-"""Reading one tile of a block-CSR store, checked: :class:`TileReader`.
+"""Reading a block-CSR store's tile rows (format 2, :class:`RowReader`) and tiles
+(format 1, :class:`TileReader`), checked.
 
 Every read checks the cheap invariants of a CSR tile (lengths, monotone indptr, sorted
 in-range column indices, finite values), always on: zarr reads a missing chunk as the
@@ -109,3 +110,71 @@ def sorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
     starts = indptr[1:-1]
     steps[starts[(starts > 0) & (starts < indices.size)] - 1] = 1
     return not np.any(steps <= 0)
+
+
+class RowReader:
+    """Reads the tile rows of a format-2 store at ``path`` (a group of three arrays a
+    tile row, global column indices): from their files directly when bigT wrote them,
+    else through zarr."""
+
+    def __init__(self, path: Path, store: LocalStore, attrs):
+        self._path = path
+        self._store = store
+        self._attrs = attrs
+
+    def read(self, i: int, columns: np.ndarray, counts: np.ndarray) -> sp.csr_array:
+        """Tile row ``i`` as a csr_array (rows_i, n_cols), global sorted columns; the
+        row's stored tile ``columns`` (k,) hold ``counts`` (k,) entries each, as the
+        tile index records them, and the row must agree.
+
+        Raises
+        ------
+        CorruptStoreError
+            An array unreadable, of another length, or breaking CSR; entries in tiles
+            the index does not record, or other counts.
+        """
+        r0, r1 = self._attrs.tile_row_range(i)
+        rows, n_cols = r1 - r0, self._attrs.shape[1]
+        nnz = int(counts.sum())
+        indptr, indices, data = self._read_arrays(i, (rows + 1, nnz, nnz))
+        if indptr.shape != (rows + 1,) or indices.shape != (nnz,) or data.shape != (nnz,):
+            raise row_error(self._path, i, "array lengths disagree with the tile index")
+        problem = (_csr_problem(indptr, indices, data, n_cols)
+                   or _tile_count_problem(indices, self._attrs.tile_size, columns, counts))
+        if problem:
+            raise row_error(self._path, i, problem)
+        out = sp.csr_array((data, indices, indptr), shape=(rows, n_cols))
+        out.has_sorted_indices = True  # checked above
+        return out
+
+    def _read_arrays(self, i: int, lengths: tuple[int, int, int]) -> list[np.ndarray]:
+        base = fmt.row_path(i)
+        try:
+            direct = [fmt.read_array_files(self._path / base / name, n, root=self._path)
+                      for name, n in zip(fmt.TILE_ARRAYS, lengths)]
+            if any(a is None for a in direct):  # not bigT's own layout: zarr reads it
+                direct = [zarr.open_array(self._store, path=f"{base}/{name}", mode="r")[...]
+                          for name in fmt.TILE_ARRAYS]
+            return direct
+        except BigTError:
+            raise
+        except Exception as exc:
+            raise row_error(self._path, i, f"unreadable ({type(exc).__name__}: {exc})") from None
+
+
+def row_error(path: Path, i: int, problem: str) -> CorruptStoreError:
+    """The error of a bad tile row ``i`` of the store at ``path``."""
+    return CorruptStoreError(f"tile row {i}: {problem}", path)
+
+
+def _tile_count_problem(indices: np.ndarray, tile_size: int, columns: np.ndarray,
+                        counts: np.ndarray) -> str | None:
+    """What disagrees between a row's global column ``indices`` (nnz,) and the tile
+    index's stored tile ``columns`` and their ``counts`` (k,), or None."""
+    if not indices.size:
+        return None if not counts.size else "entries missing from stored tiles"
+    found = np.bincount(indices // tile_size)
+    present = np.flatnonzero(found)
+    if not np.array_equal(present, columns) or not np.array_equal(found[present], counts):
+        return "entries per tile disagree with the tile index"
+    return None

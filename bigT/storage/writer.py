@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import errno
-import json
 import os
 import shutil
 import uuid
@@ -68,25 +67,6 @@ def _deleted_on_failure(tmp: Path, path: Path, what: str):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-
-
-def _split_tiles(indptr, indices, data, n_rows: int, ts: int):
-    """Cut one tile row (CSR with sorted global columns) into its non-empty tiles.
-
-    Yields ``(j, indptr_j, indices_j, data_j)`` in ascending tile column ``j`` with local
-    column indices, each tile row-major and column-sorted
-    (:func:`bigT.kernels.csr.split_column_tiles`).
-    """
-    if indices.size == 0:
-        return
-    from ..kernels.csr import split_column_tiles  # numba loads on the first big write
-
-    tiles = split_column_tiles(indptr, indices, data, ts)
-    for t, j in enumerate(tiles.cols):
-        part = slice(tiles.bounds[t], tiles.bounds[t + 1])
-        yield (int(j), tiles.indptr[t].astype(fmt.INDPTR_DTYPE, copy=False),
-               tiles.indices[part].astype(fmt.INDICES_DTYPE, copy=False),
-               tiles.data[part])
 
 
 def _validate_block(path: Path, attrs: StoreAttrs, i: int, block) -> sp.csr_array:
@@ -176,9 +156,11 @@ def read_store_attrs(path) -> StoreAttrs:
 @dataclass(frozen=True)
 class KeptTiles:
     """Tiles of tile row ``i`` of the finished store ``store`` (same shape, tile size
-    and dtype) to carry into a new store's row unchanged: hard-linked, neither read
-    nor rewritten. Store files are written once and never modified in place, so a
-    link is as good as a copy, and deleting the old store leaves the new one whole.
+    and dtype) to carry into a new store's row unchanged. When they are the whole old
+    row and nothing else is written to it, the row's files are hard-linked, neither
+    read nor rewritten (store files are written once and never modified in place, so a
+    link is as good as a copy, and deleting the old store leaves the new one whole);
+    otherwise their entries are read and written with the row.
 
     ``columns`` : tile columns, each stored in the old row; ``nnz`` : their entries
     (the old store's ``tile_nnz``), in the same order.
@@ -193,12 +175,13 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
                    keep: KeptTiles | None = None) -> bool:
     """Write tile row ``i`` of the store at ``path`` whole, idempotently.
 
-    The row is built in a hidden sibling directory (``rows/.{i}.<hex>.partial``), its
-    completion marker written last, and the directory then renamed to ``rows/{i}``: a
-    row is on disk complete or not at all. Durably so (``config.DURABILITY``): the
-    row's files are fsynced in one pass before the marker, the marker before the
-    rename, ``rows/`` after it, so a power cut never leaves a marker over lost data. A row already complete is left alone, so a
-    task run twice (a scheduler's retry after a worker loss, or two processes at once)
+    The row's three arrays are built in a hidden sibling directory
+    (``rows/.{i}.<hex>.partial``), its completion marker written last, and the
+    directory then renamed to ``rows/{i}``: a row is on disk complete or not at all.
+    Durably so (``config.DURABILITY``): the row's files are fsynced in one pass before
+    the marker, the marker before the rename, ``rows/`` after it, so a power cut never
+    leaves a marker over lost data. A row already complete is left alone, so a task
+    run twice (a scheduler's retry after a worker loss, or two processes at once)
     writes it once; the loser of a race deletes its own copy.
 
     Parameters
@@ -209,7 +192,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     block : sparse matrix/array or ndarray, shape (rows_i, n_cols), global columns
     keep : KeptTiles, optional
         Tiles carried from the same row of an older store; ``block`` holds no entry
-        in their tile columns.
+        in their tile columns. The whole old row with an empty ``block`` is linked.
 
     Returns
     -------
@@ -219,52 +202,81 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     path, i = Path(path), int(i)
     if not 0 <= i < attrs.grid[0]:
         raise ShapeMismatchError(f"tile row {i} out of range [0, {attrs.grid[0]})", path)
+    _check_writable_version(path, attrs)
     if fmt.row_marker(path, i) is not None:
         return False
     block = _validate_block(path, attrs, i, block)
+    linked_from = None
+    if keep is not None:
+        block, linked_from = _with_kept_tiles(keep, attrs, i, block, path)
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
     with _deleted_on_failure(tmp, path, f"tile row {i}"):
-        tmp.mkdir()
-        tiles = {}
-        for j, ptr, ind, dat in _split_tiles(block.indptr, block.indices, block.data,
-                                             block.shape[0], attrs.tile_size):
-            _write_tile(tmp / str(j), ptr, ind, dat, zstd_level)
-            tiles[j] = int(ind.size)
-        if keep is not None:
-            tiles.update(_link_kept_tiles(keep, attrs, i, tmp, path, set(tiles)))
-        cols = sorted(tiles)
-        if durable():
-            fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
-        atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
-            "complete": True, "tile_columns": cols, "tile_nnz": [tiles[j] for j in cols]}}),
-            durable())
+        if linked_from is not None:
+            _link_tree(linked_from, tmp)  # the old row's arrays and marker, as they are
+        else:
+            _write_row(tmp, attrs, block, zstd_level)
         return _move_row_into_place(tmp, path, i)
 
 
-def _link_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, tmp: Path, path: Path,
-                     written: set[int]) -> dict[int, int]:
-    """Hard-link ``keep``'s tiles into the row being built in ``tmp``; returns
-    ``{tile column: nnz}`` of the linked tiles (checked against the old row's marker:
-    a link to a tile that is not there would be a store that lies)."""
+def _check_writable_version(path: Path, attrs: StoreAttrs) -> None:
+    """StoreError naming ``path`` for a store of an older layout: rows are added only
+    in this bigT's (a format-1 store is read, and upgraded by ``convert``)."""
+    if attrs.version != fmt.FORMAT_VERSION:
+        raise StoreError(f"written in bigT store format {attrs.version} (a directory per "
+                         f"tile): this bigT reads it but adds no rows to it; upgrade it "
+                         f"with {{option}}", path,
+                         option=Option("convert(old, new)", cli="bigT convert OLD -o NEW"))
+
+
+def _write_row(tmp: Path, attrs: StoreAttrs, block: sp.csr_array, level) -> None:
+    """The row's group in ``tmp``: its three arrays, then (last) its marker."""
+    tmp.mkdir()
+    indices = block.indices.astype(fmt.indices_dtype(attrs.shape[1]), copy=False)
+    fmt.write_array_files(tmp, "indptr", block.indptr.astype(fmt.INDPTR_DTYPE, copy=False),
+                          fmt.FILL_INT, level)
+    fmt.write_array_files(tmp, "indices", indices, fmt.FILL_INT, level)
+    # the values at their own level unless the caller chose one for every array
+    fmt.write_array_files(tmp, "data", block.data, fmt.FILL_FLOAT,
+                          config.ZSTD_LEVEL_VALUES if level is None else level)
+    counts = np.bincount(indices // attrs.tile_size) if indices.size else np.zeros(0, np.int64)
+    cols = np.flatnonzero(counts)
+    if durable():
+        fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
+    atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
+        "complete": True, "tile_columns": cols.tolist(), "tile_nnz": counts[cols].tolist()}}),
+        durable())
+
+
+def _with_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, block: sp.csr_array,
+                     path: Path) -> tuple[sp.csr_array, Path | None]:
+    """(the row to write, the old row's directory to link instead or None): ``keep``'s
+    tiles checked against the old row's marker (a row that claims tiles it does not
+    hold would be a store that lies), then linked when they are the whole old row and
+    ``block`` is empty, else read and added to ``block``."""
     source = Path(keep.store)
+    old_attrs = read_store_attrs(source)
+
     def layout(a: StoreAttrs):
         return a.shape, a.tile_size, a.dtype, a.inner_format
 
-    if layout(read_store_attrs(source)) != layout(attrs):
+    if layout(old_attrs) != layout(attrs):
         raise StoreError(f"tile row {i}: kept tiles come from a store of another "
                          f"shape, tile size or dtype ({source})", path)
     marker = fmt.row_marker(source, i)
     old = {} if marker is None else dict(zip(marker["tile_columns"], marker["tile_nnz"]))
-    out = {}
+    written = set(np.unique(block.indices // attrs.tile_size).tolist()) if block.nnz else set()
     for j, nnz in zip(keep.columns, keep.nnz, strict=True):
-        j = int(j)
-        if old.get(j) != nnz or j in written:
-            raise StoreError(f"tile row {i}: tile column {j} is " + (
-                "also written" if j in written
+        if old.get(int(j)) != nnz or int(j) in written:
+            raise StoreError(f"tile row {i}: tile column {int(j)} is " + (
+                "also written" if int(j) in written
                 else f"not stored with {nnz} entries in {source}"), path)
-        _link_tree(source / fmt.row_path(i) / str(j), tmp / str(j))
-        out[j] = int(nnz)
-    return out
+    whole = sorted(int(j) for j in keep.columns) == sorted(old)
+    if not block.nnz and whole and old_attrs.version == fmt.FORMAT_VERSION:
+        return block, source / fmt.row_path(i)
+    kept = open_store(source).get_tile_row(i, columns=keep.columns)
+    out = sp.csr_array(block + kept.astype(block.dtype, copy=False))
+    out.sort_indices()
+    return out, None
 
 
 def _link_tree(src: Path, dst: Path) -> None:
@@ -458,6 +470,7 @@ class BlockCSRWriter:
         if old.pixel_order != attrs.pixel_order:
             raise ShapeMismatchError(f"cannot resume: store has pixel order {old.pixel_order}, "
                                      f"writer asks {attrs.pixel_order}", self.path)
+        _check_writable_version(self.path, old)
         clean_partial_rows(self.path, old.grid[0])
         if attrs.metadata and not old.complete:
             old = old.replace(metadata={**old.metadata, **attrs.metadata})
@@ -520,19 +533,6 @@ class BlockCSRWriter:
         if exc_type is None:
             self.finalize()
         return False
-
-
-def _write_tile(tdir: Path, indptr, indices, data, level) -> None:
-    """A tile's group and its three arrays, the files written directly
-    (:func:`~._format.write_array_files`; zarr's own path costs ~3 ms per array)."""
-    tdir.mkdir(parents=True, exist_ok=True)
-    with open(tdir / "zarr.json", "w", encoding="utf-8") as f:
-        json.dump(fmt.group_json({}), f, indent=2)
-    fmt.write_array_files(tdir, "indptr", indptr, fmt.FILL_INT, level)
-    fmt.write_array_files(tdir, "indices", indices, fmt.FILL_INT, level)
-    # the values at their own level unless the caller chose one for every array
-    fmt.write_array_files(tdir, "data", data, fmt.FILL_FLOAT,
-                          config.ZSTD_LEVEL_VALUES if level is None else level)
 
 
 def _stored_dtype(dtype) -> str:
