@@ -106,8 +106,10 @@ def _x_updated(ctx: TaskContext, Q: sp.csr_array):
     """X_k = X_{k-1} + F^-1 Q_k on the block's tile row, as (the rows of the tiles Q_k
     touches, updated; the other stored tile columns of X_{k-1}, (m,) int64; their
     entries, (m,) int64). Only the touched tiles are read and rewritten: the others
-    are carried over unchanged (hard-linked), which saves most of X's rewrite in the
-    late terms, where Q_k is small."""
+    are carried over unchanged, which saves most of X's rewrite in the late terms,
+    where Q_k is small. A store that keeps its tile rows whole (format 2) carries a
+    row Q_k does not touch whole (its files hard-linked) and reads and rewrites the
+    others whole."""
     X_prev = ctx.operand("X").store
     i = ctx.block.index
     if (X_prev.tile_size != ctx.spec.block_rows or i >= X_prev.grid[0]
@@ -116,7 +118,10 @@ def _x_updated(ctx: TaskContext, Q: sp.csr_array):
     else:
         stored = X_prev.tile_columns(i)
         touched = np.isin(stored, np.unique(Q.indices // X_prev.tile_size))
-        part = X_prev.get_tile_row(i, columns=stored[touched])
+        if X_prev.row_layout and touched.any():
+            touched[:] = True  # a row is read whole: carry all of it or none (linked)
+        part = (X_prev.get_tile_row(i, columns=stored[touched]) if touched.any()
+                else sp.csr_array((ctx.stop - ctx.start, X_prev.shape[1]), dtype=ctx.dtype))
         stored_nnz = X_prev.tile_nnz[X_prev.tile_indptr[i]:X_prev.tile_indptr[i + 1]]
         kept, kept_nnz = stored[~touched], stored_nnz[~touched]
     if Q.nnz and ctx.inverse.b == 1:

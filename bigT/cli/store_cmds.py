@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from .. import config
@@ -21,7 +22,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "convert", help="convert a .npz/.mtx/.mat/.npy matrix into a bigT store",
         description="Convert a matrix file (scipy .npz, Matrix Market .mtx, MATLAB .mat, "
-                    "dense .npy) into a bigT zarr block-CSR store.")
+                    "dense .npy) into a bigT zarr block-CSR store; or, given a bigT store, "
+                    "rewrite it in this bigT's store format (an upgrade: same tiles, "
+                    "pixel order and metadata; the layout options do not apply).")
     p.add_argument("input", metavar="IN")
     p.add_argument("-o", "--output", required=True, metavar="OUT.zarr",
                    help="the bigT store to write")
@@ -74,6 +77,8 @@ def convert_cmd(args) -> int:
     from ..storage.locks import ReplaceLock
 
     refuse_overwriting_inputs([args.output], [args.input])
+    if os.path.isdir(args.input):
+        return _upgrade(args)
     # a second convert (or scene, or invert) of the same store is refused here, at once
     with ReplaceLock(args.output, "bigT convert"):
         A = load_matrix(args.input, var=args.var)
@@ -85,6 +90,18 @@ def convert_cmd(args) -> int:
                        metadata={"source": str(args.input)})
     print(f"wrote {S.path}: {S.shape[0]} x {S.shape[1]} {S.dtype.name}, nnz {S.nnz}, "
           f"{S.n_tiles_stored} of {S.grid[0] * S.grid[1]} tiles stored")
+    return 0
+
+
+def _upgrade(args) -> int:
+    """``bigT convert OLD.zarr -o NEW.zarr``: a store rewritten in this bigT's format."""
+    from ..storage.locks import ReplaceLock
+    from ..storage.upgrade import upgrade_store
+
+    with ReplaceLock(args.output, "bigT convert"):
+        S = upgrade_store(args.input, args.output, overwrite=args.overwrite, progress=None)
+    print(f"wrote {S.path}: {S.shape[0]} x {S.shape[1]} {S.dtype.name}, nnz {S.nnz}, "
+          f"store format {S.attrs.version}")
     return 0
 
 

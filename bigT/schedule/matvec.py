@@ -32,14 +32,22 @@ def m_largest_task(ctx: TaskContext) -> BlockStats:
 
 
 def store_matvec_task(ctx: TaskContext) -> BlockStats:
-    """Rows of A V for the pass's input ``A``, tile by tile through the tile cache (no
-    tile row is assembled; each product touches only the rows of V under its tile)."""
+    """Rows of A V for the pass's input ``A``: its tile row, read whole (format 2),
+    or tile by tile (format 1: no tile row is assembled), through the tile cache."""
     V = ctx.shared["V"]
     path = ctx.spec.input_path("A")
     A = STATE.store(path)
     i, ts = ctx.block.index, A.tile_size
     out = np.zeros((ctx.stop - ctx.start, V.shape[1]), np.result_type(V.dtype, A.dtype))
     ident = _identity(path)
+    if A.row_layout:  # the row is stored whole: one read, one product
+        if ctx.spec.cache_tiles:
+            row = ctx.cache.get((path, ident, "row", i), lambda: A.get_tile_row(i))
+        else:
+            row = A.get_tile_row(i)
+        if row.nnz:
+            spmm_dense(row, V, out=out, n_threads=1)
+        return ctx.stats(y=out)
     for j in A.tile_columns(i):
         j = int(j)
         if ctx.spec.cache_tiles:

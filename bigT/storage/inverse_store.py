@@ -340,8 +340,8 @@ class InverseStore:
                 old = read_store_attrs(path)
             except StoreError:  # a header that bigT before 0.2 left half written
                 old = None
-            if old is not None and (old.shape, old.tile_size, old.dtype) == (
-                    attrs.shape, attrs.tile_size, attrs.dtype):
+            if old is not None and (old.shape, old.tile_size, old.dtype, old.version) == (
+                    attrs.shape, attrs.tile_size, attrs.dtype, attrs.version):
                 clean_partial_rows(path, old.grid[0])
                 remove_stale_temp_files(path)
                 return path

@@ -1,0 +1,57 @@
+"""Rewriting a store in this bigT's format: :func:`upgrade_store` (``bigT convert
+OLD.zarr -o NEW.zarr``), for stores written in format 1 (a group per tile), which this
+bigT reads but does not add rows to."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..errors import DiskFullError
+from ..progress import progress_bar
+from .block_csr import BlockCSR
+from .block_csr import open as open_store
+from .replace import check_replaceable, move_into_place, temporary_sibling, write_root_attrs
+from .writer import BlockCSRWriter, _deleted_on_failure
+
+
+def upgrade_store(source, path, *, overwrite: bool = False,
+                  progress: bool | None = False) -> BlockCSR:
+    """Copy the store ``source`` (any format this bigT reads; a versioned store's
+    current term) into a new store at ``path`` in this bigT's format, a tile row at a
+    time: same shape, tile size, dtype, pixel order, mixing and metadata, entries
+    equal. Built aside and moved into place, so a failed call leaves ``path`` as it was.
+
+    Parameters
+    ----------
+    source : str or os.PathLike
+    path : str or os.PathLike
+    overwrite : bool
+        Replace an existing bigT store at ``path``.
+    progress : bool or None
+        A bar per tile row (None: when stderr is a terminal).
+
+    Returns
+    -------
+    BlockCSR, the new store
+    """
+    old = open_store(source)
+    path = Path(os.fspath(path))
+    check_replaceable(path, overwrite)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_sibling(path)
+    try:
+        with _deleted_on_failure(tmp, path, "the store"):
+            writer = BlockCSRWriter(tmp, old.shape, tile_size=old.tile_size, dtype=old.dtype,
+                                    pixel_order=old.pixel_order, metadata=old.metadata)
+            for i in progress_bar(range(old.grid[0]), progress=progress, desc="upgrade",
+                                  unit="tile row"):
+                writer.write_tile_row(i, old.get_tile_row(i))
+            if old.mixing is not None:  # the factors travel with the tiles they factor
+                write_root_attrs(tmp, writer.attrs.replace(mixing=old.mixing))
+            writer.finalize()
+            move_into_place(tmp, path)
+    except DiskFullError as exc:
+        raise DiskFullError(f"disk full while writing ({exc.template}); nothing was changed "
+                            f"at the destination", path, option=exc.option) from exc
+    return open_store(path)
