@@ -233,18 +233,18 @@ def test_the_bracket_is_asked_for_only_when_m_has_no_positive_entry(
     assert abs(rep.spectral_radius - exact) <= rep.spectral_uncertainty + 1e-6
 
 
-def test_power_terms_carry_untouched_tiles_of_x_by_link(tmp_path, make_store, monkeypatch):
-    """The power form rewrites only the tiles of X that Q_k touches and hard-links the
-    rest: with light going only between pixel sets A and B, M is bipartite, so M^2
-    touches none of the A-B tiles that X_1 = F^-1 (I + M) holds, and term 2 carries
-    them. The inverse still equals eq. 13 evaluated densely."""
+def test_power_terms_carry_untouched_tile_rows_of_x_by_link(tmp_path, make_store, monkeypatch):
+    """The power form rewrites only the tile rows of X that Q_k touches and hard-links
+    the rest whole: with light going only among pixel set A, the rows of set B of M
+    are zero, so every Q_k (k >= 1) leaves B's tile rows untouched and each term
+    carries them; A's rows are rewritten. The inverse still equals eq. 13 evaluated
+    densely."""
     from bigT.storage import writer
 
     rng = np.random.default_rng(3)
     n, half = 64, 32
     C = np.zeros((n, n))
-    C[:half, half:] = rng.uniform(0, 0.6 / half, (half, half))
-    C[half:, :half] = rng.uniform(0, 0.6 / half, (half, half))
+    C[:half, :half] = rng.uniform(0, 0.6 / half, (half, half))
     T = np.diag(rng.uniform(1.5, 2.5, n)) + C
     linked = []
     real_link_tree = writer._link_tree
@@ -254,9 +254,10 @@ def test_power_terms_carry_untouched_tiles_of_x_by_link(tmp_path, make_store, mo
     bigT.stratified_inverse(make_store(T, tile_size=16), out, terms=3, prune=0.0,
                             progress=False)
     np.testing.assert_allclose(dense(out), dense_stratified(T, 3), rtol=1e-12, atol=1e-15)
-    carried = {(Path(p).parent.name, Path(p).name) for p in linked}
-    # term 2 carries X_1's A-B tiles: tile rows 0, 1 x tile columns 2, 3 and back
-    assert {("0", "2"), ("0", "3"), ("2", "0"), ("3", "1")} <= carried
+    carried = [(Path(p).parent.name, Path(p).name) for p in linked]
+    # B is tile rows 2 and 3: carried into X by terms 1 and 2; A's tile rows 0, 1 never
+    assert carried.count(("rows", "2")) >= 2 and carried.count(("rows", "3")) >= 2
+    assert not {("rows", "0"), ("rows", "1")} & set(carried)
 
 
 def test_on_term_sees_each_published_term_and_may_stop_the_run(tmp_path, make_store):
