@@ -1,0 +1,153 @@
+"""The store layout's cost in a 4-term inverse: seconds, files and bytes per term.
+
+Runs ``stratified_inverse`` of the dense corner (the README's recommended thresholds
+unless given) in a child process per code tree, so that one run compares this tree's
+store format with an older checkout's (``--baseline PATH``: a bigT source tree, e.g.
+``git worktree add /tmp/bigT-old <commit>``), interleaved, best of ``--repeats``. After
+each published term the child counts the files of the term's directory (X and P) and
+how many of them are new (a hard link carried from the term before is not), their
+bytes, and at the end its peak RSS.
+
+    python benchmarks/bench_layout.py                       # 384x512, this tree only
+    python benchmarks/bench_layout.py --baseline /tmp/bigT-old --size 1080x1920
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from _results import Results, run_name
+
+HERE = Path(__file__).resolve().parent
+
+#: The child: one inverse, one JSON line of what it saw.
+CHILD = r"""
+import json, os, resource, sys, time
+from pathlib import Path
+import bigT
+
+T, out, terms, prune, feed, operator = sys.argv[1:7]
+seen = []
+
+def tree(root):
+    files = new = size = new_size = 0
+    for d, _, names in os.walk(root):
+        for name in names:
+            st = os.lstat(os.path.join(d, name))
+            files += 1
+            size += st.st_size
+            if st.st_nlink == 1:  # written by this term, not linked from the last
+                new += 1
+                new_size += st.st_size
+    return files, new, size, new_size
+
+def on_term(record):
+    k = record.dir
+    term = Path(out) / f"t{k:04d}"
+    seen.append({"term": record.term, "files": tree(term), "t": time.perf_counter()})
+
+t0 = time.perf_counter()
+rep = bigT.stratified_inverse(T, out, terms=int(terms), prune=float(prune),
+                              prune_feed=float(feed) or None,
+                              prune_operator=float(operator) or None,
+                              overwrite=True, progress=False, on_term=on_term)
+total = time.perf_counter() - t0
+X = bigT.open(out)
+record = json.loads((Path(out) / "zarr.json").read_text())["attributes"]["bigT_inverse"]
+hist = record["history"]
+print(json.dumps({"seconds": total, "terms": seen, "history": hist,
+                  "rows": X.grid[0], "version": X.attrs.version,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def build_scene(size: str, root: Path, label: str, tree: Path) -> Path:
+    """The dense corner of ``size`` (HxW), built once under ``root`` by the code of
+    ``tree``, in that code's store format."""
+    path = root / f"corner-{size}-dense-{label.replace(' ', '-')}.zarr"
+    if not (path / "zarr.json").exists():
+        subprocess.run([sys.executable, "-m", "bigT.cli", "scene", "corner", "--size", size,
+                        "--density", "dense", "-o", str(path.resolve()), "-q"], check=True,
+                       env={**os.environ, "PYTHONPATH": str(tree)}, cwd=root)
+    return path
+
+
+def run_child(tree: Path, T: Path, out: Path, args) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    shutil.rmtree(out, ignore_errors=True)  # another format's store is not overwritten
+    # run from the scratch folder: ``python -c`` puts its working directory first on
+    # sys.path, which must not be a bigT tree other than ``tree``
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(T.resolve()), str(out.resolve()),
+                           str(args.terms), str(args.prune), str(args.prune_feed or 0),
+                           str(args.prune_operator or 0)],
+                          env=env, capture_output=True, text=True, cwd=args.workdir)
+    if proc.returncode:
+        sys.exit(f"{tree}: the inverse failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def term_rows(label: str, run: dict) -> list[list]:
+    rows = []
+    for rec, h in zip(run["terms"], run["history"] or [None] * len(run["terms"])):
+        files, new, size, new_size = rec["files"]
+        rows.append([label, rec["term"], None if h is None else round(h["seconds"], 2),
+                     files, new, round(new / max(run["rows"], 1), 1),
+                     round(size / 2**20, 1), round(new_size / 2**20, 1)])
+    return rows
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--size", default="384x512")
+    p.add_argument("--terms", type=int, default=4)
+    p.add_argument("--prune", type=float, default=3e-6)
+    p.add_argument("--prune-feed", type=float, default=1e-4)
+    p.add_argument("--prune-operator", type=float, default=1e-5)
+    p.add_argument("--baseline", type=Path, default=None,
+                   help="an older bigT source tree to compare with (its bigT/ is imported)")
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--workdir", type=Path, default=Path("bench-out/layout"))
+    args = p.parse_args(argv)
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    trees = [("this tree", HERE.parent)]
+    if args.baseline is not None:
+        trees.insert(0, ("baseline", args.baseline.resolve()))
+    scenes = {label: build_scene(args.size, args.workdir, label, tree) for label, tree in trees}
+    best: dict[str, dict] = {}
+    for _ in range(args.repeats):
+        for label, tree in trees:  # interleaved: drift hits both alike
+            run = run_child(tree, scenes[label], args.workdir / f"X-{label.replace(' ', '-')}.zarr", args)
+            print(f"{label}: {run['seconds']:.2f} s, format {run['version']}, "
+                  f"peak {run['peak_rss_mb']:.0f} MB", flush=True)
+            if label not in best or run["seconds"] < best[label]["seconds"]:
+                best[label] = run
+    res = Results(run_name("layout"), f"Store layout: a {args.terms}-term inverse of the "
+                  f"dense {args.size} corner",
+                  " ".join(["python benchmarks/bench_layout.py"] + (argv or sys.argv[1:])))
+    res.table("runs", "Whole run (best of the repeats)",
+              ["code", "store format", "seconds", "peak RSS MB"],
+              [[k, v["version"], round(v["seconds"], 2), round(v["peak_rss_mb"])]
+               for k, v in best.items()])
+    rows = [r for label, run in best.items() for r in term_rows(label, run)]
+    res.table("terms", "Per term: seconds, files of the term's directory (X and P) and "
+              "those written by it (not hard-linked from the term before), per tile row, "
+              "and their MiB", ["code", "term", "seconds", "files", "files written",
+                                "written per tile row", "MiB", "MiB written"], rows)
+    for label, run in best.items():
+        res.value(f"layout:seconds:{label}", run["seconds"], f"whole run, {label}")
+    res.save()
+    print(json.dumps({k: {"seconds": v["seconds"], "terms": term_rows(k, v)}
+                      for k, v in best.items()}, indent=1))
+
+
+if __name__ == "__main__":
+    started = time.time()
+    main()
+    print(f"done in {time.time() - started:.0f} s")
