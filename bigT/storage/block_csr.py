@@ -170,6 +170,7 @@ class BlockCSR:
         self.tile_nnz = self._index.nnz
         self.nnz = self._index.total_nnz
         self.missing_tile_rows: list[int] = list(self._index.missing_tile_rows)
+        self._missing_rows = frozenset(self.missing_tile_rows)  # format 2: no files
         zarr_store = LocalStore(self.path, read_only=True)
         #: True for format 2 (a tile row is stored whole), False for format 1 (tiles)
         self.row_layout = attrs.version >= fmt.ROW_LAYOUT_VERSION
@@ -230,6 +231,9 @@ class BlockCSR:
     def _read_row(self, i: int) -> sp.csr_array:
         """Format 2: tile row ``i`` as stored, read and checked (global columns)."""
         lo, hi = self.tile_indptr[i], self.tile_indptr[i + 1]
+        if lo == hi and i in self._missing_rows:  # never written: reads as empty
+            r0, r1 = self.tile_row_range(i)
+            return sp.csr_array((r1 - r0, self.shape[1]), dtype=self.dtype)
         return self._rows.read(i, self.tile_indices[lo:hi], self.tile_nnz[lo:hi])
 
     def _cut_tile(self, row: sp.csr_array, j: int) -> sp.csr_array:

@@ -88,11 +88,14 @@ def missing_chunk_files(path: Path, attrs: StoreAttrs, index: TileIndex,
     """Chunk files the stored tiles need but that are not on disk (stat only), as
     paths inside the store; the first ``limit`` found when given."""
     missing = []
+    not_written = frozenset(index.missing_tile_rows)  # incomplete store: rows without files
     n_rows, n_cols = attrs.grid
     for i in range(n_rows):
         r0, r1 = attrs.tile_row_range(i)
         rows = r1 - r0 if n_cols else 0
         if attrs.version >= fmt.ROW_LAYOUT_VERSION:  # a tile row's three arrays
+            if i in not_written:
+                continue
             nnz = int(index.counts(i).sum())
             for name, length in (("indptr", rows + 1), ("indices", nnz), ("data", nnz)):
                 missing += _missing_array_files(path, f"{fmt.row_path(i)}/{name}", length)

@@ -202,7 +202,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     path, i = Path(path), int(i)
     if not 0 <= i < attrs.grid[0]:
         raise ShapeMismatchError(f"tile row {i} out of range [0, {attrs.grid[0]})", path)
-    _check_writable_version(path, attrs)
+    _check_writable_version(path, read_store_attrs(path))  # the disk's, not the caller's
     if fmt.row_marker(path, i) is not None:
         return False
     block = _validate_block(path, attrs, i, block)

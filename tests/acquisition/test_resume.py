@@ -192,14 +192,14 @@ def test_a_complete_build_is_not_redone_by_a_resume(work, rig):
 def test_ctrl_c_returns_130_and_keeps_the_finished_tile_rows(work, rig, monkeypatch, capsys):
     """Ctrl-C while tile row 3 is being written: rows 0-2 stay, row 3 leaves nothing
     (not even a half-written directory), and the rerun of the same command finishes."""
-    real = bigT.storage.writer._write_tile
+    real = bigT.storage.writer.fmt.write_array_files
 
-    def write_tile(tdir, *args):
-        if tdir.parent.name.startswith(".3."):  # rows/.3.<hex>.partial/<j>
+    def write_array(folder, *args):
+        if Path(folder).name.startswith(".3."):  # an array of rows/.3.<hex>.partial
             raise KeyboardInterrupt
-        return real(tdir, *args)
+        return real(folder, *args)
 
-    monkeypatch.setattr(bigT.storage.writer, "_write_tile", write_tile)
+    monkeypatch.setattr(bigT.storage.writer.fmt, "write_array_files", write_array)
     assert main(_build_argv(work)) == 130
     monkeypatch.undo()
     err = capsys.readouterr().err.strip().splitlines()

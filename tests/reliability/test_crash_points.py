@@ -38,13 +38,14 @@ def test_invert_resumes_bit_identically_after_a_crash(tmp_path, sample):
 
 
 def test_invert_resumes_after_a_crash_while_carrying_tiles(tmp_path):
-    """Light only between pixel sets A and B (M bipartite): terms 2 and 3 carry the
-    tiles of X their product leaves alone by hard links; a crash at any link resumes to
-    the same inverse."""
+    """Light only between pixel sets A and B (M bipartite), none at the pixels of tile
+    row 3: terms 2 and 3 carry that tile row of X, which their product leaves alone,
+    by hard links (a whole row is linked, format 2); a crash at any link resumes to the
+    same inverse."""
     rng = np.random.default_rng(3)
     T = np.diag(rng.uniform(1.5, 2.5, 64))
-    T[:32, 32:] = rng.uniform(0, 0.6 / 32, (32, 32))
-    T[32:, :32] = rng.uniform(0, 0.6 / 32, (32, 32))
+    T[:32, 32:48] = rng.uniform(0, 0.6 / 32, (32, 16))
+    T[32:48, :32] = rng.uniform(0, 0.6 / 32, (16, 32))
     result = check_invert(tmp_path, 1, T=T, terms=3, op="link")
     assert result.points >= 4  # the carried tiles of terms 2 and 3, each file kind
     assert_all_recovered(result)

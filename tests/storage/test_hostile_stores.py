@@ -109,13 +109,13 @@ def _read_under_memory_limit(store: Path) -> str:
 
 
 def test_zstd_bomb_in_a_tile_fails_within_its_declared_size(store, capsys):
-    """A tile's data chunk replaced by a frame of 2 GiB of zeros (a few KB on disk,
+    """A tile row's data chunk replaced by a frame of 2 GiB of zeros (a few KB on disk,
     valid checksum): refused from the frame header, memory stays far below."""
-    chunk = store / "rows/0/0/data/c/0"
+    chunk = store / "rows/0/data/c/0"
     _write_chunk(chunk, compress(bytes(256 << 20), 19) * 8)  # 8 frames of 256 MiB
     assert chunk.stat().st_size < 1 << 20
     # a frame file longer than any frame of the chunk's size is refused unread
-    assert "rows/0/0/data/c/0 is larger than" in _read_under_memory_limit(store)
+    assert "rows/0/data/c/0 is larger than" in _read_under_memory_limit(store)
     _one_line_error(store, capsys)
     # a small one (1 MiB of zeros, 30 bytes) is refused from its header, undecoded
     _write_chunk(chunk, compress(bytes(1 << 20), 1))
@@ -132,7 +132,7 @@ def test_zstd_frame_without_a_size_is_decoded_into_the_chunk_only(store):
     fcs = (1 if descriptor & 0x20 else 0, 2, 4, 8)[descriptor >> 6]
     header = 5 + (0 if descriptor & 0x20 else 1) + (0, 1, 2, 4)[descriptor & 3] + fcs
     # no size, no single segment: a window descriptor of 2^27 bytes instead
-    _write_chunk(store / "rows/0/0/data/c/0", frame[:4] + bytes([descriptor & 0x04, 17 << 3])
+    _write_chunk(store / "rows/0/data/c/0", frame[:4] + bytes([descriptor & 0x04, 17 << 3])
                  + frame[header:])
     with pytest.raises(CorruptStoreError, match="Destination buffer is too small"):
         bigT.open(store).get_tile_row(0)
@@ -145,7 +145,7 @@ def test_index_array_declaring_huge_length_refused_before_allocation(store, caps
 
 
 def test_chunk_longer_than_its_array_refused(store):
-    _edit_json(store / "rows/0/0/data/zarr.json", lambda m: m["chunk_grid"]["configuration"]
+    _edit_json(store / "rows/0/data/zarr.json", lambda m: m["chunk_grid"]["configuration"]
                .update(chunk_shape=[1 << 30]))
     with pytest.raises(CorruptStoreError, match="chunk length"):
         bigT.open(store).get_tile_row(0)
@@ -166,7 +166,7 @@ def test_incomplete_store_of_a_trillion_pixels_costs_what_it_holds(store, capsys
     A = bigT.open(store, allow_incomplete=True)
     assert len(A.missing_tile_rows) == (1 << 20) - 3
     assert time.perf_counter() - start < 5  # ~0.1 s; one marker read a row would be minutes
-    with pytest.raises(CorruptStoreError, match="declares 5 entries"):  # tile (0, 0)'s indptr
+    with pytest.raises(CorruptStoreError, match="declares 5 entries"):  # tile row 0's indptr
         A.get_tile_row(0)
 
 
@@ -191,8 +191,8 @@ def test_metadata_file_that_never_ends_is_refused(store, capsys):
 
 def test_metadata_fifo_is_refused_without_waiting(store, capsys):
     """A FIFO in a zarr.json's place: no writer will ever come; refused at once."""
-    (store / "rows/0/0/indptr/zarr.json").unlink()
-    os.mkfifo(store / "rows/0/0/indptr/zarr.json")
+    (store / "rows/0/indptr/zarr.json").unlink()
+    os.mkfifo(store / "rows/0/indptr/zarr.json")
     with pytest.raises(CorruptStoreError, match="not a regular file"):
         bigT.open(store).get_tile_row(0)
     _one_line_error(store, capsys)
@@ -235,8 +235,8 @@ def _outside_copy(store: Path, rel: str) -> Path:
     return target
 
 
-@pytest.mark.parametrize("rel", ["rows", "rows/1", "rows/0/0", "rows/0/0/data",
-                                 "rows/0/0/indices/c/0", "tile_indptr", "tile_nnz/c/0"])
+@pytest.mark.parametrize("rel", ["rows", "rows/1", "rows/0", "rows/0/data",
+                                 "rows/0/indices/c/0", "tile_indptr", "tile_nnz/c/0"])
 def test_link_inside_a_store_is_refused(store, rel, capsys):
     _outside_copy(store, rel)
     with pytest.raises(CorruptStoreError, match=f"{rel} is a symbolic link"):
@@ -323,7 +323,7 @@ def test_redirect_of_the_wrong_type_is_one_line(tmp_path, redirect, capsys):
     _one_line_error(root, capsys, "info")
 
 
-@pytest.mark.parametrize("target", ["zarr.json", "rows/0/zarr.json", "rows/0/0/data/zarr.json",
+@pytest.mark.parametrize("target", ["zarr.json", "rows/0/zarr.json", "rows/0/data/zarr.json",
                                     "tile_indptr/zarr.json"])
 def test_json_nested_past_the_recursion_limit_is_one_line(store, target, capsys):
     (store / target).write_text("[" * 100_000 + "]" * 100_000)
@@ -346,7 +346,7 @@ def test_unsorted_or_duplicate_tile_indices_refused_by_every_reader(tmp_path, in
     A = sp.csr_array(np.array([[1.0, 2.0], [0.0, 3.0]]))
     path = tmp_path / "s.zarr"
     bigT.storage.from_scipy(A, path, tile_size=2)
-    fmt.write_array_files(path / "rows/0/0", "indices", np.array(indices + [1], np.int32),
+    fmt.write_array_files(path / "rows/0", "indices", np.array(indices + [1], np.int32),
                           fmt.FILL_INT)
     for read in (lambda S: S.get_tile_row(0), lambda S: S.to_scipy(), lambda S: S.get_tile(0, 0),
                  lambda S: S.matmul(np.ones(2)), lambda S: S.info(), lambda S: S.verify()):
@@ -362,7 +362,7 @@ _JSON_VALUES = st.recursive(
     | st.text(max_size=8), lambda kids: st.lists(kids, max_size=3)
     | st.dictionaries(st.text(max_size=4), kids, max_size=3), max_leaves=6)
 
-_ARRAYS = [f"{base}/{name}" for base in ("rows/0/0", "rows/1/1", "rows/2/2") for name in fmt.TILE_ARRAYS] \
+_ARRAYS = [f"{base}/{name}" for base in ("rows/0", "rows/1", "rows/2") for name in fmt.TILE_ARRAYS] \
     + list(fmt.INDEX_ARRAYS)
 _ROOT_KEYS = ["shape", "tile_size", "dtype", "nnz", "complete", "version", "metadata",
               "image_shape", "pixel_order", "image_tile", "inner_format", "redirect", "format"]

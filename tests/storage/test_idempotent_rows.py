@@ -100,7 +100,7 @@ def test_half_written_rows_are_cleaned_once_and_never_read(tmp_path):
     path = _store(tmp_path)
     A = _matrix(3)
     _write(path, 0, A)
-    (path / "rows" / ".1.deadbeef.partial" / "0").mkdir(parents=True)  # a SIGKILLed writer
+    (path / "rows" / ".1.deadbeef.partial" / "indptr").mkdir(parents=True)  # a SIGKILLed writer
     (path / "rows" / "2").mkdir()  # an unmarked row of an older writer
     partial = open_store(path, allow_incomplete=True)
     assert partial.missing_tile_rows == [1, 2]

@@ -1,6 +1,7 @@
 """Tiles carried into a new store unchanged (``write_tile_row(..., keep=KeptTiles)``):
-hard-linked, read back as the old store's, still whole once the old store is deleted,
-and refused when they would clash with what is written or do not exist."""
+a whole old row hard-linked, a partial one read and rewritten with the new entries,
+both read back as the old store's, still whole once the old store is deleted, and
+refused when they would clash with what is written or do not exist."""
 
 import os
 import shutil
@@ -36,26 +37,74 @@ def _only_columns(rows, tile_columns):
     return sp.csr_array(rows @ sp.diags_array(keep))
 
 
+def _files(row_dir):
+    """{path relative to ``row_dir``: inode} of every file below a tile row's directory."""
+    return {os.path.relpath(os.path.join(d, f), row_dir): os.stat(os.path.join(d, f)).st_ino
+            for d, _, files in os.walk(row_dir) for f in files}
+
+
+def _old_columns(old, i):
+    """(tile columns, their nnz) stored in tile row ``i`` of the store ``old``."""
+    lo, hi = old.tile_indptr[i], old.tile_indptr[i + 1]
+    return tuple(int(j) for j in old.tile_indices[lo:hi]), tuple(int(n) for n in old.tile_nnz[lo:hi])
+
+
 def test_kept_tiles_read_back_and_survive_the_old_store(tmp_path):
+    """Row 0 keeps the whole old row (nothing written): its files are hard-linked.
+    Rows 1 and 2 keep tile column 1 and write the others: read and rewritten."""
     A = sp.csr_array(sp.random(N, N, density=0.4, random_state=1, format="csr"))
     B = sp.csr_array(sp.random(N, N, density=0.4, random_state=2, format="csr"))
     old = _finished(tmp_path / "old.zarr", A)
     new_path = tmp_path / "new.zarr"
     attrs = StoreAttrs((N, N), TS, "float64")
     create_store(new_path, attrs)
-    for i in range(attrs.grid[0]):
+    a, b = attrs.tile_row_range(0)
+    write_tile_row(new_path, attrs, 0, sp.csr_array((b - a, N)),
+                   keep=KeptTiles(old.path, *_old_columns(old, 0)))
+    for i in range(1, attrs.grid[0]):
         a, b = attrs.tile_row_range(i)
         # tile column 1 carried from A, the others written from B
         write_tile_row(new_path, attrs, i, _only_columns(B[a:b], (0, 2)),
                        keep=KeptTiles(old.path, (1,), (old.get_tile(i, 1).nnz,)))
-    want = _only_columns(B, (0, 2)) + _only_columns(A, (1,))
-    linked = new_path / "rows" / "0" / "1" / "data" / "c" / "0"
-    assert os.stat(linked).st_ino == os.stat(old.path / "rows" / "0" / "1" / "data" / "c" / "0").st_ino
+    want = sp.csr_array(sp.vstack([A[:TS], (_only_columns(B, (0, 2)) + _only_columns(A, (1,)))[TS:]]))
+    linked, source = _files(new_path / "rows" / "0"), _files(old.path / "rows" / "0")
+    # the whole row: every file (marker and the three arrays' metadata and chunks)
+    assert len(linked) == 7 and linked == source
+    for i in (1, 2):  # a partial keep is written afresh: no file shared with the old row
+        assert not set(_files(new_path / "rows" / str(i)).values()) & set(
+            _files(old.path / "rows" / str(i)).values())
     shutil.rmtree(old.path)
     new = finalize_store(new_path)
     assert new.nnz == want.nnz
     np.testing.assert_array_equal(new.to_scipy().toarray(), want.toarray())
+    for i in range(attrs.grid[0]):
+        a, b = attrs.tile_row_range(i)
+        np.testing.assert_array_equal(new.get_tile_row(i).toarray(), want[a:b].toarray())
     assert new.verify() == {"tiles": new.n_tiles_stored, "nnz": want.nnz}  # raises if damaged
+
+
+def test_whole_old_row_kept_beside_new_tiles_is_rewritten(tmp_path):
+    """Every tile of the old row kept, and a tile column the old row lacks written:
+    the row is read and rewritten, not linked, and reads back as both."""
+    A = _only_columns(sp.csr_array(sp.random(N, N, density=0.4, random_state=1,
+                                             format="csr")), (0, 1))
+    B = sp.csr_array(sp.random(N, N, density=0.4, random_state=2, format="csr"))
+    old = _finished(tmp_path / "old.zarr", A)
+    assert _old_columns(old, 1)[0] == (0, 1)
+    new_path = tmp_path / "new.zarr"
+    attrs = StoreAttrs((N, N), TS, "float64")
+    create_store(new_path, attrs)
+    for i in range(attrs.grid[0]):
+        a, b = attrs.tile_row_range(i)
+        write_tile_row(new_path, attrs, i, _only_columns(B[a:b], (2,)),
+                       keep=KeptTiles(old.path, *_old_columns(old, i)))
+    assert not set(_files(new_path / "rows" / "1").values()) & set(
+        _files(old.path / "rows" / "1").values())
+    shutil.rmtree(old.path)
+    want = A + _only_columns(B, (2,))
+    new = finalize_store(new_path)
+    np.testing.assert_array_equal(new.to_scipy().toarray(), want.toarray())
+    assert new.verify() == {"tiles": new.n_tiles_stored, "nnz": want.nnz}
 
 
 @pytest.mark.parametrize("case", ["also written", "not stored", "wrong count",

@@ -76,13 +76,16 @@ def test_open_not_a_store(tmp_path):
 
 def test_deleted_tile_chunk(store):
     S, A = store
-    os.remove(S.path / "rows" / "1" / "2" / "indices" / "c" / "0")
+    os.remove(S.path / "rows" / "1" / "indices" / "c" / "0")
     T = open_store(S.path)          # the tile index is intact: open succeeds ...
-    with pytest.raises(CorruptStoreError, match=r"tile \(1, 2\).*missing or damaged") as ei:
-        T.get_tile(1, 2)             # ... the read of that tile fails
+    with pytest.raises(CorruptStoreError, match=r"tile row 1: .*missing or damaged") as ei:
+        T.get_tile(1, 2)             # ... the read of a tile of that row fails
     assert str(S.path) in str(ei.value)
-    assert (T.get_tile(0, 0) != A[0:10, 0:10]).nnz == 0  # others still read
-    with pytest.raises(CorruptStoreError, match="missing chunk file rows/1/2/indices/c/0"):
+    with pytest.raises(CorruptStoreError, match=r"tile row 1: "):
+        T.get_tile_row(1)
+    assert (T.get_tile(0, 0) != A[0:10, 0:10]).nnz == 0  # other rows still read
+    assert (T.get_tile_row(2) != A[20:30]).nnz == 0
+    with pytest.raises(CorruptStoreError, match="missing chunk file rows/1/indices/c/0"):
         T.verify()
     with pytest.raises(CorruptStoreError):
         T.to_scipy()
@@ -93,10 +96,10 @@ def test_deleted_tile_chunk(store):
 @pytest.mark.parametrize("name", ["indptr", "data"])
 def test_deleted_indptr_or_data_chunk(store, name):
     S, _ = store
-    os.remove(S.path / "rows" / "2" / "2" / name / "c" / "0")
-    with pytest.raises(CorruptStoreError, match=r"tile \(2, 2\)"):
+    os.remove(S.path / "rows" / "2" / name / "c" / "0")
+    with pytest.raises(CorruptStoreError, match=r"tile row 2: "):
         open_store(S.path).get_tile(2, 2)
-    with pytest.raises(CorruptStoreError, match=r"tile \(2, 2\)|missing chunk"):
+    with pytest.raises(CorruptStoreError, match=r"tile row 2: |missing chunk"):
         open_store(S.path).diagonal()
 
 
@@ -109,12 +112,12 @@ def test_deleted_index_chunk_detected_by_open(store):
 
 def test_corrupted_chunk_byte_fails_checksum(store):
     S, _ = store
-    chunk = S.path / "rows" / "0" / "1" / "data" / "c" / "0"
+    chunk = S.path / "rows" / "0" / "data" / "c" / "0"
     raw = bytearray(chunk.read_bytes())
     raw[len(raw) // 2] ^= 0x10
     chunk.write_bytes(bytes(raw))
     T = open_store(S.path)
-    with pytest.raises(CorruptStoreError, match=r"tile \(0, 1\).*checksum"):
+    with pytest.raises(CorruptStoreError, match=r"tile row 0: .*checksum"):
         T.get_tile(0, 1)
     with pytest.raises(CorruptStoreError, match="checksum"):
         T.verify()
@@ -166,13 +169,13 @@ def test_deleted_middle_chunk_of_multichunk_tile(tmp_path, monkeypatch):
     monkeypatch.setattr(config, "CHUNK_ELEMENTS", 4)
     A = sp.csr_array(sp.random(12, 12, density=0.5, format="csr", random_state=3))
     S = from_scipy(A, tmp_path / "c.zarr", tile_size=6)
-    chunks = sorted(os.listdir(S.path / "rows" / "1" / "0" / "data" / "c"), key=int)
+    chunks = sorted(os.listdir(S.path / "rows" / "1" / "data" / "c"), key=int)
     assert len(chunks) >= 3
-    os.remove(S.path / "rows" / "1" / "0" / "data" / "c" / chunks[1])
-    with pytest.raises(CorruptStoreError, match=r"tile \(1, 0\): non-finite"):
+    os.remove(S.path / "rows" / "1" / "data" / "c" / chunks[1])
+    with pytest.raises(CorruptStoreError, match=r"tile row 1: non-finite"):
         open_store(S.path).get_tile(1, 0)
-    with pytest.raises(CorruptStoreError, match=f"missing chunk file rows/1/0/data/c/{chunks[1]}"):
+    with pytest.raises(CorruptStoreError, match=f"missing chunk file rows/1/data/c/{chunks[1]}"):
         open_store(S.path).verify()
-    os.remove(S.path / "rows" / "0" / "1" / "indptr" / "c" / "1")
-    with pytest.raises(CorruptStoreError, match=r"tile \(0, 1\): indptr"):
+    os.remove(S.path / "rows" / "0" / "indptr" / "c" / "1")
+    with pytest.raises(CorruptStoreError, match=r"tile row 0: indptr"):
         open_store(S.path).get_tile(0, 1)

@@ -66,23 +66,24 @@ def test_raise_mid_row_leaves_half_written_row_incomplete(tmp_path, A, monkeypat
     path = tmp_path / "r.zarr"
     w = BlockCSRWriter(path, SHAPE, tile_size=TS, dtype="float64")
     _write_rows(w, A, [0, 1])
-    real, calls = writer_mod._write_tile, []
+    real, calls = writer_mod.fmt.write_array_files, []
 
     def dying(*args):
-        calls.append(1)
-        if len(calls) == 2:        # the second tile of row 2: its first tile is on disk
+        calls.append(args[1])
+        if len(calls) == 2:        # row 2's second array: its first (indptr) is on disk
             raise KeyboardInterrupt
         real(*args)
 
-    monkeypatch.setattr(writer_mod, "_write_tile", dying)
+    monkeypatch.setattr(writer_mod.fmt, "write_array_files", dying)
     with pytest.raises(KeyboardInterrupt):
         _write_rows(w, A, [2])
-    monkeypatch.setattr(writer_mod, "_write_tile", real)
+    monkeypatch.setattr(writer_mod.fmt, "write_array_files", real)
+    assert calls == ["indptr", "indices"]
     # the half row was built aside and never became rows/2
     assert not (path / "rows" / "2").exists()
     # what a SIGKILL would leave: a hidden partial row; resume deletes it
     leftover = path / "rows" / ".2.dead.partial"
-    (leftover / "0").mkdir(parents=True)
+    (leftover / "indptr" / "c").mkdir(parents=True)
     with pytest.raises(IncompleteStoreError, match="3 of 5"):
         open_store(path)
     w2 = BlockCSRWriter(path, SHAPE, tile_size=TS, dtype="float64", resume=True)
@@ -100,7 +101,7 @@ def test_disk_full_keeps_complete_rows(tmp_path, A, monkeypatch):
     def full(*args):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(writer_mod, "_write_tile", full)
+    monkeypatch.setattr(writer_mod.fmt, "write_array_files", full)
     with pytest.raises(DiskFullError, match="disk full") as ei:
         _write_rows(w, A, [2])
     assert ei.value.path == str(path)
@@ -114,7 +115,7 @@ def test_disk_full_keeps_complete_rows(tmp_path, A, monkeypatch):
 
 
 def test_from_scipy_disk_full_leaves_nothing(tmp_path, A, monkeypatch):
-    monkeypatch.setattr(writer_mod, "_write_tile",
+    monkeypatch.setattr(writer_mod.fmt, "write_array_files",
                         lambda *a: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
     with pytest.raises(DiskFullError):
         from_scipy(A, tmp_path / "x.zarr", tile_size=TS)
