@@ -274,6 +274,33 @@ def test_bigT_verify_and_info_read_a_format1_store(format1, capsys):
     assert json.loads(capsys.readouterr().out.split("\n", 1)[1])["nnz"] == A.nnz
 
 
+def test_convert_upgrades_a_format1_store(format1, tmp_path, capsys):
+    """``bigT convert OLD.zarr -o NEW.zarr`` (``upgrade_store``) rewrites a format-1
+    store in format 2: same matrix, tiles, attributes and metadata; the old store is
+    left as it was; an output over the input is refused."""
+    from bigT.storage.upgrade import upgrade_store
+
+    path, A = format1
+    before = {f: (path / f).read_bytes() for f in _files(path)}
+    new = tmp_path / "v2.zarr"
+    assert main(["convert", str(path), "-o", str(new), "-q"]) == 0
+    S = open_store(new)
+    assert S.row_layout and S.attrs.version == 2 and S.nnz == A.nnz
+    old = open_store(path)
+    np.testing.assert_array_equal(S.tile_indices, old.tile_indices)
+    np.testing.assert_array_equal(S.tile_nnz, old.tile_nnz)
+    assert (S.tile_size, S.dtype, S.metadata) == (old.tile_size, old.dtype, old.metadata)
+    np.testing.assert_array_equal(S.to_scipy().toarray(), A.toarray())
+    assert S.verify()["nnz"] == A.nnz
+    assert {f: (path / f).read_bytes() for f in _files(path)} == before
+    # the library call, and a second run refused without overwrite
+    again = upgrade_store(path, tmp_path / "lib.zarr")
+    np.testing.assert_array_equal(again.to_scipy().toarray(), A.toarray())
+    assert main(["convert", str(path), "-o", str(new)]) == 2
+    assert main(["convert", str(path), "-o", str(path)]) == 2
+    assert {f: (path / f).read_bytes() for f in _files(path)} == before
+
+
 # --- (3) other zarr v3 readers -----------------------------------------------------------
 
 def _interop_store(tmp_path, monkeypatch, chunk):
