@@ -67,6 +67,9 @@ FULL = [
     ("compensate", ["bench_compensate.py", "--skip", "throughput"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("store", ["bench_store.py"]),
+    # the store layout's files and bytes per term (the before/after of issue #30 is run
+    # on its own with --baseline, an older checkout)
+    ("layout", ["bench_layout.py", "--workdir", "bench-out/layout"]),
     ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
     ("stability", ["bench_stability.py", "--quick"]),
     ("reliability", ["bench_reliability.py", "--quick"]),
