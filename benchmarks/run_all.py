@@ -67,6 +67,7 @@ FULL = [
     ("compensate", ["bench_compensate.py", "--skip", "throughput"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("store", ["bench_store.py"]),
+    ("startup", ["bench_startup.py"]),  # whole bigT processes: every help, a warm 4x4
     ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
     ("stability", ["bench_stability.py", "--quick"]),
     ("reliability", ["bench_reliability.py", "--quick"]),
