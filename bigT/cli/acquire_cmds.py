@@ -50,8 +50,8 @@ def _register_patterns(sub) -> None:
         description="Write the images the projector shows (8-bit PNG at its resolution) and "
                     "DIR/manifest.json listing them in order with what each lights. Every set "
                     "has an all-black and an all-white pattern.")
-    # the methods are bigT.acquisition's, which imports the stores (zarr, scipy): the
-    # options are added when this step runs or prints its help
+    # the methods are bigT.acquisition's: the options are added when this step runs or
+    # prints its help, so that no other command imports that layer to list them
     p.defer(_patterns_options)
     p.set_defaults(func=patterns_cmd, command="acquire patterns")
 
