@@ -88,7 +88,7 @@ class _Parser(argparse.ArgumentParser):
     made of this class too (``add_subparsers`` uses the parent's class).
 
     Options that need a library layer to be described (``invert``'s defaults read from
-    the engine's signature, which imports dask and zarr) are added by :meth:`defer`:
+    the engine's signature, which imports the stores: zarr, scipy) are added by :meth:`defer`:
     when this parser parses its arguments or prints its help, so that ``bigT info`` or
     ``bigT --help`` never imports the engine to describe ``invert``."""
 
@@ -140,7 +140,7 @@ STORE_WRITERS = ("bigT convert", "bigT scene", "bigT invert", "bigT acquire buil
 
 
 def build_parser(*, complete: bool = True) -> argparse.ArgumentParser:
-    """The ``bigT`` parser and its sub-commands'.
+    """The ``bigT`` parser, with a sub-parser for every command.
 
     Parameters
     ----------

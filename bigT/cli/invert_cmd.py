@@ -36,7 +36,8 @@ def register(subparsers) -> None:
                     "versioned store. An interrupted run is resumed by running the same "
                     "command again; the store always holds the last complete term.")
     # the options show the engine's defaults and method names, read from the library:
-    # added when invert runs or prints its help, since the engine imports dask and zarr
+    # added when invert runs or prints its help, since the engine imports the stores
+    # (zarr, scipy: ~0.3 s) that no other command's parser needs
     p.defer(_add_options)
     p.set_defaults(func=invert_cmd)
 
