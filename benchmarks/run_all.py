@@ -70,6 +70,7 @@ FULL = [
     # the store layout's files and bytes per term (the before/after of issue #30 is run
     # on its own with --baseline, an older checkout)
     ("layout", ["bench_layout.py", "--workdir", "bench-out/layout"]),
+    ("startup", ["bench_startup.py"]),  # whole bigT processes: every help, a warm 4x4
     ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
     ("stability", ["bench_stability.py", "--quick"]),
     ("reliability", ["bench_reliability.py", "--quick"]),

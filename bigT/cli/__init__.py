@@ -22,6 +22,7 @@ import importlib
 import os
 import re
 import sys
+from typing import Callable
 
 from .. import config
 from ..errors import BigTError
@@ -84,7 +85,36 @@ class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error: ``bigT CMD: error: argument --opt: what is
     wrong (bigT CMD --help)``, exit status 2 (argparse's own prints the whole usage
     first, which buries the line that says what is wrong). Sub-command parsers are
-    made of this class too (``add_subparsers`` uses the parent's class)."""
+    made of this class too (``add_subparsers`` uses the parent's class).
+
+    Options that need a library layer to be described (``invert``'s defaults read from
+    the engine's signature, which imports the stores: zarr, scipy) are added by :meth:`defer`:
+    when this parser parses its arguments or prints its help, so that ``bigT info`` or
+    ``bigT --help`` never imports the engine to describe ``invert``."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._deferred: list[Callable[[argparse.ArgumentParser], None]] = []
+
+    def defer(self, add_options: Callable[[argparse.ArgumentParser], None]) -> None:
+        """Call ``add_options(self)`` when this parser is first used, after the
+        options deferred before it (so the help lists them in the order given)."""
+        self._deferred.append(add_options)
+
+    def complete(self) -> _Parser:
+        """Add the deferred options now; returns this parser."""
+        while self._deferred:
+            self._deferred.pop(0)(self)
+        return self
+
+    def parse_known_args(self, args=None, namespace=None):
+        return super(_Parser, self.complete()).parse_known_args(args, namespace)
+
+    def format_usage(self) -> str:
+        return super(_Parser, self.complete()).format_usage()
+
+    def format_help(self) -> str:
+        return super(_Parser, self.complete()).format_help()
 
     def error(self, message: str):
         if message.endswith("expected one argument"):
@@ -109,7 +139,17 @@ COMMAND_MODULES = (
 STORE_WRITERS = ("bigT convert", "bigT scene", "bigT invert", "bigT acquire build")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(*, complete: bool = True) -> argparse.ArgumentParser:
+    """The ``bigT`` parser, with a sub-parser for every command.
+
+    Parameters
+    ----------
+    complete : bool
+        True (default): every parser holds all its options, for a caller that reads
+        them (``_actions``). False, as :func:`main` builds it: the options a command
+        module defers (:meth:`_Parser.defer`) are added only to the parser that parses
+        or prints its help, so that a command imports only the layers it uses.
+    """
     parser = _Parser(
         prog="bigT",
         description="Out-of-core stratified inversion of light-transport matrices "
@@ -127,20 +167,32 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue
         module.register(sub)
+    # added after the command's own options, deferred or not, so that they come last
     for command in sub.choices.values():
-        command.add_argument("-q", "--quiet", action="store_true",
-                             help="print nothing but errors and warnings: no progress "
-                             "bars, no summary (the outputs are written as usual)")
+        command.defer(_add_quiet)
     for command in _leaf_parsers(parser):
         command.set_defaults(_parser=command)
         if command.prog in STORE_WRITERS:
-            command.add_argument(
-                "--durability", choices=config.DURABILITY_LEVELS, default=None,
-                help="full: every tile row and store is fsynced before it is marked "
-                     "complete, so a power cut loses no finished work; none: no fsync "
-                     "(faster; a killed process still loses nothing, a power cut may) "
-                     f"(default {config.DURABILITY})")
+            command.defer(_add_durability)
+    if complete:
+        for command in (*sub.choices.values(), *_leaf_parsers(parser)):
+            command.complete()
     return parser
+
+
+def _add_quiet(command: argparse.ArgumentParser) -> None:
+    command.add_argument("-q", "--quiet", action="store_true",
+                         help="print nothing but errors and warnings: no progress bars, "
+                         "no summary (the outputs are written as usual)")
+
+
+def _add_durability(command: argparse.ArgumentParser) -> None:
+    command.add_argument(
+        "--durability", choices=config.DURABILITY_LEVELS, default=None,
+        help="full: every tile row and store is fsynced before it is marked "
+             "complete, so a power cut loses no finished work; none: no fsync "
+             "(faster; a killed process still loses nothing, a power cut may) "
+             f"(default {config.DURABILITY})")
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser):
@@ -203,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
         interrupted; 141 when the reader of stdout went away. ``--help`` and
         ``--version`` exit through ``SystemExit(0)`` as argparse has them.
     """
-    parser = build_parser()
+    parser = build_parser(complete=False)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:

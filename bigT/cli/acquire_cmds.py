@@ -45,13 +45,20 @@ def _common(p) -> None:
 
 
 def _register_patterns(sub) -> None:
-    from ..acquisition import METHODS
-
     p = sub.add_parser(
         "patterns", help="write the pattern images and their manifest",
         description="Write the images the projector shows (8-bit PNG at its resolution) and "
                     "DIR/manifest.json listing them in order with what each lights. Every set "
                     "has an all-black and an all-white pattern.")
+    # the methods are bigT.acquisition's: the options are added when this step runs or
+    # prints its help, so that no other command imports that layer to list them
+    p.defer(_patterns_options)
+    p.set_defaults(func=patterns_cmd, command="acquire patterns")
+
+
+def _patterns_options(p) -> None:
+    from ..acquisition import METHODS
+
     p.add_argument("--method", choices=METHODS, required=True,
                    help="brute-force: one super-pixel per image; stripes: row and column "
                         "bands (Ding et al. 2009); graycode: the correspondence only")
@@ -75,7 +82,6 @@ def _register_patterns(sub) -> None:
     p.add_argument("-o", "--output", required=True, metavar="DIR",
                    help="folder of the pattern images and manifest.json")
     _common(p)
-    p.set_defaults(func=patterns_cmd, command="acquire patterns")
 
 
 def _register_build(sub) -> None:
@@ -122,8 +128,6 @@ def _register_build(sub) -> None:
 
 
 def _register_simulate(sub) -> None:
-    from ..acquisition.simulate import FORMATS
-
     p = sub.add_parser(
         "simulate", help="render the captures of a pattern set from a synthetic scene",
         description="Stand in for a rig: the camera image each pattern would produce on a "
@@ -132,6 +136,15 @@ def _register_simulate(sub) -> None:
                     "projector super-pixel seen by an uneven patch of camera pixels, with "
                     "noise, a black level and a gamma. The camera model goes to "
                     "CAPTURES_DIR/simulation.json.")
+    # the capture formats are bigT.acquisition.simulate's, which imports the stores
+    # (zarr, scipy): the options are added when this step runs or prints its help
+    p.defer(_simulate_options)
+    p.set_defaults(func=simulate_cmd, command="acquire simulate")
+
+
+def _simulate_options(p) -> None:
+    from ..acquisition.simulate import FORMATS
+
     p.add_argument("scene", metavar="SCENE.zarr")
     p.add_argument("patterns", metavar="PATTERNS_DIR")
     p.add_argument("-o", "--output", required=True, metavar="CAPTURES_DIR",
@@ -176,7 +189,6 @@ def _register_simulate(sub) -> None:
                           "brackets, CAPTURES_DIR/<pattern>@<seconds>.png; the white "
                           "pattern's brightest pixel fills 0.9 of the full well in the first")
     _common(p)
-    p.set_defaults(func=simulate_cmd, command="acquire simulate")
 
 
 def ramp_levels(text: str) -> int:

@@ -21,10 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-from .. import colour, config
+from .. import config
 from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError
-from ..images import read_image, write_image
 from ..progress import progress_bar
 from ..sizes import format_size
 from ._argtypes import clip_range, integer, memory_size, number
@@ -40,8 +39,10 @@ from ._options import add_json, add_progress, add_scheduler, add_size, deprecate
 #: paper separates 4-5; bounce k decays like rho^k, and rho^64 < 1e-6 for rho < 0.8)
 #: while keeping a mistyped K (100000: 10 GB and 100,000 files) from running away.
 MAX_BOUNCES = 64
-#: What --encoding takes: bigT.colour's encodings, or "auto" (its policy).
-ENCODING_CHOICES = ("auto", *colour.ENCODINGS)
+#: What --encoding takes: bigT.colour's ENCODINGS, or "auto" (its policy); written out
+#: here because bigT.colour imports numpy (~0.1 s), which ``bigT --help`` does not need
+#: (tests/test_startup_imports.py checks they agree)
+ENCODING_CHOICES = ("auto", "srgb", "linear")
 
 
 def add_encoding(p: argparse.ArgumentParser, what: str) -> None:
@@ -295,6 +296,7 @@ def run_bounces(args) -> int:
     from ..compensation import bounce_shares, separate_bounces
     from ..compensation.files import describe_store, image_shape_of, store_paths
     from ..figures import bounce_strip
+    from ..images import read_image, write_image
     from ..storage import as_store
 
     T = as_store(args.T, "T")

@@ -16,18 +16,19 @@ import shutil
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from ..atomic import atomic_output
 from ..errors import BigTError
-from ..images import write_image
 from ._argtypes import image_size, integer, number
 from ._options import add_progress
 
 # The library's layers are imported inside each command's functions, where the
 # command runs: building the parser imports every command module, and a command
 # should pay only for the layers it uses (stores: zarr ~0.3 s; compensation ~0.5 s).
+# Even numpy (~0.1 s) is imported where the demo runs: `bigT --help` does not need it.
+if TYPE_CHECKING:
+    import numpy as np
 
 #: Defaults of the demo: a scene that builds, inverts and compensates in about a minute
 #: on a 2-core machine.
@@ -74,6 +75,8 @@ def register(subparsers) -> None:
 def test_pattern(shape, lo: float = 0.08, hi: float = 0.42) -> np.ndarray:
     """A grey test image of ``shape`` (H, W) in [lo, hi]: a horizontal ramp, a ring and
     vertical bars, so errors show in smooth and sharp regions alike."""
+    import numpy as np
+
     H, W = shape
     y, x = np.mgrid[0:H, 0:W]
     ramp = x / max(W - 1, 1)
@@ -87,6 +90,8 @@ def test_pattern(shape, lo: float = 0.08, hi: float = 0.42) -> np.ndarray:
 def colour_test_pattern(shape, lo: float = 0.06, hi: float = 0.36) -> np.ndarray:
     """An RGB test image (H, W, 3) of linear light in [lo, hi]: a hue ramp across,
     darkening downwards, with a grey ring, so colour and grey errors both show."""
+    import numpy as np
+
     H, W = shape
     y, x = np.mgrid[0:H, 0:W] / np.array([max(H - 1, 1), max(W - 1, 1)])[:, None, None]
     hue = 2 * np.pi * x
@@ -99,6 +104,8 @@ def colour_test_pattern(shape, lo: float = 0.06, hi: float = 0.36) -> np.ndarray
 def direct_view(F: np.ndarray, light: np.ndarray) -> np.ndarray:
     """What the camera sees of projector image ``light`` (H, W, 3) by direct light only:
     each pixel's 3x3 first bounce F (H W, 3, 3) applied to its RGB."""
+    import numpy as np
+
     H, W, _ = light.shape
     return np.einsum("pij,pj->pi", F, light.reshape(-1, 3)).reshape(H, W, 3)
 
@@ -189,6 +196,9 @@ def demo_cmd(args) -> int:
 
 
 def _run_demo(args) -> int:
+    import numpy as np
+
+    from ..images import write_image
     from ..scenes import load
     from ..storage import open as open_store
 
@@ -249,7 +259,7 @@ def _colour_part(out: Path, quiet: list, log: list) -> list:
     Returns the report's (caption, path) figures."""
     from ..metrics import delta_e_map, image_metrics
     from ..figures import colour_views
-    from ..images import read_image
+    from ..images import read_image, write_image
     from ..scenes import load
 
     H, W = DEMO_COLOUR_SIZE

@@ -29,21 +29,28 @@ TERMS_HELP = (
 
 
 def register(subparsers) -> None:
-    # the defaults and method names shown are the library's own (one source of truth);
-    # the engine imports dask (~0.5 s), which every command's parser pays for until the
-    # engine's imports are made lazy
-    from ..algorithms import stratified_inverse
-    from ..algorithms.methods import METHODS
-
-    default = {name: library_default(stratified_inverse, name)
-               for name in ("terms", "prune", "method", "first_bounce", "workers")}
-
     p = subparsers.add_parser(
         "invert", help="stratified inverse of a stored T, out of core, term by term",
         description="Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} "
                     "(I - T F^-1)^k (paper eq. 13) of a bigT store, term by term, into a "
                     "versioned store. An interrupted run is resumed by running the same "
                     "command again; the store always holds the last complete term.")
+    # the options show the engine's defaults and method names, read from the library:
+    # added when invert runs or prints its help, since the engine imports the stores
+    # (zarr, scipy: ~0.3 s) that no other command's parser needs
+    p.defer(_add_options)
+    p.set_defaults(func=invert_cmd)
+
+
+def _add_options(p) -> None:
+    """``invert``'s arguments, their defaults and method names the library's own (one
+    source of truth)."""
+    from ..algorithms import stratified_inverse
+    from ..algorithms.methods import METHODS
+
+    default = {name: library_default(stratified_inverse, name)
+               for name in ("terms", "prune", "method", "first_bounce", "workers")}
+
     p.add_argument("T", metavar="T.zarr")
     p.add_argument("-o", "--output", required=True, metavar="X.zarr",
                    help="the inverse store (created, or resumed when it holds the same "
@@ -116,7 +123,6 @@ def register(subparsers) -> None:
                    help="delete the inverse the output holds (whatever its parameters) and "
                         "start anew; never deletes anything that is not a bigT inverse")
     add_progress(p)
-    p.set_defaults(func=invert_cmd)
 
 
 def invert_cmd(args) -> int:

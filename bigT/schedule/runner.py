@@ -19,10 +19,6 @@ import re
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
-import dask
-import dask.threaded
-from dask.callbacks import Callback
-
 from .. import config
 from ..errors import BigTError, SchedulerError, StoreError
 from ..progress import progress_bar
@@ -34,17 +30,6 @@ from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
 def _bar(progress: bool, total: int, desc: str):
     # delay: passes shorter than a second draw no bar
     return progress_bar(progress=progress, total=total, desc=desc, unit="block", delay=1.0)
-
-
-class _Posttask(Callback):
-    """Advances a progress bar as the threaded scheduler finishes tasks."""
-
-    def __init__(self, bar):
-        super().__init__()
-        self.bar = bar
-
-    def _posttask(self, key, result, dsk, state, worker_id):
-        self.bar.update(1)
 
 
 class ThreadRunner:
@@ -76,12 +61,18 @@ class ThreadRunner:
 
     def map(self, spec: PassSpec, blocks: list[RowBlock], shared: dict, *,
             progress: bool = False, desc: str = "") -> list[BlockStats]:
+        # dask: ~0.3 s of imports, paid only by a run that schedules a pass
+        import dask
+        import dask.threaded
+        from dask.callbacks import Callback
+
         call = dask.delayed(run_block, pure=False)
         tasks = [call(spec, b, shared, dask_key_name=f"{spec.op}-{spec.pass_id}-{b.index}")
                  for b in blocks]
         pool = ThreadPoolExecutor(self.workers, thread_name_prefix="bigT-task")
         try:
-            with _bar(progress, len(tasks), desc or spec.op) as bar, _Posttask(bar):
+            with (_bar(progress, len(tasks), desc or spec.op) as bar,
+                  Callback(posttask=lambda *_: bar.update(1))):  # a task finished
                 # the threaded scheduler's own function: a scheduler named by string
                 # makes dask import distributed (0.25 s) to look for a client first
                 return list(dask.compute(*tasks, scheduler=dask.threaded.get, pool=pool))

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 from pathlib import Path
 import threading
 import time
@@ -163,11 +164,12 @@ STATE = _ProcessState()
 def _process_limits(policy: MemoryPolicy) -> tuple[int | None, int]:
     """(memory limit, threads) of this process: a dask worker's own, capped by the
     policy's limit; else the policy's."""
+    distributed = sys.modules.get("distributed")
+    if distributed is None:  # a dask worker has it loaded; importing it costs ~0.5 s
+        return policy.limit, policy.threads
     try:
-        from distributed import get_worker  # ~0.5 s: a worker process has it loaded
-
-        worker = get_worker()
-    except (ImportError, ValueError):
+        worker = distributed.get_worker()
+    except ValueError:
         return policy.limit, policy.threads
     return _worker_limits(worker, policy)
 
