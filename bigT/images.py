@@ -313,6 +313,9 @@ def read_raw_image(path: str | os.PathLike, shape: Sequence[int] | None = None) 
     try:
         if suffix == ".npy":
             return np.load(path, allow_pickle=False)
+        pixels = _decode_png(path) if suffix == ".png" else None
+        if pixels is not None:
+            return pixels
         if _deep_colour_png(path):
             return _read_deep_colour_png(path)
         return _iio_call("imread", path)
@@ -356,11 +359,81 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None 
         if suffix == ".npy":
             with open(tmp, "wb") as f:  # given a name, numpy appends ".npy" to ".NPY"
                 np.save(f, pixels)
-        elif suffix == ".png" and pixels.ndim == 3 and pixels.dtype == np.uint16:
-            Path(tmp).write_bytes(_deep_colour_png_bytes(pixels, path))
+        elif suffix == ".png":
+            Path(tmp).write_bytes(encode_png(pixels, path))
         else:
             _iio_call("imwrite", tmp, pixels)
     return path
+
+
+#: zlib level of the PNG files bigT writes: 1, the quickest; on compensated 16-bit
+#: frames its files are as small as level 6's (Pillow's default, which bigT used
+#: before) within a few per cent, at a fraction of the time
+#: (``benchmarks/bench_video.py``, the folder rows).
+PNG_COMPRESSION = 1
+
+
+def encode_png(pixels: np.ndarray, path="<array>") -> bytes:
+    """The PNG file of ``pixels``, all their bits, by OpenCV's encoder (which releases
+    the GIL: frames are encoded on several threads at once).
+
+    Parameters
+    ----------
+    pixels : ndarray, shape (H, W) (grey) or (H, W, 3) (RGB), uint8 or uint16
+    path : the file it is for (error messages)
+    """
+    import cv2  # OpenCV: ~0.1 s, only when an image is written
+
+    if pixels.ndim == 3:  # OpenCV's channel order is B, G, R
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
+    ok, data = cv2.imencode(".png", pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    if not ok:
+        raise ImageError(f"cannot encode a PNG of {pixels.dtype} values of shape "
+                         f"{pixels.shape}", path)
+    return data.tobytes()
+
+
+#: Pillow's modes of the PNG files :func:`_decode_png` reads itself, and the channels
+#: each holds: what imageio would return for them, without imageio's overhead.
+_PILLOW_PNG_MODES = {"L": 1, "I;16": 1, "LA": 2, "RGB": 3, "RGBA": 4}
+
+
+def _decode_png(path: Path) -> np.ndarray | None:
+    """The pixels of a grey, grey + alpha, RGB or RGBA PNG of 8 bits (or a 16-bit
+    grey one), as imageio reads them, by Pillow's decoder directly (it releases the
+    GIL: frames are decoded on several threads at once; imageio's plugin costs as
+    much again around it); a 16-bit colour PNG by OpenCV, with all its bits. None for
+    the other kinds (palettes, 1-bit, ...), which imageio reads as before."""
+    try:
+        if _deep_colour_png(path):
+            return _decode_deep_colour_png(path)
+        from PIL import PngImagePlugin  # Pillow: only when a file is read
+
+        with PngImagePlugin.PngImageFile(os.fspath(path)) as im:
+            channels = _PILLOW_PNG_MODES.get(im.mode)
+            if channels is None:
+                return None
+            im.load()
+            pixels = np.asarray(im)
+    except Exception:  # noqa: BLE001 - a damaged file: the reader of old says why, as before
+        return None
+    expected = (im.size[1], im.size[0]) + (() if channels == 1 else (channels,))
+    return pixels if pixels.shape == expected else None
+
+
+def _decode_deep_colour_png(path: Path) -> np.ndarray | None:
+    """A 16-bit RGB or RGBA PNG by OpenCV, (H, W, 3 or 4) uint16 in R, G, B (A)
+    order; None where OpenCV reads it otherwise (a transparent colour key adds an
+    alpha channel; ffmpeg then reads it, as before) or not at all (ffmpeg says why)."""
+    import cv2  # OpenCV: ~0.1 s, only for a 16-bit colour PNG
+
+    bits, colour_type = _png_header(path)
+    samples = _DEEP_PNG_FORMATS[colour_type][1]
+    pixels = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+    if (pixels is None or pixels.dtype != np.uint16 or pixels.ndim != 3
+            or pixels.shape[2] != samples or samples not in (3, 4)):
+        return None
+    return cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB if samples == 3 else cv2.COLOR_BGRA2RGBA)
 
 
 #: PNG colour types (the IHDR's) with more than one sample per pixel, and the ffmpeg
@@ -408,21 +481,14 @@ def _read_deep_colour_png(path: Path) -> np.ndarray:
     return np.frombuffer(raw, "<u2").reshape(H, W, samples).astype(np.uint16)
 
 
-def _deep_colour_png_bytes(pixels: np.ndarray, path) -> bytes:
-    """The PNG file of an (H, W, 3) uint16 image (Pillow cannot write one)."""
-    H, W, _ = pixels.shape
-    return _ffmpeg(["-f", "rawvideo", "-pix_fmt", "rgb48le", "-s", f"{W}x{H}", "-i", "-",
-                    "-frames:v", "1", "-c:v", "png", "-pix_fmt", "rgb48be", "-f", "image2pipe",
-                    "-"], path, stdin=pixels.astype("<u2").tobytes())
-
-
 def png_bits(path: str | os.PathLike) -> int | None:
     """Bit depth of a PNG file (8 or 16), None for other formats."""
     path = Path(path)
     if path.suffix.lower() != ".png":
         return None
-    if _deep_colour_png(path):  # Pillow would say 8
-        return 16
+    header = _png_header(path)
+    if header is not None and header[0] in (8, 16):  # the IHDR says it (Pillow would
+        return header[0]                              # say 8 for 16-bit colour)
     import imageio.v3 as iio  # ~0.2 s, only when a file is read
 
     return 8 if iio.improps(path).dtype == np.uint8 else 16
