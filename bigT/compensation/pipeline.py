@@ -10,7 +10,8 @@ products, setting the pace at batch 1. The decoders and encoders release the GIL
 * :func:`decoded_ahead` reads the frames of an :class:`~bigT.images.ImageSource` on the
   pool, a few ahead of the batch asked for, and yields the batches in order;
 * :class:`EncodedBehind` hands each frame written to the pool and returns at once,
-  waiting for the oldest frame only when :data:`FRAMES_IN_FLIGHT` are pending.
+  waiting for the oldest frame only when a few are pending
+  (:data:`FRAMES_IN_FLIGHT_PER_THREAD` a codec thread).
 
 Both keep at most a few frames in flight, so memory stays bounded whatever the length
 of the folder. Each frame keeps its file name, and each file is written whole or not at
@@ -40,8 +41,8 @@ from .realtime import StreamReport
 #: products, which take every core, only lose time to them).
 CODEC_THREADS = max(2, min(4, os.cpu_count() or 1))
 #: Frames decoded ahead of the batch being read, and frames handed to the encoders and
-#: not yet written, each at most: enough to keep every codec thread busy.
-FRAMES_IN_FLIGHT = 2 * CODEC_THREADS
+#: not yet written, each at most, per codec thread: enough to keep every one busy.
+FRAMES_IN_FLIGHT_PER_THREAD = 2
 
 
 class CodecPool:
@@ -66,6 +67,11 @@ class CodecPool:
         self._executor.shutdown(wait=True, cancel_futures=True)
         return False
 
+    @property
+    def frames_in_flight(self) -> int:
+        """Frames decoded ahead, or encoded behind, at most by default."""
+        return FRAMES_IN_FLIGHT_PER_THREAD * self.threads
+
     def submit(self, fn: Callable, *args) -> Future:
         if self._executor is None:
             raise RuntimeError("use CodecPool as a context manager: `with CodecPool() as pool`")
@@ -73,7 +79,7 @@ class CodecPool:
 
 
 def decoded_ahead(pool: CodecPool, source, batch: int,
-                  ahead: int = FRAMES_IN_FLIGHT) -> Iterator[tuple[list[Path], np.ndarray]]:
+                  ahead: int | None = None) -> Iterator[tuple[list[Path], np.ndarray]]:
     """The (files, frames) batches of ``source`` in order, each frame decoded on
     ``pool`` up to ``ahead`` frames before it is yielded.
 
@@ -82,7 +88,8 @@ def decoded_ahead(pool: CodecPool, source, batch: int,
     pool : CodecPool, entered
     source : ImageSource
     batch : int, frames per batch
-    ahead : int, frames decoded and not yet yielded, at most (at least one batch)
+    ahead : int, frames decoded and not yet yielded, at most (at least one batch;
+        default ``pool.frames_in_flight``)
 
     Yields
     ------
@@ -92,7 +99,7 @@ def decoded_ahead(pool: CodecPool, source, batch: int,
     """
     files = list(source.files)
     batch = max(1, int(batch))
-    ahead = max(int(ahead), batch)
+    ahead = max(int(ahead or pool.frames_in_flight), batch)
     pending: collections.deque[Future] = collections.deque()
     following = iter(files)
 
@@ -152,16 +159,16 @@ class EncodedBehind:
         :meth:`~bigT.images.ImageSink.write`); called with one frame at a time on the
         pool's threads, so it must write each name independently of the others.
     behind : int, frames handed over and not yet written, at most (the oldest is waited
-        for beyond)
+        for beyond; default ``pool.frames_in_flight``)
 
     Call :meth:`finish` after the last write: it waits for every frame and raises the
     first error, in frame order.
     """
 
     def __init__(self, pool: CodecPool, write: Callable[[Sequence, np.ndarray], None], *,
-                 behind: int = FRAMES_IN_FLIGHT):
+                 behind: int | None = None):
         self._pool, self._write = pool, write
-        self.behind = max(1, int(behind))
+        self.behind = max(1, int(behind or pool.frames_in_flight))
         self._pending: collections.deque[tuple[Future, int]] = collections.deque()
         self._times: list[list[float]] = []  # [handed, started, done, write_call] a frame
         self._lock = threading.Lock()  # the times of the frames written by the pool
@@ -219,5 +226,5 @@ def with_encoding_times(stream: StreamReport, frames: list[EncodedFrame],
                                service=stream.service + own)
 
 
-__all__ = ["CODEC_THREADS", "FRAMES_IN_FLIGHT", "CodecPool", "decoded_ahead", "EncodedBehind",
+__all__ = ["CODEC_THREADS", "FRAMES_IN_FLIGHT_PER_THREAD", "CodecPool", "decoded_ahead", "EncodedBehind",
            "EncodedFrame", "with_encoding_times"]
