@@ -421,7 +421,7 @@ def _decode_png(path: Path) -> np.ndarray | None:
             if channels is None:
                 return None
             im.load()
-            pixels = np.asarray(im)
+            pixels = np.array(im)  # writable, as imageio returns it (asarray: read-only)
     except Exception:  # noqa: BLE001 - a damaged file: the reader of old says why, as before
         return None
     expected = (im.size[1], im.size[0]) + (() if channels == 1 else (channels,))
