@@ -17,8 +17,15 @@ TIFF (``.tif``/``.tiff``)  uint8/uint16 scaled,   float32, unclipped
 the same for grey and colour. These are the file's values, in its own encoding:
 :mod:`bigT.colour` names the encoding (an 8-bit colour image is sRGB-encoded unless the
 user says otherwise, :func:`image_encoding`) and turns values into linear light and
-back. A 16-bit colour PNG is read and written through imageio-ffmpeg's ffmpeg, because
-Pillow reads one as 8 bits without a word.
+back.
+
+The PNG codecs are chosen for speed, since a folder of frames is decoded and encoded on
+several threads beside the products (:mod:`bigT.compensation.pipeline`): every PNG is
+written by OpenCV (:func:`encode_png`), and the common kinds (grey, grey + alpha, RGB,
+RGBA of 8 bits, 16-bit grey) are read by Pillow's decoder called directly; both release
+the GIL. A 16-bit colour PNG is read by OpenCV, because Pillow reads one as 8 bits
+without a word (ffmpeg where OpenCV cannot); the other kinds (palettes, 1-bit, ...) by
+imageio.
 
 Colour: a transport has 1 (grey) or 3 (RGB) channels, and an image given to it must
 have as many (``channels=``): a grey image given to a colour transport, or a colour image
