@@ -358,8 +358,10 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None 
         if bits not in (8, 16):
             raise ImageError(f"PNG bit depth must be 8 or 16, got {bits}", path)
         top = 255 if bits == 8 else 65535
-        scaled = np.rint(np.clip(np.nan_to_num(image), 0.0, 1.0) * top)
-        pixels = scaled.astype(np.uint8 if bits == 8 else np.uint16)
+        scaled = np.nan_to_num(image)  # a copy: the rest in place (a frame's passes)
+        np.clip(scaled, 0.0, 1.0, out=scaled)
+        scaled *= top
+        pixels = np.rint(scaled, out=scaled).astype(np.uint8 if bits == 8 else np.uint16)
     else:
         raise ImageError(f"unknown image format {suffix!r} (use {', '.join(IMAGE_SUFFIXES)})", path)
     with atomic_output(path, "the image") as tmp:
