@@ -37,6 +37,7 @@ from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
 from .core import CompensationReport, choose_path, relight
 from .encoding import FrameEncoding, source_encoding
+from .pipeline import CodecPool, EncodedBehind, decoded_ahead, with_encoding_times
 from .projection import Projection, image_sizes, projection_for
 from .projector import ResponseClipping
 from .realtime import (Compensator, Residency, StreamReport, image_batches, run_stream,
@@ -270,16 +271,28 @@ class FileCompensation:
             Called with the number of frames of each batch done (a progress bar).
         """
         comp = self._entered()
-        batches = (video_batches(self.source, self.batch) if self.video_in
-                   else image_batches(self.source, self.batch))
         encoding, projection = self.encoding, self.projection
-        with self._sink as write:
-            # decoded (and averaged onto the super-pixels) in the reader's thread, encoded
-            # (and expanded onto the projector) in the writer's, beside the products
+        t0 = time.perf_counter()
+        with contextlib.ExitStack() as stack:
+            # image files decoded and encoded on a pool of threads with overlap (a
+            # video's are ffmpeg's, in its own processes)
+            pool = stack.enter_context(CodecPool()) if overlap and not self.video_in else None
+            batches = (video_batches(self.source, self.batch) if self.video_in
+                       else image_batches(self.source, self.batch) if pool is None
+                       else decoded_ahead(pool, self.source, self.batch))
+            write = stack.enter_context(self._sink)
+            behind = (EncodedBehind(pool, write) if pool is not None and self._sink.images
+                      else None)
+            if behind is not None:
+                write = behind.write
+            # averaged onto the super-pixels in the reader's thread, expanded onto the
+            # projector in the writer's, beside the products
             stream = run_stream(
                 in_light(batches, encoding, projection), comp,
                 lambda names, frames: write(names, projection.to_values(frames, encoding)),
                 batch=self.batch, overlap=overlap, on_batch=on_batch)
+            if behind is not None:
+                stream = with_encoding_times(stream, behind.finish(), time.perf_counter() - t0)
         encoder = projection.encoder
         return FileCompensationReport(
             self._sink.path, self.batch, stream, comp.residency, comp.report, self.clip,
@@ -627,6 +640,11 @@ class _Sink:
             self._images = ImageSink(out_path, source, bits=bits, inputs=stores)
             #: what is written: the video, the folder, or the one image
             self.path = self._images.path
+
+    @property
+    def images(self) -> bool:
+        """True when frames are written as image files (each on its own)."""
+        return self._video is None
 
     def __enter__(self):
         if self._video is not None:

@@ -1,0 +1,199 @@
+"""bigT.compensation.pipeline: a folder's frames decoded ahead and encoded behind on a
+pool of threads. The output is the sequential path's byte for byte (``overlap=False``
+reads, compensates and writes one batch at a time, on one thread), files keep their
+names, errors name their frame, and no more than a few frames are ever in flight."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import bigT
+from bigT.compensation import FileCompensation, compensate_files
+from bigT.compensation.pipeline import CodecPool, EncodedBehind, decoded_ahead
+from bigT.compensation.realtime import image_batches
+from bigT.errors import ImageError, OutputError
+from bigT.images import ImageSource, read_image, write_image
+
+from comp_helpers import make_store
+
+FRAMES = 9
+
+
+def _folder(path, shape, frames=FRAMES, seed=3, bits=16):
+    """``frames`` random PNG frames (grey for a 2-d shape, RGB for (H, W, 3))."""
+    path.mkdir()
+    rng = np.random.default_rng(seed)
+    for i in range(frames):
+        write_image(path / f"frame{i:03d}.png", rng.uniform(0.05, 0.95, shape), bits=bits)
+    return path
+
+
+@pytest.fixture()
+def grey(tmp_path, small_scene):
+    s = small_scene
+    shape = (s["H"], s["W"])
+    X = make_store(s["X"], tmp_path / "X.zarr", image_shape=shape, tile_size=32,
+                   pixel_order="tile-major")
+    return X, _folder(tmp_path / "in", shape), s["X"]
+
+
+@pytest.fixture()
+def colour(tmp_path):
+    H, W = 6, 8
+    n = 3 * H * W
+    rng = np.random.default_rng(5)
+    M = np.eye(n) * 0.9 + sp.random(n, n, density=0.05, random_state=rng).toarray() * 0.05
+    X = bigT.from_scipy(sp.csr_array(M), tmp_path / "Xc.zarr", tile_size=48, image_shape=(H, W),
+                        pixel_order="tile-major", image_tile=(2, 4), channels=3,
+                        dtype="float32")
+    return X, _folder(tmp_path / "inc", (H, W, 3)), M
+
+
+def _files(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+@pytest.mark.parametrize("scene", ["grey", "colour"])
+@pytest.mark.parametrize("batch", [1, 4])
+def test_the_output_is_the_sequential_paths_byte_for_byte(request, tmp_path, scene, batch):
+    X, folder, M = request.getfixturevalue(scene)
+    with FileCompensation(X, folder, tmp_path / "seq", batch=batch) as job:
+        job.run(overlap=False)
+    with FileCompensation(X, folder, tmp_path / "pooled", batch=batch) as job:
+        report = job.run()
+    sequential, pooled = _files(tmp_path / "seq"), _files(tmp_path / "pooled")
+    assert list(pooled) == [p.name for p in sorted(folder.iterdir())]  # no hidden file left
+    assert pooled == sequential
+    # and both are the product, against dense numpy on the decoded input
+    for name in list(pooled)[:3]:
+        desired = read_image(folder / name)
+        expected = np.clip(M @ desired.ravel(), 0, 1).reshape(desired.shape)
+        np.testing.assert_allclose(read_image(tmp_path / "pooled" / name), expected,
+                                   atol=1.0 / 65535 + 1e-5)
+    s = report.stream
+    assert s.frames == FRAMES and len(s.latencies) == FRAMES and s.overlap
+    # latencies run to each file written: never shorter than its own service time
+    assert np.all(s.latencies >= s.service - 1e-9) and s.seconds >= s.latencies.max() - 1e-9
+
+
+@pytest.mark.parametrize("batch", [1, 2, 4, 20])
+def test_decoded_ahead_yields_the_batches_of_the_sequential_reader(grey, batch):
+    _, folder, _ = grey
+    source = ImageSource(folder)
+    with CodecPool(3) as pool:
+        pooled = list(decoded_ahead(pool, source, batch, ahead=3))
+    sequential = list(image_batches(source, batch))
+    assert [f for f, _ in pooled] == [f for f, _ in sequential]
+    for (_, a), (_, b) in zip(pooled, sequential):
+        assert a.dtype == b.dtype == np.float32 and np.array_equal(a, b)
+
+
+class _CountingSource:
+    """An ImageSource stand-in whose reads take a while and count how many frames have
+    been read and not yet consumed."""
+
+    def __init__(self, frames):
+        self.files = [f"f{i}" for i in range(frames)]
+        self.read_so_far = 0
+        self._lock = threading.Lock()
+
+    def read(self, file):
+        time.sleep(0.002)
+        with self._lock:
+            self.read_so_far += 1
+        return np.full((2, 3), int(file[1:]), np.float64)
+
+
+def test_decoded_ahead_keeps_at_most_ahead_frames_in_flight():
+    source = _CountingSource(40)
+    consumed, most = 0, 0
+    with CodecPool(4) as pool:
+        for files, frames in decoded_ahead(pool, source, 2, ahead=5):
+            consumed += len(files)  # yielded
+            time.sleep(0.01)  # a slow consumer: the decoders would run far ahead
+            most = max(most, source.read_so_far - consumed)
+            assert [int(f[1:]) for f in files] == [int(v) for v in frames[:, 0, 0]]
+    assert consumed == 40
+    assert 2 <= most <= 5
+
+
+def test_encoded_behind_keeps_at_most_behind_frames_pending_and_keeps_names():
+    written, running, most = {}, [0], [0]
+    lock = threading.Lock()
+
+    def write(names, frames):
+        with lock:
+            running[0] += 1
+        time.sleep(0.005)
+        with lock:
+            written[names[0]] = frames[0].copy()
+            most[0] = max(most[0], running[0])
+            running[0] -= 1
+
+    with CodecPool(4) as pool:
+        behind = EncodedBehind(pool, write, behind=3)
+        pending_seen = 0
+        for start in range(0, 20, 2):
+            names = [f"n{start}", f"n{start + 1}"]
+            behind.write(names, np.arange(start, start + 2, dtype=float)[:, None])
+            pending_seen = max(pending_seen, len(behind._pending))
+        times = behind.finish()
+    assert pending_seen <= 3 and most[0] <= 3
+    assert {k: float(v[0]) for k, v in written.items()} == {f"n{i}": float(i) for i in range(20)}
+    assert len(times) == 20 and all(t.done >= t.started > 0 for t in times)
+
+
+def test_a_damaged_frame_is_named_and_the_frames_written_are_whole(grey, tmp_path):
+    X, folder, _ = grey
+    bad = folder / "frame004.png"
+    data = bad.read_bytes()  # the header intact (the folder's check passes), pixels broken
+    bad.write_bytes(data[:60] + bytes(len(data) - 60))
+    with FileCompensation(X, folder, tmp_path / "out", batch=1) as job:
+        with pytest.raises(ImageError) as err:
+            job.run()
+    assert "frame004.png" in str(err.value) and "\n" not in str(err.value)
+    for f in (tmp_path / "out").iterdir():  # complete files only, no hidden sibling
+        assert not f.name.startswith(".")
+        read_image(f)
+
+
+def test_a_frame_that_cannot_be_written_is_named(grey, tmp_path):
+    X, folder, _ = grey
+    (tmp_path / "out" / "frame006.png").mkdir(parents=True)  # a folder where a frame goes
+    with pytest.raises(OutputError) as err:
+        compensate_files(X, folder, tmp_path / "out", batch=1)
+    assert "frame006.png" in str(err.value) and "\n" not in str(err.value)
+    for f in (tmp_path / "out").iterdir():
+        assert not f.name.startswith(".")
+        if f.is_file():
+            read_image(f)
+
+
+def test_an_interrupted_run_leaves_complete_files_only(grey, tmp_path, monkeypatch):
+    X, folder, _ = grey
+    from bigT.compensation import realtime
+
+    calls = [0]
+    compute = realtime.Compensator.__call__
+
+    def interrupted(self, frames):  # Ctrl-C in the products, frames being encoded
+        calls[0] += 1
+        if calls[0] == 5:
+            raise KeyboardInterrupt
+        return compute(self, frames)
+
+    monkeypatch.setattr(realtime.Compensator, "__call__", interrupted)
+    with FileCompensation(X, folder, tmp_path / "out", batch=1) as job:
+        with pytest.raises(KeyboardInterrupt):
+            job.run()
+    # frames 0-3 were handed to the encoders: those started are finished, the others
+    # dropped; nothing else is there, nothing half written
+    left = sorted((tmp_path / "out").iterdir())
+    assert {f.name for f in left} <= {f"frame{i:03d}.png" for i in range(4)}
+    for f in left:
+        read_image(f)
