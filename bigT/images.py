@@ -328,6 +328,8 @@ def read_raw_image(path: str | os.PathLike, shape: Sequence[int] | None = None) 
         return _iio_call("imread", path)
     except FileNotFoundError:
         raise ImageError("no such file", path) from None
+    except ImageError:
+        raise
     except Exception as exc:  # imageio/pillow/numpy raise many types on a damaged file
         raise ImageError(f"cannot read the image ({short_reason(exc, path)})", path) from None
 
@@ -420,9 +422,9 @@ def _decode_png(path: Path) -> np.ndarray | None:
     GIL: frames are decoded on several threads at once; imageio's plugin costs as
     much again around it); a 16-bit colour PNG by OpenCV, with all its bits. None for
     the other kinds (palettes, 1-bit, ...), which imageio reads as before."""
+    if _deep_colour_png(path):
+        return _decode_deep_colour_png(path)  # a damaged one: ImageError, in one line
     try:
-        if _deep_colour_png(path):
-            return _decode_deep_colour_png(path)
         from PIL import PngImagePlugin  # Pillow: only when a file is read
 
         with PngImagePlugin.PngImageFile(os.fspath(path)) as im:
@@ -445,11 +447,25 @@ def _decode_deep_colour_png(path: Path) -> np.ndarray | None:
 
     bits, colour_type = _png_header(path)
     samples = _DEEP_PNG_FORMATS[colour_type][1]
+    _check_png_chunks(path)  # libpng would print its complaint on stderr, then fail
     pixels = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
     if (pixels is None or pixels.dtype != np.uint16 or pixels.ndim != 3
             or pixels.shape[2] != samples or samples not in (3, 4)):
         return None
     return cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB if samples == 3 else cv2.COLOR_BGRA2RGBA)
+
+
+def _check_png_chunks(path: Path) -> None:
+    """ImageError naming ``path`` when a PNG's chunks fail their CRCs or end early
+    (Pillow's ``verify``, which decodes no pixels): a damaged file is one line, not
+    libpng's stderr message followed by a decoder's error."""
+    from PIL import Image  # Pillow: imported by the PNG readers already
+
+    try:
+        with Image.open(path) as im:
+            im.verify()
+    except Exception as exc:  # noqa: BLE001 - Pillow raises SyntaxError, OSError...
+        raise ImageError(f"damaged PNG ({short_reason(exc, path)})", path) from None
 
 
 #: PNG colour types (the IHDR's) with more than one sample per pixel, and the ffmpeg

@@ -91,3 +91,21 @@ def test_a_damaged_png_is_one_line_naming_it(tmp_path):
     with pytest.raises(ImageError) as err:
         read_image(p)
     assert "broken.png" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_damaged_16_bit_colour_png_is_one_line_and_nothing_on_stderr(tmp_path, capfd):
+    """OpenCV reads 16-bit colour PNGs; libpng prints its own complaint on a damaged one
+    before failing. bigT checks the chunks first: one line naming the file, a quiet
+    stderr."""
+    from bigT.errors import ImageError
+
+    p = write_image(tmp_path / "deep.png", rng.uniform(0, 1, (30, 40, 3)), bits=16)
+    data = bytearray(p.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 40] = bytes(40)
+    p.write_bytes(bytes(data))
+    capfd.readouterr()
+    with pytest.raises(ImageError, match="damaged PNG") as err:
+        read_image(p)
+    assert "deep.png" in str(err.value) and "\n" not in str(err.value)
+    assert capfd.readouterr().err == ""
