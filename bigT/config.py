@@ -40,6 +40,22 @@ IMAGE_MAX_VALUES = 1 << 27
 # --- inverse -----------------------------------------------------------------------
 #: Absolute threshold below which entries of each series term are dropped.
 DEFAULT_PRUNE = 1e-5
+#: An error is invisible on an 8-bit projector when the image the projector receives,
+#: X d, is within this many 8-bit levels (of 255) of the exact inverse's T^-1 d at every
+#: pixel: after the projector's own rounding (itself up to half a level) it is then the
+#: exact inverse's image, up to one level on the pixels that straddle a rounding step.
+INVISIBLE_LEVELS = 0.5
+#: ``bigT invert`` with no series option (no --terms, --prune, --tol, ...) runs
+#: ``invert_to_target`` at this relative error of the compensated probe images:
+#: measured by benchmarks/bench_defaults.py to keep the projector image within
+#: INVISIBLE_LEVELS of the exact inverse's on every scene of the benchmarks.
+DEFAULT_TARGET_ERROR = 5e-4
+#: ``invert_to_target``'s power form prunes P_k (the next product's factor) at this
+#: multiple of its prune, and M in the products after the first term at this one (the
+#: ratios of bigT 0.x's README recommendation, --prune 3e-6 --prune-feed 1e-4
+#: --prune-operator 1e-5; benchmarks/bench_defaults.py).
+TARGET_FEED_RATIO = 30.0
+TARGET_OPERATOR_RATIO = 3.0
 #: Largest condition number of a pixel's 3x3 colour block of F (a colour transport's
 #: first bounce) that the engine inverts; a pixel above it is refused, or left out
 #: with first_bounce="diag-skip-ill". The block's inverse carries the relative error of
