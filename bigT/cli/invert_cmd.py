@@ -33,9 +33,10 @@ DEFAULT_HELP = (
     "With none of --terms, --prune, --prune-feed, --prune-operator, --tol, --force and "
     "--target-error, a grey T gets the quickest inverse whose error is invisible on an "
     "8-bit projector: --target-error {target:g}, measured to keep the projector image "
-    "within {levels:g} of an 8-bit level of the exact inverse's on every scene of the "
-    "benchmarks (a store made with other settings is resumed with its own). Give "
-    "--terms or --prune for a fixed setting (a colour T always runs one)")
+    "within {levels:g} of an 8-bit level of the exact inverse's on the scenes of "
+    "benchmarks/bench_defaults.py (a store made with other settings is resumed with "
+    "its own). Give --terms or --prune for a fixed setting (a colour T runs the fixed "
+    "default)")
 
 #: The options that make a fixed-setting run; with none of them (and no
 #: --target-error), a grey T runs the default target error.
