@@ -25,9 +25,9 @@ TERMS_HELP = (
     "series terms n: the store holds T_n^-1 = F^-1 sum_{{k=0..n}} (I - T F^-1)^k (paper eq. "
     "13), so --terms 0 is F^-1 alone and each term costs one sparse product (power form). "
     "The paper also counts bounces from 1 (§5.1 calls T_4^-1 the five-bounce inverse); "
-    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1. Default: as many "
-    "as an invisible error needs (below); {terms} with --prune, --prune-feed, "
-    "--prune-operator, --tol or --force")
+    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1. With no series "
+    "option, as many as an invisible error needs (below); with --prune, --prune-feed, "
+    "--prune-operator, --tol or --force, a fixed setting (default {terms})")
 
 DEFAULT_HELP = (
     "With none of --terms, --prune, --prune-feed, --prune-operator, --tol, --force and "
