@@ -61,6 +61,7 @@ FULL = [
                        "--settings", "power:1e-5,power:3e-6:1e-4,power:3e-6:1e-4:1e-5,"
                        "power:3e-6:1e-4:3e-5", "--sample", "2048",
                        "--memory-limit", "2GiB", "--workdir", "bench-out/inverse"]),
+    ("defaults", ["bench_defaults.py", "--workdir", "bench-out/defaults"]),  # issue #30
     ("video", ["bench_video.py", "--out", "bench-out/video"]),
     # the colour Cornell box at 384x512: grey vs general vs global-mixing, seen ΔE, video
     ("colour", ["bench_colour.py", "--workdir", "bench-out/colour"]),

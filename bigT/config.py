@@ -43,6 +43,25 @@ IMAGE_MAX_VALUES = 1 << 27
 # --- inverse -----------------------------------------------------------------------
 #: Absolute threshold below which entries of each series term are dropped.
 DEFAULT_PRUNE = 1e-5
+#: An error is invisible on an 8-bit projector when the image the projector receives,
+#: X d, is within this many 8-bit levels (of 255) of the exact inverse's T^-1 d at every
+#: pixel: after the projector's own rounding (itself up to half a level) it is then the
+#: exact inverse's image, up to one level on the pixels that straddle a rounding step.
+INVISIBLE_LEVELS = 0.5
+#: ``bigT invert`` with no series option (no --terms, --prune, --tol, ...) runs
+#: ``invert_to_target`` at this relative error of the compensated probe images:
+#: measured by benchmarks/bench_defaults.py to keep the projector image within
+#: INVISIBLE_LEVELS of the exact inverse's on every scene of the benchmarks.
+DEFAULT_TARGET_ERROR = 5e-4
+#: ``invert_to_target``'s power form prunes P_k (the next product's factor) at this
+#: multiple of its prune, and M in the products after the first term at this one.
+#: Measured on the dense 384x512 corner (benchmarks/bench_defaults.py, 4 terms; max
+#: error of the projector image in 8-bit levels): prune 1e-5 alone 0.62; 3e-6, 1e-4,
+#: 1e-5 (the README's recommendation before issue #30) 1.26, 3x faster: P_k pruned at
+#: 1e-4 drops entries of one sign, which shifts smooth images; 1e-6, 3e-5, 1e-5 0.13.
+#: The feed threshold sets the image error, the operator threshold most of the saving.
+TARGET_FEED_RATIO = 30.0
+TARGET_OPERATOR_RATIO = 10.0
 #: Largest condition number of a pixel's 3x3 colour block of F (a colour transport's
 #: first bounce) that the engine inverts; a pixel above it is refused, or left out
 #: with first_bounce="diag-skip-ill". The block's inverse carries the relative error of

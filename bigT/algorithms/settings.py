@@ -51,6 +51,13 @@ class Thresholds:
         return {"prune": self.prune,
                 **{name: value for name, value in optional if value is not None}}
 
+    def scaled(self, factor: float) -> "Thresholds":
+        """Every threshold set times ``factor`` (rounded to 3 digits: ``1e-06``, not
+        ``1.0000000000000002e-06``, which the fingerprint would record)."""
+        def times(value):
+            return None if value is None else float(f"{value * factor:.3g}")
+        return Thresholds(times(self.prune), times(self.feed), times(self.operator))
+
     def describe(self) -> str:
         """``prune 1e-06, P_k pruned at 0.0001, M pruned at 0.001 in the products``."""
         text = f"prune {self.prune:g}"

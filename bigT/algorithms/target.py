@@ -42,6 +42,13 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
   The probes are dominated by the slowest mode of M and agree within a few per cent;
   the 20 % margin covers a fresh image (tests/algorithms/test_target_error.py checks
   random low-pass images against the exact inverse).
+* thresholds: the power form prunes P_k, the next product's factor, at
+  config.TARGET_FEED_RATIO times the prune, and M in the products after the first term
+  at config.TARGET_OPERATOR_RATIO times it (:func:`first_thresholds`; on the dense
+  384x512 corner, 4 terms, prune 1e-6 so fed and pruned does 4.4x fewer
+  multiply-adds than prune 1e-5 alone, at a fifth of its image error:
+  benchmarks/bench_defaults.py); a restart scales the three together. A store ``out``
+  already holding an inverse of T starts from the setting it records.
 * prune: the largest decade <= target (1 - r) / PRUNE_RATIO, with r the rate at which
   the truncation curve falls per term (about rho(M)): pruned entries are carried by
   every later bounce, so their error adds up like 1 / (1 - r). Restart with a smaller
@@ -82,7 +89,9 @@ from ..schedule.stream import forget_tiles, stream_matmul
 from ..storage import as_store
 from ..storage import open as open_store
 from ..storage.frames import pixel_order_of, to_vectors
+from .fingerprint import recorded_setting
 from .first_bounce import resolve_first_bounce
+from .settings import Thresholds
 from .stratified import stratified_inverse
 
 #: Stop when the worst probe's error is below SAFETY * target.
@@ -136,12 +145,20 @@ class TermErrors:
 
 @dataclass(frozen=True)
 class Attempt:
-    """One run at a fixed (method, prune): its terms' errors and why it ended."""
+    """One run at a fixed (method, thresholds): its terms' errors and why it ended;
+    ``feed`` and ``operator`` are the power form's ``prune_feed`` and
+    ``prune_operator`` (None: not set)."""
 
     method: str
     prune: float
     terms: tuple[TermErrors, ...]
     ended: str
+    feed: float | None = None
+    operator: float | None = None
+
+    @property
+    def thresholds(self) -> Thresholds:
+        return Thresholds(self.prune, self.feed, self.operator)
 
 
 @dataclass(frozen=True)
@@ -153,6 +170,8 @@ class TargetReport:
     target : float, the relative error asked for
     met : bool, the worst probe's unclipped error <= target at the held term
     method, prune, terms : the setting the store holds (as a fixed run would)
+    prune_feed, prune_operator : the power form's thresholds on P_k and on M in the
+        products, as the store records them (None: not set)
     why : str, one sentence: why this setting
     error : float, the worst probe's unclipped error at the held term
     clipped_error : float, the worst probe's clipped error at the held term
@@ -180,6 +199,8 @@ class TargetReport:
     restarts: tuple[str, ...] = ()
     attempts: tuple[Attempt, ...] = ()
     inverse: dict = field(default_factory=dict)
+    prune_feed: float | None = None
+    prune_operator: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -192,7 +213,9 @@ class TargetReport:
                  + f", worst probe {self.error:.3e} (clipped into the projector's range "
                  f"{self.clipped_error:.3e}) on {len(self.probes)} probes "
                  f"({', '.join(self.probes)})",
-                 f"chosen: {self.method}, prune {self.prune:g}, {self.terms} terms, "
+                 f"chosen: {self.method}, "
+                 f"{Thresholds(self.prune, self.prune_feed, self.prune_operator).describe()}, "
+                 f"{self.terms} terms, "
                  f"{self.seconds:.1f} s",
                  f"why: {self.why}"]
         for line in self.restarts:
@@ -331,6 +354,19 @@ def first_prune(target: float, rate: float = 0.0) -> float:
     return 10.0 ** math.floor(math.log10(target * slack / PRUNE_RATIO) + 1e-9)
 
 
+def first_thresholds(method: str, prune: float) -> Thresholds:
+    """The threshold triple tried first at ``prune``: the power form feeds on P_k
+    pruned at config.TARGET_FEED_RATIO times it and leaves M's entries below
+    config.TARGET_OPERATOR_RATIO times it out of the products after the first term
+    (the ratios of the README's recommendation, measured by
+    benchmarks/bench_defaults.py to cost no visible error); the other methods have
+    neither."""
+    if method != "power":
+        return Thresholds(float(prune))
+    return Thresholds(float(prune), float(f"{prune * config.TARGET_FEED_RATIO:.3g}"),
+                      float(f"{prune * config.TARGET_OPERATOR_RATIO:.3g}"))
+
+
 def decay_rate(powers: list[np.ndarray], D: np.ndarray) -> float:
     """The rate at which the truncation curve falls per term (about rho(M)): the last
     step's ratio of the worst probe's ||M^(k+1) d|| / ||d||; for a curve of one point,
@@ -393,9 +429,9 @@ class _Setting:
     seed: int
 
 
-def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
-                 t0, overwrite):
-    """Terms of one (method, prune) until the target, a floor or the cap: one engine
+def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, products, D,
+                 powers, t0, overwrite):
+    """Terms of one (method, thresholds) until the target, a floor or the cap: one engine
     run, each term measured as it is published (the engine's ``on_term``).
 
     Returns
@@ -419,7 +455,8 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     # term 0 (F^-1, nothing pruned) is never handed over (its error ||M d|| / ||d|| is
     # known); it is measured only as the held term of a cap of 0
     report = stratified_inverse(
-        T, out, terms=cap, prune=prune, method=method, first_bounce=ctx.first_bounce,
+        T, out, terms=cap, prune=thresholds.prune, prune_feed=thresholds.feed,
+        prune_operator=thresholds.operator, method=method, first_bounce=ctx.first_bounce,
         memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
         progress=ctx.progress, seed=ctx.seed, overwrite=overwrite, on_term=on_term)
     held = min(report.terms, report.history[-1].term)  # an exhausted series: its last
@@ -429,7 +466,8 @@ def _run_attempt(T, out, method, prune, cap, target, ctx, products, D, powers,
     if not ended and "exhausted" in report.stopped:
         ended, reason = report.stopped, (f"{report.stopped} with error "
                                          f"{measured[-1].worst:.2e} above the target")
-    return Attempt(method, prune, tuple(measured), ended or f"term cap {cap}"), report, reason
+    return (Attempt(method, thresholds.prune, tuple(measured), ended or f"term cap {cap}",
+                    thresholds.feed, thresholds.operator), report, reason)
 
 
 def _worth_measuring(method: str, term: int, products: _Products, powers, D,
@@ -476,7 +514,12 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
         Fix the method instead of choosing it.
     prune : float, optional
         The first prune tried (default: :func:`first_prune`); smaller
-        ones follow when it floors above the target.
+        ones follow when it floors above the target. The power form's feed and
+        operator thresholds are fixed multiples of it (:func:`first_thresholds`).
+        Without ``method``, ``prune`` and ``overwrite``, a store ``out`` that holds an
+        inverse of ``T`` is resumed with the method and thresholds it records
+        (:func:`~bigT.algorithms.fingerprint.recorded_setting`): made by other
+        defaults, it is continued, not refused.
     max_terms : int, optional
         Cap on the terms (default: the unpruned series' count + 3, at most 200).
     first_bounce, memory_limit, scheduler, workers, progress, seed
@@ -506,22 +549,32 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
         powers = truncation_curve(products, D, SAFETY * target * (1 - PRUNE_SHARE), limit)
         predicted = len(powers) - 1
         cap = min(limit, predicted + EXTRA_TERMS) if max_terms is None else limit
-        if method is None:
-            method, method_why = choose_method(predicted)
+        recorded = None if overwrite or method is not None or prune is not None \
+            else recorded_setting(T, fb, out)
+        if recorded is not None:  # resumed as it was made, whatever defaults made it
+            method, thresholds = recorded.method, recorded.thresholds
+            method_why = f"{method} (recorded in the store resumed)"
         else:
-            method_why = f"{method} (given)"
-        p = first_prune(target, decay_rate(powers, D)) if prune is None else float(prune)
+            if method is None:
+                method, method_why = choose_method(predicted)
+            else:
+                method_why = f"{method} (given)"
+            thresholds = first_thresholds(
+                method, first_prune(target, decay_rate(powers, D)) if prune is None
+                else float(prune))
         attempts, restarts = [], []
         while True:
             attempt, report, reason = _run_attempt(
-                T, out, method, p, cap, target, ctx, products, D, powers, t0,
+                T, out, method, thresholds, cap, target, ctx, products, D, powers, t0,
                 overwrite or bool(attempts))
             attempts.append(attempt)
             if reason is None or len(restarts) >= MAX_RESTARTS:
                 break
+            p = thresholds.prune
             nxt = smaller_prune(p, attempt.terms[-1].pruning, target)
-            restarts.append(f"prune {p:g} ({reason}): restarted with prune {nxt:g}")
-            p = nxt
+            thresholds = thresholds.scaled(nxt / p)  # the triple keeps its ratios
+            restarts.append(f"{attempt.thresholds.describe()} ({reason}): restarted with "
+                            f"{thresholds.describe()}")
     finally:
         products.close()
     return _report(target, attempts, tuple(restarts), report, predicted,
@@ -533,8 +586,8 @@ def _report(target, attempts, restarts, report, predicted, seconds, method_why):
     met = last.worst <= target
     why = (f"the unpruned series needs {predicted} terms to bring the probes' truncation "
            f"error below {SAFETY * (1 - PRUNE_SHARE):g} of the target "
-           f"(spectral radius {report.spectral_radius:.3g}); prune {attempts[-1].prune:g} "
-           f"kept the pruning part at {last.pruning:.2e}; {method_why}; "
+           f"(spectral radius {report.spectral_radius:.3g}); "
+           f"{attempts[-1].thresholds.describe()} kept the pruning part at {last.pruning:.2e}; {method_why}; "
            f"stopped: {attempts[-1].ended}")
     return TargetReport(
         target=float(target), met=met, method=attempts[-1].method,
@@ -542,4 +595,5 @@ def _report(target, attempts, restarts, report, predicted, seconds, method_why):
         clipped_error=max(last.clipped_errors), probes=PROBE_NAMES,
         predicted_terms=predicted, spectral_radius=report.spectral_radius,
         seconds=seconds, restarts=restarts, attempts=tuple(attempts),
-        inverse=report.to_dict())
+        inverse=report.to_dict(), prune_feed=attempts[-1].feed,
+        prune_operator=attempts[-1].operator)

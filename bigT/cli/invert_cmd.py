@@ -25,16 +25,35 @@ TERMS_HELP = (
     "series terms n: the store holds T_n^-1 = F^-1 sum_{{k=0..n}} (I - T F^-1)^k (paper eq. "
     "13), so --terms 0 is F^-1 alone and each term costs one sparse product (power form). "
     "The paper also counts bounces from 1 (§5.1 calls T_4^-1 the five-bounce inverse); "
-    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1 (default {terms})")
+    "this option uses eq. 13's n. newton-schulz rounds n up to 2^j - 1. With no series "
+    "option, as many as an invisible error needs (below); with --prune, --prune-feed, "
+    "--prune-operator, --tol or --force, a fixed setting (default {terms})")
+
+DEFAULT_HELP = (
+    "With none of --terms, --prune, --prune-feed, --prune-operator, --tol, --force and "
+    "--target-error, a grey T gets the quickest inverse whose error is invisible on an "
+    "8-bit projector: --target-error {target:g}, measured to keep the projector image "
+    "within {levels:g} of an 8-bit level of the exact inverse's on the scenes of "
+    "benchmarks/bench_defaults.py (a store made with other settings is resumed with "
+    "its own). Give --terms or --prune for a fixed setting (a colour T runs the fixed "
+    "default)")
+
+#: The options that make a fixed-setting run; with none of them (and no
+#: --target-error), a grey T runs the default target error.
+SERIES_OPTIONS = ("terms", "prune", "prune_feed", "prune_operator", "tol", "force")
 
 
 def register(subparsers) -> None:
+    from .. import config  # light: constants only
+
     p = subparsers.add_parser(
         "invert", help="stratified inverse of a stored T, out of core, term by term",
         description="Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} "
                     "(I - T F^-1)^k (paper eq. 13) of a bigT store, term by term, into a "
                     "versioned store. An interrupted run is resumed by running the same "
-                    "command again; the store always holds the last complete term.")
+                    "command again; the store always holds the last complete term. "
+                    + DEFAULT_HELP.format(target=config.DEFAULT_TARGET_ERROR,
+                                          levels=config.INVISIBLE_LEVELS))
     # the options show the engine's defaults and method names, read from the library:
     # added when invert runs or prints its help, since the engine imports the stores
     # (zarr, scipy: ~0.3 s) that no other command's parser needs
@@ -45,6 +64,7 @@ def register(subparsers) -> None:
 def _add_options(p) -> None:
     """``invert``'s arguments, their defaults and method names the library's own (one
     source of truth)."""
+    from .. import config
     from ..algorithms import stratified_inverse
     from ..algorithms.methods import METHODS
 
@@ -61,8 +81,10 @@ def _add_options(p) -> None:
                    help=TERMS_HELP.format(terms=default["terms"]))
     p.add_argument("--prune", type=number(0), default=None,
                    help="drop entries below this (absolute, on the dimensionless terms "
-                        f"M^k) inside each product (default {default['prune']:g}; with "
-                        "--target-error, the first prune tried)")
+                        f"M^k) inside each product (default {default['prune']:g} in a "
+                        "fixed-setting run; with --target-error, the first prune tried, "
+                        f"P_k fed on at {config.TARGET_FEED_RATIO:g}x it and M pruned at "
+                        f"{config.TARGET_OPERATOR_RATIO:g}x it in the products)")
     p.add_argument("--prune-feed", dest="prune_feed", type=number(0), default=None,
                    help="power form: prune P_k, the factor of the next product, at this "
                         "(>= --prune) while X keeps each term's entries down to --prune: "
@@ -85,7 +107,9 @@ def _add_options(p) -> None:
                         "relative error of compensated probe images below E (e.g. "
                         "0.0039 = 1/255 for an 8-bit display) at the least cost, and "
                         "stop there; exit 1 when it stops short (best effort). Refuses "
-                        "--terms, --tol, --prune-feed, --prune-operator and --force")
+                        "--terms, --tol, --prune-feed, --prune-operator and --force. "
+                        f"Default {config.DEFAULT_TARGET_ERROR:g} when no fixed setting is "
+                        "asked for (see above)")
     p.add_argument("--colour-path", dest="colour_path", choices=("auto", "general", "global"),
                    default="auto",
                    help="a colour T: 'global' inverts three grey transports between two "
@@ -125,7 +149,21 @@ def _add_options(p) -> None:
     add_progress(p)
 
 
+def _default_run(args) -> bool:
+    """No option asks for a fixed setting (SERIES_OPTIONS, a colour path) and T is grey:
+    the run is the default target error's. A colour T keeps the fixed default, whose
+    automatic colour path may invert three grey transports instead (the target error
+    measures the general path)."""
+    if any(getattr(args, name) not in (None, False) for name in SERIES_OPTIONS) \
+            or args.colour_path != "auto":
+        return False
+    from ..storage import open as open_store  # zarr: the run opens T anyway
+
+    return getattr(open_store(args.T), "channels", 1) == 1
+
+
 def invert_cmd(args) -> int:
+    from .. import config
     from ..algorithms import stratified_inverse
 
     fb = args.first_bounce
@@ -139,6 +177,9 @@ def invert_cmd(args) -> int:
     json_file = None if args.json == "-" else args.json
     refuse_overwriting_inputs([args.output, json_file],
                               [args.T, None if fb in ("diag", "identity") else fb])
+    if args.target_error is None and _default_run(args):
+        args.target_error = config.DEFAULT_TARGET_ERROR
+        args.target_default = True
     if args.target_error is not None:
         if args.colour_path == "global":
             raise BigTError("--colour-path global cannot be combined with --target-error, "
@@ -182,6 +223,10 @@ def _invert_to_target(args, fb) -> int:
         first_bounce=fb, memory_limit=args.memory_limit, scheduler=args.scheduler,
         workers=args.workers, progress=args.progress, overwrite=args.overwrite)
     if args.json != "-":
+        if getattr(args, "target_default", False):
+            print(f"default: the quickest inverse whose error is invisible at 8 bits "
+                  f"(--target-error {args.target_error:g}); --terms or --prune for a "
+                  "fixed setting")
         print(report.summary())
         print(f"-> {args.output}")
     _write_json(args.json, report.to_dict())
