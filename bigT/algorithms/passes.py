@@ -92,6 +92,10 @@ class PassRunner:
             self.store.finalize_term_store(k, name)
         return stats
 
+    def exhausted_before(self, series: SeriesMethod, p: Pass, held: int) -> str | None:
+        """:func:`exhausted_before` on this run's store."""
+        return exhausted_before(series, p, held, self.store)
+
     def warn_row_width(self, held: int, k: int, history: tuple[TermRecord, ...]) -> None:
         """Warn before term ``k`` when its output tile rows may not fit the tightest
         memory plan: the held term's widest row, grown as X grew at the last term."""
