@@ -6,6 +6,8 @@ the memory budget that decides it (docs/DESIGN.md, "Memory").
 
 from __future__ import annotations
 
+import os
+import sys
 from dataclasses import dataclass
 
 from .. import config
@@ -15,6 +17,12 @@ from ..schedule.runner import ThreadRunner
 
 #: The path names the record and the report use.
 IN_MEMORY, OUT_OF_CORE = "in-memory", "out-of-core"
+
+#: The environment variable that sets ``in_memory`` where a call leaves it None: "0"
+#: (out of core), "1" (in memory) or unset/"auto" (the budget decides). The test
+#: suite sets "0" for the tests written for the out-of-core path's tasks and files
+#: (tests/conftest.py); it reaches the CLI's processes too.
+ENVIRONMENT = "BIGT_IN_MEMORY"
 
 #: Without a ``memory_limit``, the in-memory path may take this share of the memory
 #: the system has available (MemAvailable) when the run starts.
@@ -74,9 +82,12 @@ def choose_path(in_memory, runner, T, channels: int, plan: MemoryPlan) -> PathCh
     if in_memory is not None and not isinstance(in_memory, bool):
         raise BigTError(f"{{option}} must be None, True or False, got {in_memory!r}",
                         option="in_memory")
+    if in_memory is None:
+        in_memory = _from_environment()
     local = isinstance(runner, ThreadRunner)
     if in_memory is False:
-        return PathChoice(False, "out of core, as asked (in_memory=False)")
+        return PathChoice(False, "out of core, as asked (in_memory=False, or "
+                                 f"{ENVIRONMENT}=0)")
     if not local:
         if in_memory:
             raise BigTError("{option} runs the series in this process; a cluster scheduler "
@@ -86,9 +97,20 @@ def choose_path(in_memory, runner, T, channels: int, plan: MemoryPlan) -> PathCh
     budget = memory_budget(plan)
     need = m_build_bytes(T, channels)
     if in_memory:
-        return PathChoice(True, "in memory, as asked (in_memory=True)", max(budget, need))
+        # asked: no estimate sends it out of core, before or between the terms
+        return PathChoice(True, "in memory, as asked (in_memory=True)", sys.maxsize)
     if need > budget:
         return PathChoice(False, f"out of core: making M takes ~{human_bytes(need)}, over "
                                  f"the {human_bytes(budget)} the process may hold")
     return PathChoice(True, f"in memory: M takes ~{human_bytes(need)} of the "
                             f"{human_bytes(budget)} the process may hold", budget)
+
+
+def _from_environment() -> bool | None:
+    """``in_memory`` as :data:`ENVIRONMENT` sets it (None: automatic)."""
+    value = os.environ.get(ENVIRONMENT, "auto").strip().lower()
+    choices = {"0": False, "1": True, "auto": None, "": None}
+    if value not in choices:
+        raise BigTError(f"the environment variable {ENVIRONMENT} must be 0, 1 or auto, "
+                        f"got {value!r}")
+    return choices[value]

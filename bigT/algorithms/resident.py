@@ -329,27 +329,24 @@ class ResidentPasses:
 
     def _write(self, k: int, p: Pass, outputs: dict, metadata: dict) -> None:
         """Each output of pass ``p`` into its store of term ``k``: created (or the
-        rows an interrupted run left kept), its tile rows written on the run's threads
-        (a write waits mostly on the disk's syncs), finalized."""
+        rows an interrupted run left kept), its tile rows written, finalized; each
+        step for every output at once on the run's threads (a store write waits mostly
+        on the disk's syncs, which release the interpreter)."""
         lay = self.layout
         meta = {"inverse": {**metadata, "term": k, "complete": False}}
         attrs = StoreAttrs(lay.T.shape, lay.tile_size, lay.T.dtype, metadata=meta,
                            pixel_order=lay.T.pixel_order)
-        jobs = []
-        for name in p.outputs:
-            path = self.store.prepare_term_store(k, name, attrs)
-            done = completed_rows(path, lay.n_blocks)
-            A = outputs[name]
-            jobs += [(path, b, A) for b in row_blocks(lay.n, lay.tile_size)
-                     if b.index not in done]
-        if len(jobs) > 1 and self.threads > 1:
-            with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write") as pool:
-                list(pool.map(lambda job: _write_row(attrs, *job), jobs))
-        else:
-            for job in jobs:
-                _write_row(attrs, *job)
-        for name in p.outputs:
-            self.store.finalize_term_store(k, name)
+        names = list(p.outputs)
+        with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write") as pool:
+            paths = list(pool.map(lambda name: self.store.prepare_term_store(k, name, attrs),
+                                  names))
+            rows = []
+            for name, path in zip(names, paths):
+                done = completed_rows(path, lay.n_blocks)
+                rows += [(path, b, outputs[name]) for b in row_blocks(lay.n, lay.tile_size)
+                         if b.index not in done]
+            list(pool.map(lambda job: _write_row(attrs, *job), rows))
+            list(pool.map(lambda name: self.store.finalize_term_store(k, name), names))
 
     def _stats(self, p: Pass, result: _Result, tally, seconds: float) -> list[BlockStats]:
         """One BlockStats per row block, as its task would report it: the new term's
