@@ -84,7 +84,7 @@ class InverseEngine:
         self.residual = ProbedResidual.for_run(self.matvecs, settings.seed)
         if self.path.in_memory:
             self.passes = ResidentPasses(matrices, store, settings, self.residual.Z,
-                                         runner.threads, self.path.budget)
+                                         runner.threads, self.path.budget, series)
         else:
             self.passes = PassRunner(self.layout, store, runner, settings, self.residual.Z)
         self.XZ: np.ndarray | None = None  # X Z for the term held (None: X is read)
@@ -108,6 +108,7 @@ class InverseEngine:
         try:
             stopped = self._extend(resumed_from)
         finally:
+            self.passes.close()
             self.store.settle()
         if self.record.dir is not None:
             self.store.clean(keep={self.record.dir})  # terms readers held when dropped
@@ -187,6 +188,7 @@ class InverseEngine:
         if last is None or self.passes.fits(held, last.nnz_X, last.nnz_P, growth):
             return
         totals = self.passes.totals
+        self.passes.close()
         self.path = PathChoice(False, f"{self.path.reason}; out of core from term "
                                       f"{held + 1}: its predicted size exceeds the budget")
         self.matvecs = MatVecs(self.runner, self.layout)

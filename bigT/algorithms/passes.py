@@ -92,6 +92,9 @@ class PassRunner:
             self.store.finalize_term_store(k, name)
         return stats
 
+    def close(self) -> None:
+        """Nothing held between passes (the runner's caches are let go by the caller)."""
+
     def exhausted_before(self, series: SeriesMethod, p: Pass, held: int) -> str | None:
         """:func:`exhausted_before` on this run's store."""
         return exhausted_before(series, p, held, self.store)

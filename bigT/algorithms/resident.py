@@ -26,7 +26,7 @@ term's predicted size does not fit the budget.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -184,16 +184,37 @@ class ResidentPasses:
     settings : SeriesSettings
     probes : (n, p) ndarray, the residual probes Z
     threads : int, threads of the kernels and of the writes
+    budget : int, bytes the matrices may take (:meth:`fits`)
+    series : SeriesMethod, optional
+        Given, the next term of a one-pass method is computed ahead (:meth:`_ahead`).
+
+    While a term's stores are written (mostly waiting on the disk's syncs), the next
+    term's products are computed on another thread: the engine publishes the term
+    written, then takes the next one's result. Only where nothing may stop the run
+    between two terms but ``terms`` itself (no ``on_term``), so that no product is
+    made for nothing; its matrices are only kept (and written) once the engine asks
+    for that term.
     """
 
     def __init__(self, matrices: ResidentMatrices, store: InverseStore, settings,
-                 probes: np.ndarray, threads: int, budget: int):
+                 probes: np.ndarray, threads: int, budget: int,
+                 series: SeriesMethod | None = None):
         self.matrices, self.store, self.settings = matrices, store, settings
         self.layout = matrices.layout
         self.probes, self.threads, self.budget = probes, max(1, int(threads)), budget
+        self.series = series
         self.totals = PassTotals()
         self._inverse = BlockDiagonal(self.layout.fb.finv)
         self._f = self.layout.fb.f.astype(matrices.dtype)
+        self._pool: ThreadPoolExecutor | None = None  # made for the first term ahead
+        self._next: tuple[str, int, Future] | None = None
+
+    def close(self) -> None:
+        """Wait for a term computed ahead (its result is dropped)."""
+        self._next = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
 
     # --- the engine's questions -------------------------------------------------------
 
@@ -230,18 +251,51 @@ class ResidentPasses:
         the out-of-core tasks report, so the engine's probes and records read them the
         same way)."""
         t0 = time.perf_counter()
-        tally = blocks.KernelTally()
-        inputs = {alias: self._input(alias, name, term, p)
-                  for alias, name, term in p.inputs}
-        result = self._compute(p, inputs, tally)
+        ahead, self._next = self._next, None
+        if ahead is not None and ahead[:2] == (p.op, k):
+            result, tally = ahead[2].result()
+        else:
+            tally = blocks.KernelTally()
+            result = self._compute(p, self._inputs(p), tally)
         # the outputs of the held term's passes stay until the term after them is made
         self.matrices.forget_before(min((term for _a, _n, term in p.inputs), default=k))
         for name in p.outputs:
             self.matrices.keep(name, k, result.outputs[name])
+        self._ahead(p, k)
         self._write(k, p, result.outputs, metadata)
         stats = self._stats(p, result, tally, time.perf_counter() - t0)
         self.totals = self.totals.plus(time.perf_counter() - t0, stats, 1)
         return stats
+
+    def _inputs(self, p: Pass) -> dict:
+        return {alias: self._input(alias, name, term, p) for alias, name, term in p.inputs}
+
+    def _ahead(self, p: Pass, k: int) -> None:
+        """Start computing the term after ``k`` on the pool's thread when the run will
+        ask for it (a one-pass method, ``k`` short of ``terms``, no ``on_term``, the
+        series not exhausted) and it fits the budget."""
+        series, settings = self.series, self.settings
+        if series is None or settings.on_term is not None or p.op == "diag":
+            return
+        k_next = series.next_term(k)
+        passes = series.passes(k, k_next)
+        if k_next > settings.terms or len(passes) != 1:
+            return
+        q = passes[0]
+        if self.exhausted_before(series, q, k):
+            return
+        X, P = self.matrices.held.get(("X", k)), self.matrices.held.get(("P", k))
+        if X is None or not self.fits(k, X.nnz, 0 if P is None else P.nnz, 1.0):
+            return
+        inputs = self._inputs(q)  # resolved now: the held matrices change on this thread
+
+        def compute():
+            tally = blocks.KernelTally()
+            return self._compute(q, inputs, tally), tally
+
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="bigT-ahead")
+        self._next = (q.op, k_next, self._pool.submit(compute))
 
     def _input(self, alias: str, name: str, term: int, p: Pass) -> sp.csr_array:
         """Input ``alias`` of the pass, read as F B when the pass scales it (S = F X)."""
