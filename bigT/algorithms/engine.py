@@ -102,6 +102,7 @@ class InverseEngine:
         except BaseException:
             # refused (a diverging series) or stopped before any term was finished: an
             # output this run created holds nothing worth keeping
+            self.passes.close()
             if self.layout.created and self.record.term is None:
                 self.store.discard()
             raise

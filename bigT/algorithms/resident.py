@@ -208,13 +208,16 @@ class ResidentPasses:
         self._f = self.layout.fb.f.astype(matrices.dtype)
         self._pool: ThreadPoolExecutor | None = None  # made for the first term ahead
         self._next: tuple[str, int, Future] | None = None
+        # the writes' threads, started once per run (a pool per pass costs ~3 ms a thread)
+        self._writers = ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write")
 
     def close(self) -> None:
-        """Wait for a term computed ahead (its result is dropped)."""
+        """Wait for a term computed ahead (its result is dropped) and the writes."""
         self._next = None
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
+        for pool in (self._pool, self._writers):
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+        self._pool = None
 
     # --- the engine's questions -------------------------------------------------------
 
@@ -390,17 +393,16 @@ class ResidentPasses:
         meta = {"inverse": {**metadata, "term": k, "complete": False}}
         attrs = StoreAttrs(lay.T.shape, lay.tile_size, lay.T.dtype, metadata=meta,
                            pixel_order=lay.T.pixel_order)
-        names = list(p.outputs)
-        with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write") as pool:
-            paths = list(pool.map(lambda name: self.store.prepare_term_store(k, name, attrs),
-                                  names))
-            rows = []
-            for name, path in zip(names, paths):
-                done = completed_rows(path, lay.n_blocks)
-                rows += [(path, b, outputs[name]) for b in row_blocks(lay.n, lay.tile_size)
-                         if b.index not in done]
-            list(pool.map(lambda job: _write_row(attrs, *job), rows))
-            list(pool.map(lambda name: self.store.finalize_term_store(k, name), names))
+        names, pool = list(p.outputs), self._writers
+        paths = list(pool.map(lambda name: self.store.prepare_term_store(k, name, attrs),
+                              names))
+        rows = []
+        for name, path in zip(names, paths):
+            done = completed_rows(path, lay.n_blocks)
+            rows += [(path, b, outputs[name]) for b in row_blocks(lay.n, lay.tile_size)
+                     if b.index not in done]
+        list(pool.map(lambda job: _write_row(attrs, *job), rows))
+        list(pool.map(lambda name: self.store.finalize_term_store(k, name), names))
 
     def _stats(self, p: Pass, result: _Result, tally, seconds: float) -> list[BlockStats]:
         """One BlockStats per row block, as its task would report it: the new term's
