@@ -163,8 +163,20 @@ class ResidentMatVecs:
 
 @dataclass(frozen=True)
 class _Result:
-    """What one pass computed: its output matrices, the nonzero rows of its new term
-    (for the stats) and the probes' (X_k - X_{k-1}) Z."""
+    """What one pass computed.
+
+    Attributes
+    ----------
+    outputs : dict of str to csr_array, shape (n, n)
+        The pass's outputs by store name; ``"_new"``, where the term's new rows are no
+        output (Horner's M S, term 0's F^-1), only for the stats' ``nnz_P``.
+    left, right : csr_array or None
+        The factors of its product (the stats count their tile pairs).
+    y : (n, p) ndarray or None
+        The probes' (X_k - X_{k-1}) Z (the power form).
+    carried_from_P : bool
+        A product with P_{k-1}: a row block it left without any is carried over.
+    """
 
     outputs: dict
     left: sp.csr_array | None = None

@@ -158,3 +158,19 @@ def test_exhausted_series_in_memory(tmp_path, make_store):
                                   progress=False)
     assert rep.terms == 5 and "exhausted" in rep.stopped and rep.products == 0
     np.testing.assert_array_equal(dense(tmp_path / "X.zarr"), np.diag(1 / d))
+
+
+@pytest.mark.parametrize("method", ["power", "horner"])
+def test_colour_general_path_same_as_out_of_core(tmp_path, method):
+    from test_colour_inverse import colour_transport, dense_colour_stratified, read, store
+
+    A = colour_transport(4, 6)  # per-pixel camera mixing: the general colour engine
+    T = store(tmp_path, A, (4, 6))
+    options = dict(terms=3, prune=0.0, method=method, colour_path="general", progress=False)
+    mem = bigT.stratified_inverse(T, tmp_path / "mem.zarr", in_memory=True, **options)
+    bigT.stratified_inverse(T, tmp_path / "ooc.zarr", in_memory=False, **options)
+    assert mem.engine_path == "in-memory"
+    X_mem, X_ooc = read(tmp_path / "mem.zarr"), read(tmp_path / "ooc.zarr")
+    np.testing.assert_allclose(X_mem, X_ooc, rtol=1e-6, atol=1e-12 * np.abs(X_ooc).max())
+    want = dense_colour_stratified(A, 3)
+    np.testing.assert_allclose(X_mem, want, rtol=0, atol=1e-10 * np.abs(want).max())
