@@ -202,7 +202,10 @@ class InverseEngine:
         """Estimate term k's residual (``XZ``: X_k Z when known), refuse the term when
         the residual grew, else publish it. Every published term, term 0 included,
         passes here (benchmarks/bench_tradeoff.py wraps it to measure each term)."""
-        X = open_store(self.store.term_path(k, "X"))
+        X = self.passes.finalized.pop((k, "X"), None)
+        if X is None:
+            X = open_store(self.store.term_path(k, "X"))
+        self.passes.finalized.clear()  # the other stores of the term are not read again
         residual = self.residual.estimate(X, XZ)
         refuse_growing_residual(self.record, k, residual.relative, self.settings.force,
                                 self.store.path)

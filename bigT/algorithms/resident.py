@@ -216,6 +216,7 @@ class ResidentPasses:
         self.probes, self.threads, self.budget = probes, max(1, int(threads)), budget
         self.series = series
         self.totals = PassTotals()
+        self.finalized: dict[tuple[int, str], object] = {}  # as PassRunner's
         self._inverse = BlockDiagonal(self.layout.fb.finv)
         self._f = self.layout.fb.f.astype(matrices.dtype)
         self._pool: ThreadPoolExecutor | None = None  # made for the first term ahead
@@ -414,7 +415,8 @@ class ResidentPasses:
             rows += [(path, b, outputs[name]) for b in row_blocks(lay.n, lay.tile_size)
                      if b.index not in done]
         list(pool.map(lambda job: _write_row(attrs, *job), rows))
-        list(pool.map(lambda name: self.store.finalize_term_store(k, name), names))
+        stores = pool.map(lambda name: self.store.finalize_term_store(k, name), names)
+        self.finalized.update({(k, name): X for name, X in zip(names, stores)})
 
     def _stats(self, p: Pass, result: _Result, tally, seconds: float) -> list[BlockStats]:
         """One BlockStats per row block, as its task would report it: the new term's
