@@ -42,7 +42,8 @@ call writes into are deleted before its clock starts.
 Run:  nice -n 10 .venv/bin/python benchmarks/bench_paper.py [--quick] [--only fig6 ...]
       (--quick: smaller scenes, about 15 CPU-seconds, 35-52 s wall at load averages of
       2-8 on the shared 2-core development machine; the full run about 110 CPU-seconds,
-      2.5-4 minutes there)
+      2.5-4 minutes there, and the size sweep to n = 100000 160 CPU-seconds more,
+      9 minutes at load 10, most of it the n = 100000 scene and its scipy series)
 """
 
 from __future__ import annotations
