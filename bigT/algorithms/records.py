@@ -26,7 +26,8 @@ class TermRecord:
     ``kernel_seconds`` the time its tasks spent inside the product kernel (summed over
     tasks: thread-seconds). Records written before these were counted read 0.
     ``engine_path`` is the path that computed it, ``"in-memory"`` or ``"out-of-core"``
-    (:mod:`.engine_path`; records written before the in-memory path read the latter).
+    (:mod:`.engine_path`; stored only for the former: records without it read the
+    latter).
     """
 
     term: int
@@ -61,7 +62,13 @@ class TermRecord:
         return cls(**values)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored keys; ``engine_path`` only for a term computed in memory, so that
+        an out-of-core run writes the keys it wrote before the in-memory path existed
+        (an absent key reads as out of core)."""
+        d = dataclasses.asdict(self)
+        if d["engine_path"] == "out-of-core":
+            del d["engine_path"]
+        return d
 
     def to_entry(self) -> TermEntry:
         """The store's entry: ``term``, and the rest as its details."""
