@@ -9,6 +9,11 @@ each measured claim beside the paper's (reported, never asserted).
   for n = 0..7, with F = diag(T) (bigT's default prune and a fine one) and F = I; the
   time of T_7^-1 (a whole ``bigT.stratified_inverse`` call, and the same pruned series
   in plain scipy) against ``numpy.linalg.inv`` of the dense T, all on this machine.
+* Fig. 6(a) across sizes (issue #30): T_7^-1 by the whole ``bigT.stratified_inverse``
+  call (its automatic path, in memory where M and the terms fit, and out of core)
+  against the same pruned series in plain scipy, on wall-corner scenes of n = 1000,
+  2000, 5120, 20480 and 100000 (full HD with ``--sweep-max 2073600``), interleaved,
+  best of the plan's repeats.
 * Fig. 9, a wall corner of 38x51 = 1938 pixels (``bigT.scenes.corner``, exact, so T is
   dense like the paper's brute-force capture): RMSE of T_n^-1 against
   ``numpy.linalg.pinv(T)`` for the paper's 1..4 bounces (and 5).
@@ -29,12 +34,16 @@ clock on a shared 2-core machine: the load average is recorded with them.
 What Fig. 6 times: numpy.linalg.inv of T already dense in memory; a whole fresh
 ``bigT.stratified_inverse`` call to T_7^-1, store to store (its spectral radius estimate,
 products, residual estimates and writes); and the same pruned series in plain scipy in
-memory. Each the best of two calls (one with --quick), after the untimed runs have loaded numba's kernels.
+memory; the engine twice, by its automatic choice of path (in memory at this size) and
+out of core (``in_memory=False``). Each the best of two calls (one with --quick),
+interleaved, after the untimed runs have loaded numba's kernels; the stores a timed
+call writes into are deleted before its clock starts.
 
-Run:  nice -n 10 .venv/bin/python benchmarks/bench_paper.py [--quick]
+Run:  nice -n 10 .venv/bin/python benchmarks/bench_paper.py [--quick] [--only fig6 ...]
       (--quick: smaller scenes, about 15 CPU-seconds, 35-52 s wall at load averages of
       2-8 on the shared 2-core development machine; the full run about 110 CPU-seconds,
-      2.5-4 minutes there)
+      2.5-4 minutes there, and the size sweep to n = 100000 160 CPU-seconds more,
+      9 minutes at load 10, most of it the n = 100000 scene and its scipy series)
 """
 
 from __future__ import annotations
@@ -53,6 +62,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg  # noqa: F401  (sp.linalg.norm)
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -341,17 +351,15 @@ def cornell_curve(scene, T: sp.csr_array, T_inv: np.ndarray, work: Path, key: st
             "prune": prune, "first_bounce": first_bounce}
 
 
-def engine_timing(scene, work: Path, prune: float, repeats: int) -> tuple[float, object]:
-    """(wall seconds, report) of a fresh ``bigT.stratified_inverse`` to T_7^-1, store to
-    store: spectral radius estimate, seven products, residual estimates, writes."""
-    out = work / f"cornell-timed-{prune:g}.zarr"
-
-    def run():
-        shutil.rmtree(out, ignore_errors=True)  # fresh: nothing to resume
-        return bigT.stratified_inverse(scene.T, out, terms=CORNELL_TERMS, prune=prune,
-                                       progress=False)
-
-    return best_of(repeats, run)
+def timed_inverse(T, out: Path, prune: float, in_memory=None) -> tuple[float, object]:
+    """(wall seconds, report) of one fresh ``bigT.stratified_inverse`` call to T_7^-1,
+    store to store (spectral radius estimate, seven products, residual estimates,
+    writes); ``out`` is deleted before the clock starts (nothing to resume)."""
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    report = bigT.stratified_inverse(T, out, terms=CORNELL_TERMS, prune=prune,
+                                     progress=False, in_memory=in_memory)
+    return time.perf_counter() - t0, report
 
 
 def scipy_series(T: sp.csr_array, terms: int, prune: float) -> tuple[sp.csr_array, list[float]]:
@@ -404,7 +412,8 @@ def plot_fig6(curves: dict, engine: dict, series: dict, t_inv: float, path: Path
         n = range(len(c["error"]))
         axes[0].plot(n, np.log10(c["error"]), marker=marker, ms=4, label=label)
         axes[2].plot(n, np.log10(c["residual"]), marker=marker, ms=4, label=label)
-    for (prune, (secs, report)), color in zip(engine.items(), ("C0", "C1")):
+    for (prune, (secs, report)), color in zip(
+            ((k, v) for k, v in engine.items() if isinstance(k, float)), ("C0", "C1")):
         axes[1].plot(range(CORNELL_TERMS + 1), cumulative_engine_seconds(report), "o-", ms=4,
                      color=color, label=f"bigT.stratified_inverse, prune {prune:g}: "
                      "spectral radius + terms")
@@ -438,13 +447,14 @@ def timing_rows(engine: dict, series: dict, t_inv: float, T: sp.csr_array,
                 T_inv: np.ndarray) -> list[list]:
     """One row per way to T_7^-1 (and the true inverse): seconds, speed-up, error."""
     rows = [["numpy.linalg.inv of the dense float64 T (in memory)", "–", t_inv, 1.0, "–"]]
-    for prune, (secs, report) in engine.items():
+    for key, (secs, report) in engine.items():
         X = dense_T(bigT.open(report.path))
         terms_s = sum(r.seconds for r in report.history)
-        rows.append([f"bigT.stratified_inverse, prune {prune:g}, whole call (spectral radius "
-                     f"{report.seconds_spectral_radius:.2f} s, terms {terms_s:.2f} s, the rest "
-                     "outside the terms' timers: setup, removing superseded term stores, "
-                     "closing)",
+        rows.append([f"bigT.stratified_inverse, prune {report.prune:g}, {report.engine_path}"
+                     f"{'' if isinstance(key, float) else ' (in_memory=False)'}, whole call "
+                     f"(spectral radius {report.seconds_spectral_radius:.2f} s, terms "
+                     f"{terms_s:.2f} s, the rest outside the terms' timers: setup, removing "
+                     "superseded term stores, closing)",
                      report.terms, secs, t_inv / secs, frobenius_errors(X, T, T_inv)[0]])
     for prune, (secs, (X, _)) in series.items():
         rows.append([f"the same series in plain scipy, prune {prune:g} (in memory)",
@@ -491,13 +501,21 @@ def claims_fig6_time(res: Results, engine: dict, series: dict, t_inv: float) -> 
     """Fig. 6's claim on time, for bigT's engine and for the plain scipy series."""
     paper = ("the computational time for T_7^-1 is more than 8 times faster than computing "
              "the true inverse")
-    for prune, (secs, _) in engine.items():
+    for key, (secs, report) in engine.items():
+        prune = report.prune
+        label = f"{prune:g}" if isinstance(key, float) else f"{prune:g}:out-of-core"
         claim(res, "Fig. 6(a)", paper,
-              f"bigT.stratified_inverse (prune {prune:g}, whole call) {secs:.2f} s against "
-              f"numpy.linalg.inv {t_inv:.2f} s: {t_inv / secs:.1f}x", t_inv / secs > 8)
-        res.value(f"fig6:speedup:engine:{prune:g}", t_inv / secs,
+              f"bigT.stratified_inverse (prune {prune:g}, {report.engine_path}, whole call) "
+              f"{secs:.2f} s against numpy.linalg.inv {t_inv:.2f} s: {t_inv / secs:.1f}x",
+              t_inv / secs > 8)
+        res.value(f"fig6:speedup:engine:{label}", t_inv / secs,
                   "numpy.linalg.inv time / bigT.stratified_inverse time to T_7^-1, "
-                  f"prune {prune:g}")
+                  f"prune {prune:g}, {report.engine_path}")
+        if isinstance(key, float):
+            plain = series[key][0]
+            res.value(f"fig6:engine_over_scipy:{prune:g}", secs / plain,
+                      "bigT.stratified_inverse time / plain scipy series time, "
+                      f"prune {prune:g} (<= 1: the engine no slower)")
     secs, _ = series[DEFAULT_PRUNE]
     claim(res, "Fig. 6(a)", paper,
           f"the same series in plain scipy (prune {DEFAULT_PRUNE:g}, in memory, no bigT "
@@ -549,6 +567,31 @@ def record_fig6(res: Results, what: str, repeats: int, curves: dict, engine: dic
                "(b) ||T T_n^-1 - I||_F")
 
 
+def fig6_timings(scene, T: sp.csr_array, work: Path, repeats: int) -> tuple[dict, dict]:
+    """The whole engine call (its automatic path, and out of core at bigT's default
+    prune) and the plain scipy series, interleaved repeat by repeat (a shared machine's
+    load drifts), each the best of ``repeats``; run after the curves, so numba's
+    kernels are loaded and the page cache warm.
+
+    Returns
+    -------
+    (dict, dict)
+        engine: prune -> (seconds, report), and ``"out-of-core"`` -> the out-of-core
+        call at bigT's default prune; series: prune -> (seconds, (X, times)).
+    """
+    runs = {p: [] for p in (DEFAULT_PRUNE, FINE_PRUNE, "out-of-core")}
+    plain = {p: [] for p in (DEFAULT_PRUNE, FINE_PRUNE)}
+    for _ in range(repeats):
+        for p in (DEFAULT_PRUNE, FINE_PRUNE):
+            runs[p].append(timed_inverse(scene.T, work / f"cornell-timed-{p:g}.zarr", p))
+            plain[p].append(best_of(1, lambda: scipy_series(T, CORNELL_TERMS, p)))
+        runs["out-of-core"].append(timed_inverse(scene.T, work / "cornell-timed-ooc.zarr",
+                                                 DEFAULT_PRUNE, in_memory=False))
+    engine = {p: min(r, key=lambda x: x[0]) for p, r in runs.items()}
+    series = {p: min(r, key=lambda x: x[0]) for p, r in plain.items()}
+    return engine, series
+
+
 def fig6(res: Results, plan: Plan, work: Path) -> None:
     """The Cornell box: error, residual and time per term (paper Fig. 6)."""
     H, W = plan.cornell_size
@@ -559,10 +602,7 @@ def fig6(res: Results, plan: Plan, work: Path) -> None:
     t_inv, T_inv = best_of(plan.repeats, lambda: np.linalg.inv(Td))
     del Td
     curves = cornell_curves(scene, T, T_inv, work)
-    # timed after the curves, so numba's kernels are loaded and the page cache warm
-    engine = {p: engine_timing(scene, work, p, plan.repeats) for p in (DEFAULT_PRUNE, FINE_PRUNE)}
-    series = {p: best_of(plan.repeats, lambda: scipy_series(T, CORNELL_TERMS, p))
-              for p in (DEFAULT_PRUNE, FINE_PRUNE)}
+    engine, series = fig6_timings(scene, T, work, plan.repeats)
     n = T.shape[0]
     what = (f"Cornell box {H}x{W} (n = {n}), T {100 * T.nnz / n ** 2:.2f} % nonzero, "
             f"{T.nnz / n:.0f} a row")
@@ -572,6 +612,73 @@ def fig6(res: Results, plan: Plan, work: Path) -> None:
     res.value("fig6:lambda_max_T", lam, "T's eigenvalue of largest modulus (real part)")
     claims_fig6_convergence(res, curves, lam)
     claims_fig6_time(res, engine, series, t_inv)
+
+
+# --- Fig. 6(a)'s timing across sizes: the engine against the plain scipy series ---------
+
+#: (H, W) of the wall-corner scenes of the size sweep: n = 1000, 2000, 5120, 20480,
+#: 100000 and full HD (2073600, only with ``--sweep-max``: its scene takes minutes).
+SWEEP_SIZES = [(25, 40), (40, 50), (64, 80), (128, 160), (250, 400), (1080, 1920)]
+
+
+def sweep_scene(H: int, W: int, work: Path):
+    """The wall corner at H x W with bench_scale's densities (about 80 entries per row
+    of T at every size; the Cornell box's form factors take O(n^2) to build)."""
+    from bench_scale import density_for
+
+    cut, threshold = density_for(H * W)
+    return bigT.scenes.corner((H, W), work / f"sweep-{H * W}.zarr", ff_cut=cut,
+                              threshold=threshold, preview=False, progress=False)
+
+
+def sweep_row(scene, work: Path, repeats: int) -> list:
+    """One size: the whole engine call (its automatic path, and out of core) and the
+    plain scipy series to T_7^-1 at bigT's default prune, interleaved, best of
+    ``repeats``; and how far the two inverses are apart."""
+    T = dense_T(scene.T)
+    n = T.shape[0]
+    auto, ooc, plain = [], [], []
+    for _ in range(repeats):
+        auto.append(timed_inverse(scene.T, work / f"sweep-X-{n}.zarr", DEFAULT_PRUNE))
+        plain.append(best_of(1, lambda: scipy_series(T, CORNELL_TERMS, DEFAULT_PRUNE)))
+        ooc.append(timed_inverse(scene.T, work / f"sweep-ooc-{n}.zarr", DEFAULT_PRUNE,
+                                 in_memory=False))
+    (t_auto, report), (t_ooc, _) = min(auto, key=lambda r: r[0]), min(ooc, key=lambda r: r[0])
+    t_plain, (X_plain, _) = min(plain, key=lambda r: r[0])
+    X = dense_T(bigT.open(report.path))
+    apart = sp.linalg.norm(X - X_plain) / sp.linalg.norm(X_plain)
+    shutil.rmtree(work / f"sweep-ooc-{n}.zarr", ignore_errors=True)
+    return [n, T.nnz / n, report.engine_path, t_auto, t_ooc, t_plain, t_plain / t_auto,
+            apart]
+
+
+def size_sweep(res: Results, plan: Plan, work: Path, max_n: int) -> None:
+    """Fig. 6(a)'s timing from n = 1000 up: the whole ``bigT.stratified_inverse`` call
+    against the same pruned series in plain scipy (the issue's goal: never slower)."""
+    rows = []
+    for H, W in [s for s in SWEEP_SIZES if s[0] * s[1] <= max_n]:
+        with stage(f"size sweep n = {H * W}"):
+            scene = sweep_scene(H, W, work)
+            rows.append(sweep_row(scene, work, plan.repeats))
+            shutil.rmtree(work / f"sweep-{H * W}.zarr", ignore_errors=True)
+        res.value(f"sweep:scipy_over_engine:{H * W}", rows[-1][6],
+                  "plain scipy series time / whole bigT.stratified_inverse time to T_7^-1 "
+                  "(>= 1: the engine no slower)")
+    record_table(res, "sweep", "Fig. 6(a) across sizes: T_7^-1 by the whole engine call "
+                 "against the same pruned series in plain scipy (wall corner scenes)",
+                 ["n", "T entries a row", "engine path", "engine s (automatic)",
+                  "engine s (out of core)", "plain scipy s", "scipy s / engine s",
+                  "||X - X_scipy||_F / ||X_scipy||_F"], rows,
+                 note=f"prune {DEFAULT_PRUNE:g}, {CORNELL_TERMS} terms, F = diag T; best of "
+                      f"{plan.repeats}, the three interleaved; the engine reads T from and "
+                      "writes every term to its stores (float32) and estimates rho(M) and a "
+                      "residual per term, the scipy series (float64) does neither; load "
+                      f"average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    holds = all(r[6] >= 1 for r in rows)
+    claim(res, "Fig. 6(a)", "(issue #30) the whole stratified_inverse call no slower than "
+          "the plain scipy series at any size from n = 1000 up",
+          ", ".join(f"n = {r[0]}: {r[6]:.2f}x" for r in rows) + " (scipy time / engine time)",
+          holds)
 
 
 # --- Figs. 9-10: the 1938-pixel wall corner ----------------------------------------------
@@ -756,12 +863,22 @@ def print_claims(res: Results) -> None:
         print(f"| {cell(c.figure)} | {cell(c.paper)} | {cell(c.measured)} | {holds} |")
 
 
+#: The parts of a run, in order (``--only``).
+PARTS = ["fig5", "fig6", "sweep", "corner"]
+
+
 def main(argv=None) -> None:
     """Run Figs. 5, 6, 9 and 10(a) in a temporary directory and record them."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true",
                    help="smaller scenes (Cornell 32x40, corner 19x26, dihedral to n = 5)")
+    p.add_argument("--only", choices=PARTS, action="append",
+                   help="run only these parts (repeatable; default all)")
+    p.add_argument("--sweep-max", type=int, default=None,
+                   help="largest n of the size sweep (default 5120 with --quick, else "
+                        "100000; 2073600 adds full HD)")
     args = p.parse_args(argv)
+    parts = args.only or PARTS
     plan = QUICK if args.quick else FULL
     res = Results(run_name("paper"), "The paper's figures on bigT's scenes",
                   command=" ".join(["python benchmarks/bench_paper.py",
@@ -771,14 +888,20 @@ def main(argv=None) -> None:
           "(timings scale with the share of the machine this run gets)")
     with tempfile.TemporaryDirectory(prefix="bigT-paper-") as tmp:
         work = Path(tmp)
-        with stage("Fig. 5"):
-            fig5(res, plan, work)
-        with stage("Fig. 6"):
-            fig6(res, plan, work)
-        with stage("Figs. 9-10"):
-            corner = corner_run(plan, work)
-            fig9(res, corner)
-            fig10(res, corner)
+        if "fig5" in parts:
+            with stage("Fig. 5"):
+                fig5(res, plan, work)
+        if "fig6" in parts:
+            with stage("Fig. 6"):
+                fig6(res, plan, work)
+        if "sweep" in parts:
+            with stage("size sweep"):
+                size_sweep(res, plan, work, args.sweep_max or (5120 if args.quick else 100_000))
+        if "corner" in parts:
+            with stage("Figs. 9-10"):
+                corner = corner_run(plan, work)
+                fig9(res, corner)
+                fig10(res, corner)
     res.note(f"load average at the end {os.getloadavg()[0]:.1f} ({os.cpu_count()} cores, shared)")
     print_claims(res)
     print(f"\nrecorded in {res.save()}")

@@ -5,10 +5,15 @@
   memory plans, the term stores' tile size (:class:`~.run_setup.RunLayout`);
 * :mod:`.divergence`: rho(M) estimated (or read from the record) and a diverging
   series refused before term 0; a term whose residual grew refused after it;
+* :mod:`.engine_path`: in memory or out of core, chosen once (``in_memory``), and
+  left for out of core before a term whose predicted size does not fit in memory;
 * :mod:`.passes`: each pass of a term run over its row blocks on the runner
-  (local threads, or a dask cluster's workers), and the totals of the passes;
-* :mod:`.matvecs` and :mod:`.probes`: the products with M and X, and each
-  term's residual estimate, the probes' X Z carried from term to term;
+  (local threads, or a dask cluster's workers), and the totals of the passes; or, in
+  memory, :mod:`.resident`: the same passes on whole matrices, written into the same
+  term stores;
+* :mod:`.matvecs` and :mod:`.probes`: the products with M and X (in memory:
+  :class:`.resident.ResidentMatVecs`), and each term's residual estimate, the probes'
+  X Z carried from term to term;
 * :mod:`.publish`: a finished term published (X's record, redirect, root record) and
   the previous term deleted in the background;
 * :mod:`.outcome`: the :class:`~.report.InverseReport` from how the run ended.
@@ -28,9 +33,11 @@ import numpy as np
 from ..storage import InverseStore
 from ..storage import open as open_store
 from .divergence import checked_radius, refuse_growing_residual
+from .engine_path import IN_MEMORY, OUT_OF_CORE, PathChoice
 from .matvecs import MatVecs
 from .methods import TERM_ZERO, SeriesMethod
-from .passes import PassRunner, exhausted_before
+from .passes import PassRunner
+from .resident import ResidentMatrices, ResidentMatVecs, ResidentPasses
 from .publish import let_go_of_term, publish_term, series_metadata, term_record
 from .records import SeriesRecord
 from .report import InverseReport
@@ -53,21 +60,33 @@ class InverseEngine:
     settings : SeriesSettings
     first_bounce : what :func:`resolve_first_bounce` takes
     memory_limit : int or None
+    in_memory : bool or None
+        :func:`.engine_path.choose_path`'s (None: chosen from the memory budget).
 
     It holds what changes during the run, ``record`` (the store's
-    :class:`~.records.SeriesRecord`: the term held) and ``XZ`` (X Z of that term for
-    the residual probes), and the pieces that run its steps: ``layout`` (fixed at
-    set-up), ``matvecs``, ``residual`` and ``passes``.
+    :class:`~.records.SeriesRecord`: the term held), ``XZ`` (X Z of that term for
+    the residual probes) and ``path`` (in memory or out of core, and why), and the
+    pieces that run its steps: ``layout`` (fixed at set-up), ``matvecs``,
+    ``residual`` and ``passes`` (in memory, :mod:`.resident`'s).
     """
 
     def __init__(self, T, store: InverseStore, series: SeriesMethod, runner,
-                 settings: SeriesSettings, first_bounce, memory_limit):
+                 settings: SeriesSettings, first_bounce, memory_limit, in_memory=False):
         self.store, self.series, self.runner, self.settings = store, series, runner, settings
         self.layout, self.record = open_run(T, store, series, runner, settings,
-                                            first_bounce, memory_limit)
-        self.matvecs = MatVecs(runner, self.layout)
+                                            first_bounce, memory_limit, in_memory)
+        self.path: PathChoice = self.layout.path
+        if self.path.in_memory:
+            matrices = ResidentMatrices(self.layout, store)
+            self.matvecs = ResidentMatVecs(matrices, runner.threads)
+        else:
+            self.matvecs = MatVecs(runner, self.layout)
         self.residual = ProbedResidual.for_run(self.matvecs, settings.seed)
-        self.passes = PassRunner(self.layout, store, runner, settings, self.residual.Z)
+        if self.path.in_memory:
+            self.passes = ResidentPasses(matrices, store, settings, self.residual.Z,
+                                         runner.threads, self.path.budget, series)
+        else:
+            self.passes = PassRunner(self.layout, store, runner, settings, self.residual.Z)
         self.XZ: np.ndarray | None = None  # X Z for the term held (None: X is read)
 
     def run(self, t_start: float) -> InverseReport:
@@ -83,12 +102,14 @@ class InverseEngine:
         except BaseException:
             # refused (a diverging series) or stopped before any term was finished: an
             # output this run created holds nothing worth keeping
+            self.passes.close()
             if self.layout.created and self.record.term is None:
                 self.store.discard()
             raise
         try:
             stopped = self._extend(resumed_from)
         finally:
+            self.passes.close()
             self.store.settle()
         if self.record.dir is not None:
             self.store.clean(keep={self.record.dir})  # terms readers held when dropped
@@ -96,7 +117,7 @@ class InverseEngine:
                              time.perf_counter() - t_start)
         return inverse_report(outcome, self.layout, self.record, self.settings,
                               self.series.name, self.passes.totals, self.runner,
-                              self.store.path)
+                              self.store.path, self.path)
 
     def _extend(self, resumed_from: int | None) -> str:
         """Compute terms until ``terms`` is held, ``tol`` is reached or the series is
@@ -139,12 +160,13 @@ class InverseEngine:
         turns out exhausted instead."""
         held = self.record.term
         k = self.series.next_term(held)
+        self._leave_memory_unless_fits(held)
         self.passes.warn_row_width(held, k, self.record.history)
         self.store.clean(keep={held, k})
         t0 = time.perf_counter()
         stats = []
         for p in self.series.passes(held, k):
-            reason = exhausted_before(self.series, p, held, self.store)
+            reason = self.passes.exhausted_before(self.series, p, held)
             if reason:
                 self._save(self.record.replace(term=self.settings.terms, exhausted_at=held))
                 return reason
@@ -153,16 +175,44 @@ class InverseEngine:
         let_go_of_term(self.store, self.runner, held)
         return None
 
+    def _leave_memory_unless_fits(self, held: int) -> None:
+        """In memory, go on out of core from the term ``held`` (published: the
+        out-of-core passes read it from the store) when the next term's predicted size
+        (the held term's, grown as X grew at the last term) does not fit the budget."""
+        if not self.path.in_memory:
+            return
+        history = self.record.history
+        last = history[-1] if history else None
+        growth = 1.0
+        if len(history) >= 2 and history[-2].term >= 1 and history[-2].nnz_X:
+            growth = history[-1].nnz_X / history[-2].nnz_X
+        if last is None or self.passes.fits(held, last.nnz_X, last.nnz_P, growth):
+            return
+        totals = self.passes.totals
+        self.passes.close()
+        self.path = PathChoice(False, f"{self.path.reason}; out of core from term "
+                                      f"{held + 1}: its predicted size exceeds the budget")
+        self.matvecs = MatVecs(self.runner, self.layout)
+        self.residual = ProbedResidual(self.matvecs, self.residual.Z, self.residual.seed)
+        self.passes = PassRunner(self.layout, self.store, self.runner, self.settings,
+                                 self.residual.Z)
+        self.passes.totals = totals
+
     def _finish_term(self, k: int, stats, t0: float, XZ: np.ndarray | None = None) -> None:
         """Estimate term k's residual (``XZ``: X_k Z when known), refuse the term when
         the residual grew, else publish it. Every published term, term 0 included,
         passes here (benchmarks/bench_tradeoff.py wraps it to measure each term)."""
-        X = open_store(self.store.term_path(k, "X"))
+        X = self.passes.finalized.pop((k, "X"), None)
+        if X is None:
+            X = open_store(self.store.term_path(k, "X"))
+        self.passes.finalized.clear()  # the other stores of the term are not read again
         residual = self.residual.estimate(X, XZ)
         refuse_growing_residual(self.record, k, residual.relative, self.settings.force,
                                 self.store.path)
         self.record = publish_term(self.store, self.record, X,
-                                   term_record(k, stats, X, residual, t0),
+                                   term_record(k, stats, X, residual, t0,
+                                               IN_MEMORY if self.path.in_memory
+                                               else OUT_OF_CORE),
                                    self._series_metadata())
         self.XZ = residual.XZ
 

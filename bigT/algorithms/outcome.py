@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..spectral import SpectralRadius
+from .engine_path import PathChoice
 from .passes import PassTotals
 from .records import SeriesRecord
 from .report import InverseReport
@@ -41,8 +42,9 @@ class RunOutcome:
 
 def inverse_report(outcome: RunOutcome, layout: RunLayout, record: SeriesRecord,
                    settings: SeriesSettings, method: str, totals: PassTotals, runner,
-                   store_path) -> InverseReport:
-    """The report of the run that ended as ``outcome``, ``record`` the store's last."""
+                   store_path, path: PathChoice) -> InverseReport:
+    """The report of the run that ended as ``outcome``, ``record`` the store's last;
+    ``path`` the path the run took last (and why)."""
     th, rho = settings.thresholds, outcome.rho
     return InverseReport(
         path=str(store_path), terms=record.term, requested_terms=settings.terms,
@@ -56,4 +58,5 @@ def inverse_report(outcome: RunOutcome, layout: RunLayout, record: SeriesRecord,
         history=record.history, seconds_spectral_radius=outcome.seconds_spectral_radius,
         memory=layout.memory_text(), scheduler=runner.describe(), threads=runner.threads,
         tile_size=layout.tile_size, tasks=totals.tasks, task_overhead_ms=totals.overhead_ms(),
-        peak_memory=tuple(sorted(runner.peak_memory().items())))
+        peak_memory=tuple(sorted(runner.peak_memory().items())),
+        engine_path=path.name, engine_path_reason=path.reason)

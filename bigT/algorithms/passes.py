@@ -76,6 +76,9 @@ class PassRunner:
         self.layout, self.store, self.runner, self.settings = layout, store, runner, settings
         self.probes = probes
         self.totals = PassTotals()
+        #: the stores the passes finalized, opened, by (term, name): the engine's
+        #: publication reads X from here rather than opening it again
+        self.finalized: dict[tuple[int, str], object] = {}
 
     def run(self, p: Pass, k: int, metadata: dict) -> list[BlockStats]:
         """Run pass ``p`` of term ``k``: create (or resume) its output stores, recording
@@ -89,8 +92,15 @@ class PassRunner:
         todo = [i for i in range(n_blocks) if any(i not in d for d in done)]
         stats = self._run_tasks(p, k, paths, todo) if todo else []
         for name in p.outputs:
-            self.store.finalize_term_store(k, name)
+            self.finalized[(k, name)] = self.store.finalize_term_store(k, name)
         return stats
+
+    def close(self) -> None:
+        """Nothing held between passes (the runner's caches are let go by the caller)."""
+
+    def exhausted_before(self, series: SeriesMethod, p: Pass, held: int) -> str | None:
+        """:func:`exhausted_before` on this run's store."""
+        return exhausted_before(series, p, held, self.store)
 
     def warn_row_width(self, held: int, k: int, history: tuple[TermRecord, ...]) -> None:
         """Warn before term ``k`` when its output tile rows may not fit the tightest

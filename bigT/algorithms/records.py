@@ -25,6 +25,9 @@ class TermRecord:
     included; ``multiply_adds`` counts its sparse products' multiply-adds and
     ``kernel_seconds`` the time its tasks spent inside the product kernel (summed over
     tasks: thread-seconds). Records written before these were counted read 0.
+    ``engine_path`` is the path that computed it, ``"in-memory"`` or ``"out-of-core"``
+    (:mod:`.engine_path`; stored only for the former: records without it read the
+    latter).
     """
 
     term: int
@@ -39,6 +42,7 @@ class TermRecord:
     multiply_adds: int = 0
     kernel_seconds: float = 0.0
     residual_seconds: float = 0.0
+    engine_path: str = "out-of-core"
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "TermRecord":
@@ -51,12 +55,20 @@ class TermRecord:
                 values[f.name] = None if v is None else float(v)
             elif f.type in ("float", float):  # a string under future annotations
                 values[f.name] = float(v or 0.0)
+            elif f.type in ("str", str):
+                values[f.name] = str(v)
             else:
                 values[f.name] = as_count(v, f.name)
         return cls(**values)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The stored keys; ``engine_path`` only for a term computed in memory, so that
+        an out-of-core run writes the keys it wrote before the in-memory path existed
+        (an absent key reads as out of core)."""
+        d = dataclasses.asdict(self)
+        if d["engine_path"] == "out-of-core":
+            del d["engine_path"]
+        return d
 
     def to_entry(self) -> TermEntry:
         """The store's entry: ``term``, and the rest as its details."""

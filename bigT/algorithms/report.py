@@ -22,6 +22,8 @@ class InverseReport:
     spectral radius (read from the store when ``spectral_computed`` is False).
     ``spectral_method`` says what kind of number ``spectral_radius`` +-
     ``spectral_uncertainty`` is (:meth:`bigT.spectral.SpectralRadius.meaning`).
+    ``engine_path`` is ``"in-memory"`` or ``"out-of-core"`` (the path the run's last
+    term took; each term's is in ``history``), ``engine_path_reason`` why.
     """
 
     path: str
@@ -53,6 +55,8 @@ class InverseReport:
     prune_operator: float | None = None
     spectral_method: str | None = None
     spectral_computed: bool = True
+    engine_path: str = "out-of-core"
+    engine_path_reason: str = ""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -78,14 +82,22 @@ class InverseReport:
                   f"held term {self.terms} ({self.method}, {self._thresholds()}, "
                   f"first bounce {self.first_bounce}), {self.excluded_pixels} pixels "
                   f"left out, stopped: {self.stopped}",
-                  f"ran on {self.scheduler}, row blocks of {self.tile_size} rows, "
-                  f"{self.tasks} tasks, {self.task_overhead_ms:.1f} ms scheduling "
-                  "overhead per task",
+                  self._ran_line(),
                   self.memory]
         if self.peak_memory:
             lines.append("peak resident memory: " + ", ".join(
                 f"{who} {human_bytes(b)}" for who, b in self.peak_memory))
         return "\n".join(lines)
+
+    def _ran_line(self) -> str:
+        """Where the run ran: in memory (and why), or its tasks on the scheduler."""
+        if self.engine_path == "in-memory":
+            return (f"ran {self.engine_path_reason or 'in memory'}, {self.threads} threads, "
+                    f"each term written in tile rows of {self.tile_size} rows")
+        why = f" ({self.engine_path_reason})" if self.engine_path_reason else ""
+        return (f"ran on {self.scheduler}{why}, row blocks of {self.tile_size} rows, "
+                f"{self.tasks} tasks, {self.task_overhead_ms:.1f} ms scheduling "
+                "overhead per task")
 
     def _row(self, r: TermRecord) -> str:
         res = "-" if r.residual is None else f"{r.residual:.3e}"

@@ -20,6 +20,7 @@ from ..schedule.runner import ClusterRunner, local_path
 from ..schedule.spec import MemoryPolicy
 from ..storage import BlockCSR, InverseStore
 from .fingerprint import inverse_fingerprint
+from .engine_path import PathChoice, choose_path
 from .first_bounce import FirstBounce, resolve_first_bounce
 from .methods import SeriesMethod
 from .records import SeriesRecord
@@ -48,6 +49,8 @@ class RunLayout:
     created : bool
         This run creates (or overwrites) the store: stopped before its first term is
         finished, the run discards it.
+    path : PathChoice
+        In memory or out of core (:mod:`.engine_path`), and why.
     """
 
     T: BlockCSR
@@ -58,6 +61,7 @@ class RunLayout:
     tile_size: int
     kernel_threads: int
     created: bool
+    path: PathChoice = PathChoice(False, "out of core")
 
     @property
     def n(self) -> int:
@@ -81,9 +85,11 @@ class RunLayout:
 
 
 def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, settings: SeriesSettings,
-             first_bounce, memory_limit: int | None) -> tuple[RunLayout, SeriesRecord]:
+             first_bounce, memory_limit: int | None,
+             in_memory: bool | None = False) -> tuple[RunLayout, SeriesRecord]:
     """The run's layout and the store's record, the store opened (created, or resumed
-    when it holds the same fingerprint; its writer lock taken).
+    when it holds the same fingerprint; its writer lock taken); ``in_memory`` as
+    :func:`.engine_path.choose_path`'s.
 
     Raises what :func:`resolve_first_bounce`, :meth:`InverseStore.open_or_create` and
     the runner's path check raise (before anything is written where they can).
@@ -93,19 +99,23 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1],
                           max_row_nnz(T) * fb.channels)
     plans = runner.plans(policy)
+    path = choose_path(in_memory, runner, T, fb.channels, next(iter(plans.values())))
     created = not store.path.exists() or settings.overwrite
     params = inverse_fingerprint(T, fb, settings.thresholds, series.name)
     record = SeriesRecord.from_stored(
         store.open_or_create(params, overwrite=settings.overwrite), store.path)
     runner.check_paths([str(store.path)])
     if record.tile_size is None:  # a new store: its tile size chosen now, and recorded
-        ts = choose_tile_size(T.shape[0], T.tile_size, runner.threads, fb.channels)
+        # in memory, the row blocks are only the units written: T's tiles, the fewest
+        # files (a resumed run keeps them, on either path)
+        ts = (int(T.tile_size) if path.in_memory
+              else choose_tile_size(T.shape[0], T.tile_size, runner.threads, fb.channels))
         record = record.replace(tile_size=ts, excluded_pixels=fb.excluded)
         store.save(record.to_stored())
     n_blocks = -(-T.shape[0] // record.tile_size)
     kernel_threads = 1 if n_blocks >= runner.threads else runner.idle_kernel_threads
     return RunLayout(T, T_path, fb, policy, plans, record.tile_size, kernel_threads,
-                     created), record
+                     created, path), record
 
 
 def _tasks_path(T, runner, progress: bool) -> str:

@@ -51,7 +51,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        progress=True, force=False, *, workers=2, seed=0,
                        scheduler=None, overwrite=False, prune_feed=None,
                        prune_operator=None, on_term=None, colour_path="auto",
-                       mixing=None) -> InverseReport:
+                       mixing=None, in_memory=None) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -123,6 +123,17 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     mixing : (camera, projector) pair of 3x3 arrays, optional
         The rig's global mixing, when known (else the one recorded with T, or the
         estimate); still verified.
+    in_memory : None, True or False
+        Where the series runs (:mod:`bigT.algorithms.engine_path`). None: in memory
+        (:mod:`bigT.algorithms.resident`: M and the terms held by this process, the
+        same kernels and pruning, no dask tasks) when the tasks would run in this
+        process and M fits the memory budget (what ``memory_limit`` leaves, or half
+        the available memory), else out of core; a run in memory goes on out of core
+        before a term predicted not to fit. True: in memory whatever the estimate
+        (refused with a cluster scheduler); False: out of core. Either way every term
+        is written into ``out`` and published the same way, so a run on one path
+        resumes on the other; the report's ``engine_path`` and each term's record say
+        which ran.
 
     Returns
     -------
@@ -165,7 +176,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                     method=method, memory_limit=memory_limit, progress=progress,
                     force=force, workers=workers, seed=seed, scheduler=scheduler,
                     overwrite=overwrite, prune_feed=prune_feed,
-                    prune_operator=prune_operator)
+                    prune_operator=prune_operator, in_memory=in_memory)
         return global_mixing_inverse(T, out, choice, grey, grey_inverse=stratified_inverse,
                                      t_start=t_start)
     settings = SeriesSettings(int(terms), thresholds, tol, progress, force, seed,
@@ -174,7 +185,8 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     runner = open_runner(scheduler, workers=workers, memory_limit=memory_limit)
     store = InverseStore(out)
     try:
-        engine = InverseEngine(T, store, series, runner, settings, first_bounce, memory_limit)
+        engine = InverseEngine(T, store, series, runner, settings, first_bounce, memory_limit,
+                               in_memory)
         report = engine.run(t_start)
     finally:
         _let_go(runner, T, out)

@@ -127,7 +127,7 @@ def stores(tmp_path_factory):
     bigT.from_scipy(sp.kron(grey, mixing @ mixing), colour, tile_size=24, image_shape=(4, 6),
                     channels=3, metadata={"mixing": {"camera": mixing.tolist(),
                                                      "projector": mixing.tolist()}})
-    bigT.stratified_inverse(colour, colour_inverse, terms=1, progress=False)
+    bigT.stratified_inverse(colour, colour_inverse, terms=1, progress=False, in_memory=True)
     return plain, scene, inverse, colour, colour_inverse
 
 

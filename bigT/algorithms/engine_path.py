@@ -1,0 +1,116 @@
+"""Which path a series run takes: in memory (:mod:`.resident`: T, M and the terms held
+by the process, the same kernels, each term still written into the inverse store) or
+out of core (:mod:`.passes`: row-block tasks reading and writing the term stores), and
+the memory budget that decides it (docs/DESIGN.md, "Memory").
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+
+from .. import config
+from ..errors import BigTError
+from ..schedule.memory import M_ROW_BYTES_PER_ENTRY, MemoryPlan, available_memory, human_bytes
+from ..schedule.runner import ThreadRunner
+
+#: The path names the record and the report use.
+IN_MEMORY, OUT_OF_CORE = "in-memory", "out-of-core"
+
+#: The environment variable that sets ``in_memory`` where a call leaves it None: "0"
+#: (out of core), "1" (in memory) or unset/"auto" (the budget decides). The test
+#: suite sets "0" for the tests written for the out-of-core path's tasks and files
+#: (tests/conftest.py); it reaches the CLI's processes too.
+ENVIRONMENT = "BIGT_IN_MEMORY"
+
+#: Without a ``memory_limit``, the in-memory path may take this share of the memory
+#: the system has available (MemAvailable) when the run starts.
+AVAILABLE_SHARE = 0.5
+
+#: Without a ``memory_limit`` and where the available memory cannot be read.
+FALLBACK_BUDGET_BYTES = 2 << 30
+
+
+@dataclass(frozen=True)
+class PathChoice:
+    """Which path a run takes, and why (the report's ``engine_path_reason``).
+
+    Attributes
+    ----------
+    in_memory : bool
+    reason : str
+    budget : int
+        Bytes the in-memory path may hold (0 out of core).
+    """
+
+    in_memory: bool
+    reason: str
+    budget: int = 0
+
+    @property
+    def name(self) -> str:
+        return IN_MEMORY if self.in_memory else OUT_OF_CORE
+
+
+def memory_budget(plan: MemoryPlan) -> int:
+    """Bytes the in-memory path may hold: what ``memory_limit`` leaves over the
+    baseline measured and the headroom; without one, a share of the available memory."""
+    if plan.limit is not None:
+        return max(0, plan.limit - plan.baseline - config.MEMORY_HEADROOM_BYTES)
+    available = available_memory()
+    return int(AVAILABLE_SHARE * available) if available else FALLBACK_BUDGET_BYTES
+
+
+def m_build_bytes(T, channels: int) -> int:
+    """Bytes of making M from the whole of T at once (the same count per entry as the
+    memory plan's for one tile row of M; a colour F spreads each entry of T over its
+    pixel's 3 columns)."""
+    return M_ROW_BYTES_PER_ENTRY * int(T.nnz) * channels
+
+
+def choose_path(in_memory, runner, T, channels: int, plan: MemoryPlan) -> PathChoice:
+    """The path of a run: in memory when asked (``True``), or when ``in_memory`` is None
+    and the run's tasks would run in this process and M fits the budget; out of core
+    when asked (``False``) or on a cluster.
+
+    Raises
+    ------
+    BigTError
+        ``in_memory=True`` with a cluster scheduler (its workers hold the matrices).
+    """
+    if in_memory is not None and not isinstance(in_memory, bool):
+        raise BigTError(f"{{option}} must be None, True or False, got {in_memory!r}",
+                        option="in_memory")
+    if in_memory is None:
+        in_memory = _from_environment()
+    local = isinstance(runner, ThreadRunner)
+    if in_memory is False:
+        return PathChoice(False, "out of core, as asked (in_memory=False, or "
+                                 f"{ENVIRONMENT}=0)")
+    if not local:
+        if in_memory:
+            raise BigTError("{option} runs the series in this process; a cluster scheduler "
+                            "runs it on its workers, out of core: choose one",
+                            option=("in_memory", True))
+        return PathChoice(False, "out of core: the tasks run on a cluster")
+    budget = memory_budget(plan)
+    need = m_build_bytes(T, channels)
+    if in_memory:
+        # asked: no estimate sends it out of core, before or between the terms
+        return PathChoice(True, "in memory, as asked (in_memory=True)", sys.maxsize)
+    if need > budget:
+        return PathChoice(False, f"out of core: making M takes ~{human_bytes(need)}, over "
+                                 f"the {human_bytes(budget)} the process may hold")
+    return PathChoice(True, f"in memory: M takes ~{human_bytes(need)} of the "
+                            f"{human_bytes(budget)} the process may hold", budget)
+
+
+def _from_environment() -> bool | None:
+    """``in_memory`` as :data:`ENVIRONMENT` sets it (None: automatic)."""
+    value = os.environ.get(ENVIRONMENT, "auto").strip().lower()
+    choices = {"0": False, "1": True, "auto": None, "": None}
+    if value not in choices:
+        raise BigTError(f"the environment variable {ENVIRONMENT} must be 0, 1 or auto, "
+                        f"got {value!r}")
+    return choices[value]

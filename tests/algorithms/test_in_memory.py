@@ -1,0 +1,176 @@
+"""The series in memory (bigT.algorithms.resident) against the out-of-core path and
+dense numpy: the same X (the same pruning decisions), the same records, and a store
+that either path resumes, after an interruption too."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from inverse_helpers import dense, dense_stratified, random_dominant
+
+import bigT
+from bigT.algorithms import resident
+from bigT.algorithms.engine_path import ENVIRONMENT
+from bigT.errors import BigTError
+
+METHOD_OPTIONS = {
+    "power": dict(prune=1e-6, prune_feed=1e-4, prune_operator=1e-4),
+    "horner": dict(prune=1e-6),
+    "newton-schulz": dict(prune=1e-6),
+}
+
+
+def both_paths(tmp_path, T, **kwargs):
+    """(X in memory, X out of core, their reports) for the same call."""
+    mem = bigT.stratified_inverse(T, tmp_path / "mem.zarr", in_memory=True, progress=False,
+                                  **kwargs)
+    ooc = bigT.stratified_inverse(T, tmp_path / "ooc.zarr", in_memory=False, progress=False,
+                                  **kwargs)
+    return dense(tmp_path / "mem.zarr"), dense(tmp_path / "ooc.zarr"), mem, ooc
+
+
+@pytest.mark.parametrize("method", list(METHOD_OPTIONS))
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_same_inverse_as_out_of_core(tmp_path, make_store, method, dtype):
+    A = random_dominant(96, seed=3, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=16, dtype=dtype)  # 6 tile rows out of core
+    X_mem, X_ooc, mem, ooc = both_paths(tmp_path, T, terms=4, method=method,
+                                        **METHOD_OPTIONS[method])
+    np.testing.assert_allclose(X_mem, X_ooc, rtol=1e-6, atol=1e-6 * np.abs(X_ooc).max())
+    # the same pruning decisions: the same entries at every term
+    assert [(h.term, h.nnz_P, h.nnz_X) for h in mem.history] == [
+        (h.term, h.nnz_P, h.nnz_X) for h in ooc.history]
+    assert [h.multiply_adds for h in mem.history] == [h.multiply_adds for h in ooc.history]
+    assert mem.residual == pytest.approx(ooc.residual, rel=1e-4)
+    assert (mem.engine_path, ooc.engine_path) == ("in-memory", "out-of-core")
+    assert {h.engine_path for h in mem.history} == {"in-memory"}
+    assert {h.engine_path for h in ooc.history} == {"out-of-core"}
+    assert "ran in memory" in mem.table() and "ran on local threads" in ooc.table()
+
+
+@pytest.mark.parametrize("method", list(METHOD_OPTIONS))
+def test_unpruned_equals_dense_series_and_approaches_inverse(tmp_path, make_store, method):
+    A = random_dominant(80, seed=8, density=0.25, margin=0.5)
+    T = make_store(A, tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=7, prune=0.0, method=method,
+                                  in_memory=True, progress=False)
+    X = dense(tmp_path / "X.zarr")
+    np.testing.assert_allclose(X, dense_stratified(A, rep.terms), rtol=1e-10, atol=1e-13)
+    inv = np.linalg.inv(A)
+    assert np.linalg.norm(X - inv) < 1e-2 * np.linalg.norm(inv)
+
+
+def test_records_say_which_path(tmp_path, make_store):
+    T = make_store(random_dominant(48, seed=1))
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=2, in_memory=True, progress=False)
+    X = bigT.open(tmp_path / "X.zarr")
+    assert X.metadata["inverse"]["record"]["engine_path"] == "in-memory"
+    root = bigT.storage.InverseStore(tmp_path / "X.zarr").read_record()
+    assert [h.details["engine_path"] for h in root.history] == ["in-memory"] * 3
+
+
+@pytest.mark.parametrize("first,then", [(True, False), (False, True)])
+def test_resumes_across_paths(tmp_path, make_store, first, then):
+    A = random_dominant(96, seed=4, density=0.2)
+    T = make_store(A, tile_size=16)
+    options = dict(prune=1e-6, prune_feed=1e-5, progress=False)
+    bigT.stratified_inverse(T, tmp_path / "ref.zarr", terms=5, in_memory=False, **options)
+    out = tmp_path / "X.zarr"
+    bigT.stratified_inverse(T, out, terms=2, in_memory=first, **options)
+    rep = bigT.stratified_inverse(T, out, terms=5, in_memory=then, **options)
+    assert rep.resumed_from == 2 and rep.terms == 5
+    assert [h.engine_path == "in-memory" for h in rep.history] == [first] * 3 + [then] * 3
+    np.testing.assert_allclose(dense(out), dense(tmp_path / "ref.zarr"), rtol=1e-6, atol=1e-9)
+
+
+class Crash(Exception):
+    pass
+
+
+@pytest.mark.parametrize("resume_in_memory", [True, False])
+def test_interrupted_in_memory_resumes_on_either_path(tmp_path, make_store, monkeypatch,
+                                                       resume_in_memory):
+    A = random_dominant(96, seed=5, density=0.2)
+    T = make_store(A, tile_size=16)
+    options = dict(prune=1e-6, progress=False)
+    bigT.stratified_inverse(T, tmp_path / "ref.zarr", terms=4, in_memory=False, **options)
+    # the stores the in-memory run writes take T's tile size (16 here): 6 tile rows
+    out = tmp_path / "X.zarr"
+    writes = {"n": 0}
+    real_write = resident._write_row
+
+    def failing_write(attrs, path, block, A):
+        writes["n"] += 1
+        if writes["n"] == 6 + 2 * 6 + 2 * 6 + 3:  # term 0 (X), terms 1-2 (P, X), 2 more
+            raise Crash("injected")
+        return real_write(attrs, path, block, A)
+
+    monkeypatch.setattr(resident, "_write_row", failing_write)
+    with pytest.raises(Crash):
+        bigT.stratified_inverse(T, out, terms=4, in_memory=True, **options)
+    monkeypatch.setattr(resident, "_write_row", real_write)
+    held = bigT.open(out)
+    assert held.metadata["inverse"]["term"] == 2
+    np.testing.assert_allclose(held.to_scipy().toarray(), dense_stratified(A, 2), atol=1e-5)
+    rep = bigT.stratified_inverse(T, out, terms=4, in_memory=resume_in_memory, **options)
+    assert rep.resumed_from == 2 and rep.terms == 4
+    np.testing.assert_allclose(dense(out), dense(tmp_path / "ref.zarr"), rtol=1e-6, atol=1e-9)
+
+
+def test_goes_out_of_core_when_the_next_term_does_not_fit(tmp_path, make_store, monkeypatch):
+    A = random_dominant(96, seed=6, density=0.2)
+    T = make_store(A, tile_size=16)
+    options = dict(terms=4, prune=1e-6, progress=False)
+    bigT.stratified_inverse(T, tmp_path / "ref.zarr", in_memory=False, **options)
+    monkeypatch.delenv(ENVIRONMENT, raising=False)  # automatic
+    monkeypatch.setattr(resident.ResidentPasses, "fits",
+                        lambda self, held, nnz_X, nnz_P, growth: held < 2)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", **options)
+    assert [h.engine_path for h in rep.history] == ["in-memory"] * 3 + ["out-of-core"] * 2
+    assert rep.engine_path == "out-of-core" and "out of core from term 3" in rep.engine_path_reason
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense(tmp_path / "ref.zarr"),
+                               rtol=1e-6, atol=1e-9)
+
+
+def test_automatic_choice_and_its_overrides(tmp_path, make_store, monkeypatch):
+    T = make_store(random_dominant(48, seed=2))
+    monkeypatch.delenv(ENVIRONMENT, raising=False)
+    auto = bigT.stratified_inverse(T, tmp_path / "a.zarr", terms=1, progress=False)
+    assert auto.engine_path == "in-memory" and "may hold" in auto.engine_path_reason
+    monkeypatch.setenv(ENVIRONMENT, "0")
+    env = bigT.stratified_inverse(T, tmp_path / "b.zarr", terms=1, progress=False)
+    assert env.engine_path == "out-of-core" and ENVIRONMENT in env.engine_path_reason
+    asked = bigT.stratified_inverse(T, tmp_path / "c.zarr", terms=1, in_memory=True,
+                                    progress=False)
+    assert asked.engine_path == "in-memory"  # the argument wins over the environment
+    monkeypatch.setenv(ENVIRONMENT, "sometimes")
+    with pytest.raises(BigTError, match=ENVIRONMENT):
+        bigT.stratified_inverse(T, tmp_path / "d.zarr", terms=1, progress=False)
+    with pytest.raises(BigTError, match="in_memory"):
+        bigT.stratified_inverse(T, tmp_path / "e.zarr", terms=1, in_memory="yes",
+                                progress=False)
+
+
+def test_exhausted_series_in_memory(tmp_path, make_store):
+    d = 0.5 + np.linspace(0, 1, 40)
+    T = make_store(np.diag(d), tile_size=16)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=5, in_memory=True,
+                                  progress=False)
+    assert rep.terms == 5 and "exhausted" in rep.stopped and rep.products == 0
+    np.testing.assert_array_equal(dense(tmp_path / "X.zarr"), np.diag(1 / d))
+
+
+@pytest.mark.parametrize("method", ["power", "horner"])
+def test_colour_general_path_same_as_out_of_core(tmp_path, method):
+    from test_colour_inverse import colour_transport, dense_colour_stratified, read, store
+
+    A = colour_transport(4, 6)  # per-pixel camera mixing: the general colour engine
+    T = store(tmp_path, A, (4, 6))
+    options = dict(terms=3, prune=0.0, method=method, colour_path="general", progress=False)
+    mem = bigT.stratified_inverse(T, tmp_path / "mem.zarr", in_memory=True, **options)
+    bigT.stratified_inverse(T, tmp_path / "ooc.zarr", in_memory=False, **options)
+    assert mem.engine_path == "in-memory"
+    X_mem, X_ooc = read(tmp_path / "mem.zarr"), read(tmp_path / "ooc.zarr")
+    np.testing.assert_allclose(X_mem, X_ooc, rtol=1e-6, atol=1e-12 * np.abs(X_ooc).max())
+    want = dense_colour_stratified(A, 3)
+    np.testing.assert_allclose(X_mem, want, rtol=0, atol=1e-10 * np.abs(want).max())
