@@ -19,6 +19,7 @@ linear already.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,7 +98,8 @@ def seconds_in_label(label: str) -> float | None:
         value = float(top) / float(bottom) if float(bottom) else 0.0
     else:
         return None
-    return value if value > 0 else None
+    # 1e999 or 400 digits spell no time a camera takes (inf), 1e-999 none (0)
+    return value if 0 < value < math.inf else None
 
 
 def seconds_text(t: float) -> str:

@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -186,7 +188,7 @@ class Manifest:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise bad(f"'format' is not {FORMAT!r}")
         if d.get("version") != VERSION:
-            raise bad(f"version {d.get('version')!r}, this bigT reads version {VERSION}")
+            raise bad(f"version {d.get('version')!r:.40}, this bigT reads version {VERSION}")
         try:
             projector = tuple(_count(v, "projector") for v in d["projector"])
             superpixel = _count(d["superpixel"], "superpixel")
@@ -227,13 +229,14 @@ class Manifest:
 
 def _count(value, what) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{what} must be a positive integer, got {value!r}")
+        raise ValueError(f"{what} must be a positive integer, got {value!r:.40}")
     return value
 
 
 def _pattern(d) -> Pattern:
     if not isinstance(d, dict) or d.get("kind") not in KINDS or not isinstance(d.get("file"), str):
-        raise ValueError(f"pattern entry {d!r} has no valid 'kind' and 'file'")
+        # the entry's text cut short: an entry may be as large as the file
+        raise ValueError(f"pattern entry {d!r:.80} has no valid 'kind' and 'file'")
     return Pattern(**{k: d.get(k) for k in Pattern.__dataclass_fields__})
 
 
@@ -382,21 +385,68 @@ def patterns_folder(patterns) -> Path:
 
 
 def read_manifest(folder) -> Manifest:
-    """The manifest of a pattern folder (or the manifest file itself)."""
+    """The manifest of a pattern folder (or the manifest file itself).
+
+    Raises
+    ------
+    AcquisitionError
+        No manifest; one that is not a regular file (a directory, a FIFO nobody writes
+        would block the read), larger than :data:`MANIFEST_MAX_BYTES`, not UTF-8 JSON,
+        nested past the parser's depth, or not the manifest bigT writes.
+    """
     path = Path(folder)
     if path.is_dir():
         path = path / MANIFEST
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise AcquisitionError("no pattern manifest here (write one with bigT acquire "
-                               "patterns)", path) from None
-    except UnicodeDecodeError:
-        raise AcquisitionError("the pattern manifest is not JSON (not UTF-8 text)",
-                               path) from None
+    text = _manifest_text(path)
     try:
         d = json.loads(text)
     except json.JSONDecodeError as exc:
         raise AcquisitionError(f"the pattern manifest is not JSON ({exc.msg}, line "
                                f"{exc.lineno})", path) from None
+    except RecursionError:  # "[[[[...": deeper than the parser's recursion
+        raise AcquisitionError("the pattern manifest is not JSON bigT reads (nested too "
+                               "deeply)", path) from None
     return Manifest.from_dict(d, path)
+
+
+#: The largest manifest read: MAX_PATTERNS entries of ~100 bytes (a bigger file, or one
+#: that never ends, is refused after this many bytes, not read into memory whole).
+MANIFEST_MAX_BYTES = MAX_PATTERNS * 128
+
+
+def _read_at_most(f, limit: int, chunk: int = 1 << 20) -> bytes:
+    """At most ``limit`` bytes of ``f``, read a chunk at a time (``f.read(limit)``
+    would allocate the whole limit up front, however small the file)."""
+    parts, size = [], 0
+    while size < limit:
+        part = f.read(min(chunk, limit - size))
+        if not part:
+            break
+        parts.append(part)
+        size += len(part)
+    return b"".join(parts)
+
+
+def _manifest_text(path: Path) -> str:
+    """The manifest file's text, read only when it is a regular file (``stat`` follows
+    a link, which a user may keep to a shared pattern set) and at most
+    :data:`MANIFEST_MAX_BYTES` bytes of it."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise AcquisitionError("the pattern manifest is not a regular file", path)
+        with open(path, "rb") as f:
+            data = _read_at_most(f, MANIFEST_MAX_BYTES + 1)
+    except FileNotFoundError:
+        raise AcquisitionError("no pattern manifest here (write one with bigT acquire "
+                               "patterns)", path) from None
+    except OSError as exc:
+        raise AcquisitionError(f"cannot read the pattern manifest ({exc.strerror or exc})",
+                               path) from None
+    if len(data) > MANIFEST_MAX_BYTES:
+        raise AcquisitionError(f"the pattern manifest is larger than {MANIFEST_MAX_BYTES} "
+                               "bytes, more than any pattern set bigT writes", path)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise AcquisitionError("the pattern manifest is not JSON (not UTF-8 text)",
+                               path) from None

@@ -4,10 +4,21 @@ a ``dask.distributed`` cluster (``Client``, a scheduler address, or ``local:N`` 
 
 Both runners take a :class:`~.spec.PassSpec`, its row blocks and the pass's shared
 vectors, run :func:`~.worker.run_block` once per block and return the
-:class:`~.spec.BlockStats` in block order. On a cluster the shared vectors are
-scattered to every worker once per pass, tasks are submitted with ``Client.map`` and a
-progress bar in the caller follows ``as_completed``; a task lost with its worker is
-rerun by the scheduler, which is harmless because row writes are idempotent.
+:class:`~.spec.BlockStats` in block order.
+
+On a cluster a worker may die at any moment of a pass, and the run goes on:
+
+* the shared vectors travel as the results of tasks (:func:`_shared_value`), not by
+  ``Client.scatter``: the scheduler holds each task, so a vector lost with the worker
+  that held it is made again elsewhere, and workers fetch it as their tasks need it.
+  (A broadcast scatter to a worker that dies mid-transfer raised "Stream is closed" or
+  left the scheduler retrying the dead worker's address for ever.)
+* the tasks are submitted with ``Client.map``; a task lost with its worker, or a result
+  lost before it was gathered, is rerun by the scheduler, which is harmless because
+  row writes are idempotent;
+* the per-worker calls (memory plans, path checks, the end of a pass) go to the
+  workers alive at that moment (:meth:`ClusterRunner._on_live_workers`): a worker that
+  dies before it answers is left out, and one that joins later plans on its first task.
 """
 
 from __future__ import annotations
@@ -16,6 +27,7 @@ import importlib.util
 import logging
 import os
 import re
+import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
@@ -137,12 +149,13 @@ class ClusterRunner:
             return False
 
     def plans(self, policy: MemoryPolicy) -> dict[str, MemoryPlan]:
-        """Each worker's plan, made on the worker from its own limit and threads."""
-        return self.client.run(plan_on_worker, policy)
+        """Each live worker's plan, made on the worker from its own limit and threads."""
+        return self._on_live_workers(plan_on_worker, policy)
 
     def check_paths(self, paths) -> None:
-        """SchedulerError unless every worker sees every path (a shared filesystem)."""
-        seen = self.client.run(_missing_paths, [os.fspath(p) for p in paths])
+        """SchedulerError unless every live worker sees every path (a shared
+        filesystem)."""
+        seen = self._on_live_workers(_missing_paths, [os.fspath(p) for p in paths])
         for address, missing in sorted(seen.items()):
             if missing:
                 raise SchedulerError(
@@ -155,32 +168,62 @@ class ClusterRunner:
         from distributed import as_completed  # distributed: ~0.5 s, only with a cluster
 
         keys = [f"{spec.op}-{spec.pass_id}-{b.index}" for b in blocks]
-        futures, scattered, results = [], {}, []
+        futures, held, results = [], {}, []
         try:
-            scattered = {k: self.client.scatter(v, broadcast=True, hash=False)
-                         for k, v in shared.items()}
-            futures = self.client.map(run_mapped_block, blocks, spec=spec, shared=scattered,
+            held = self._hold_shared(spec, shared)
+            futures = self.client.map(run_mapped_block, blocks, spec=spec, shared=held,
                                       key=keys, pure=False, retries=0)
             with _bar(progress, len(futures), desc or spec.op) as bar:
                 for fut in as_completed(futures):
                     results.append(fut.result())
                     bar.update(1)
         except BaseException as exc:
-            self.client.cancel(futures)
+            self.client.cancel([*futures, *held.values()])
             raise _cluster_error(exc, spec) from None
         finally:
-            del futures, scattered
+            del futures, held
         return sorted(results, key=lambda s: s.index)
 
+    def _hold_shared(self, spec: PassSpec, shared: dict) -> dict:
+        """The pass's shared vectors as futures of tasks that return them (see the
+        module's docstring: a task is made again when its worker dies, scattered data
+        is not)."""
+        with dask.config.set({"distributed.admin.large-graph-warning-threshold": "2GiB"}):
+            # the vectors are the graph's payload by design (n floats each): no warning
+            return {name: self.client.submit(_shared_value, value, key=f"shared-{name}-"
+                                             f"{spec.pass_id}", pure=False, retries=0)
+                    for name, value in shared.items()}
+
+    def _on_live_workers(self, function, *args) -> dict:
+        """``function(*args)`` on every worker alive now (``Client.run``): {address:
+        answer}. A worker that dies before it answers is left out; SchedulerError when
+        none answers within ``config.SCHEDULER_CONNECT_SECONDS``; what the function
+        itself raises is raised."""
+        deadline = time.monotonic() + config.SCHEDULER_CONNECT_SECONDS
+        while True:
+            answers = self.client.run(function, *args, on_error="return")
+            alive = {addr: a for addr, a in answers.items() if not _worker_lost(a)}
+            for answer in alive.values():
+                if isinstance(answer, BaseException):
+                    raise answer
+            if alive:
+                return alive
+            if time.monotonic() > deadline:
+                raise SchedulerError(f"no dask worker answered {function.__name__} "
+                                     f"within {config.SCHEDULER_CONNECT_SECONDS} s (the "
+                                     "cluster has no live worker)")
+            time.sleep(0.5)  # a worker died and its replacement is on its way
+
     def end_pass(self, pass_id: str | None = None, forget=()) -> None:
-        """As :meth:`ThreadRunner.end_pass`, on every worker."""
-        self.client.run(end_pass, pass_id, tuple(str(p) for p in forget))
+        """As :meth:`ThreadRunner.end_pass`, on every worker alive (what a dead worker
+        held went with it)."""
+        self.client.run(end_pass, pass_id, tuple(str(p) for p in forget), on_error="ignore")
 
     def peak_memory(self) -> dict[str, int]:
         """Peak resident bytes of each worker process (empty when they cannot be
         asked any more: the figure is for the report, not worth failing a run)."""
         try:
-            return self.client.run(peak_resident_bytes)
+            return self.client.run(peak_resident_bytes, on_error="ignore")
         except Exception:
             return {}
 
@@ -194,6 +237,17 @@ def _serves_dashboard(dask_scheduler=None) -> bool:
     without bokeh too, but shows no dashboard then)."""
     return ("dashboard" in (getattr(dask_scheduler, "services", None) or {})
             and importlib.util.find_spec("bokeh") is not None)
+
+
+def _shared_value(value):
+    """A pass's shared vector, as a task's result (:meth:`ClusterRunner._hold_shared`)."""
+    return value
+
+
+def _worker_lost(answer) -> bool:
+    """Whether ``Client.run``'s answer from a worker says the worker could not be
+    reached (it died, or is dying): a connection error, not the function's own."""
+    return isinstance(answer, OSError)  # distributed's CommClosedError is an OSError
 
 
 def _missing_paths(paths) -> list[str]:
