@@ -323,11 +323,31 @@ class BlockCSR:
         ndarray, shape (min(shape),), of the store's dtype
         """
         order = reordering(self.pixel_order, output_order, "output_order")
-        if self.mixing is None:
+        if self.mixing is None and self.row_layout:
+            diag = self._diagonal_of_rows()
+        elif self.mixing is None:
             diag = diagonal_of_tiles(self.attrs, self._diagonal_tile)
         else:
             diag = mixed_diagonal(self.mixing, self._stored_pixel_blocks()).astype(self.dtype)
         return diag if order is None else diag[order.inverse_permutation]
+
+    def _diagonal_of_rows(self) -> np.ndarray:
+        """Format 2: the main diagonal in the stored order, each tile row that holds
+        its diagonal tile read whole; rows are read on a few threads (decoding and
+        checking release the GIL), since every entry of them is read."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        n, ts = min(self.shape), self.tile_size
+        out = np.zeros(n, dtype=self.dtype)
+        rows = [i for i in range(min(self.grid)) if self._position(i, i) >= 0]
+
+        def part(i: int) -> tuple[int, np.ndarray]:
+            return i, self._read_row(i).diagonal(k=i * ts)  # entries (r, i ts + r)
+
+        with ThreadPoolExecutor(max_workers=min(len(rows), os.cpu_count() or 1) or 1) as pool:
+            for i, d in pool.map(part, rows):
+                out[i * ts:i * ts + d.size] = d[:n - i * ts]
+        return out
 
     def _diagonal_tile(self, i: int) -> sp.csr_array | None:
         """Tile (i, i), or None when it is not stored."""

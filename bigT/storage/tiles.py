@@ -173,8 +173,24 @@ def _tile_count_problem(indices: np.ndarray, tile_size: int, columns: np.ndarray
     index's stored tile ``columns`` and their ``counts`` (k,), or None."""
     if not indices.size:
         return None if not counts.size else "entries missing from stored tiles"
-    found = np.bincount(indices // tile_size)
+    found = _entries_per_tile(indices, tile_size)
     present = np.flatnonzero(found)
     if not np.array_equal(present, columns) or not np.array_equal(found[present], counts):
         return "entries per tile disagree with the tile index"
     return None
+
+
+#: Widest matrix whose per-column counts :func:`_entries_per_tile` takes (a scratch of
+#: 8 bytes a column, 32 MiB here): counting columns, then summing them per tile, is
+#: twice as quick as dividing every index by the tile size.
+_COLUMN_COUNT_MAX = 1 << 22
+
+
+def _entries_per_tile(indices: np.ndarray, tile_size: int) -> np.ndarray:
+    """(n_tile_cols_used,) int64: entries of each tile column, from column ``indices``
+    (nnz,) checked to lie in the matrix."""
+    width = int(indices.max()) + 1
+    if width > _COLUMN_COUNT_MAX:
+        return np.bincount(indices // tile_size)
+    return np.add.reduceat(np.bincount(indices, minlength=width),
+                           np.arange(0, width, tile_size))
