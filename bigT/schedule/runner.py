@@ -188,6 +188,8 @@ class ClusterRunner:
         """The pass's shared vectors as futures of tasks that return them (see the
         module's docstring: a task is made again when its worker dies, scattered data
         is not)."""
+        import dask  # loaded with distributed already: a cluster runner has a client
+
         with dask.config.set({"distributed.admin.large-graph-warning-threshold": "2GiB"}):
             # the vectors are the graph's payload by design (n floats each): no warning
             return {name: self.client.submit(_shared_value, value, key=f"shared-{name}-"
