@@ -107,7 +107,9 @@ def test_compensate_and_relight_on_the_cluster(scene, cluster, tmp_path):
     assert main(["compensate", str(X), str(tmp_path / "desired.npy"), "-o",
                  str(tmp_path / "l_in.npy"), "--scheduler", cluster.address,
                  "--no-progress"]) == 0
-    np.testing.assert_allclose(np.load(tmp_path / "l_in.npy"), local[0], rtol=1e-6, atol=1e-7)
+    # the CLI multiplies at its own batch (64): a float32 X summed in float32 lanes in
+    # another order than the library's batch of 2, so a few values differ by ~1e-6
+    np.testing.assert_allclose(np.load(tmp_path / "l_in.npy"), local[0], rtol=1e-5, atol=1e-6)
     assert "X pass" in _task_prefixes(cluster.address)
 
 
