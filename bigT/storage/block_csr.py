@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from zarr.storage import LocalStore
 
 from .. import config
 from ..errors import MemoryLimitError, ShapeMismatchError, StoreError
@@ -171,11 +170,10 @@ class BlockCSR:
         self.nnz = self._index.total_nnz
         self.missing_tile_rows: list[int] = list(self._index.missing_tile_rows)
         self._missing_rows = frozenset(self.missing_tile_rows)  # format 2: no files
-        zarr_store = LocalStore(self.path, read_only=True)
         #: True for format 2 (a tile row is stored whole), False for format 1 (tiles)
         self.row_layout = attrs.version >= fmt.ROW_LAYOUT_VERSION
-        self._rows = RowReader(self.path, zarr_store, attrs) if self.row_layout else None
-        self._tiles = None if self.row_layout else TileReader(self.path, zarr_store)
+        self._rows = RowReader(self.path, attrs) if self.row_layout else None
+        self._tiles = None if self.row_layout else TileReader(self.path)
 
     # --- geometry ------------------------------------------------------------------
 

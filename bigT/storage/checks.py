@@ -13,8 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import zarr
-from zarr.storage import LocalStore
 
 from .. import config
 from ..errors import CorruptStoreError
@@ -22,7 +20,7 @@ from ..progress import progress_bar
 from . import _format as fmt
 from .attrs import StoreAttrs
 from .tile_index import TileIndex
-from .tiles import TileRowReader, tile_error
+from .tiles import TileRowReader, tile_error, zarr_array
 
 def check_chunks_exist(path: Path, attrs: StoreAttrs, index: TileIndex) -> None:
     """Cheap existence check of every chunk file; CorruptStoreError naming the first missing."""
@@ -137,7 +135,6 @@ def _chunk_keys(path: Path, arr_dir: Path, length: int, default_chunk: int) -> l
         chunk = default_chunk
     n_chunks = -(-length // chunk)
     if not default_keys:  # another writer's key encoding: zarr spells the keys
-        arr = zarr.open_array(LocalStore(path, read_only=True),
-                              path=arr_dir.relative_to(path).as_posix(), mode="r")
+        arr = zarr_array(path, arr_dir.relative_to(path).as_posix())
         return [arr.metadata.encode_chunk_key((c,)) for c in range(n_chunks)]
     return [f"c/{c}" for c in range(n_chunks)]

@@ -12,12 +12,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import zarr
-from zarr.storage import LocalStore
 
 from ..errors import BigTError, CorruptStoreError, IncompleteStoreError, Option
 from . import _format as fmt
 from .attrs import StoreAttrs
+from .tiles import zarr_array
 
 
 @dataclass(frozen=True)
@@ -157,8 +156,7 @@ def _read_index_array(path: Path, name: str, length: int) -> np.ndarray:
     try:
         values = fmt.read_array_files(path / name, length, root=path)
         if values is None:
-            store = LocalStore(path, read_only=True)
-            values = zarr.open_array(store, path=name, mode="r")[...]
+            values = zarr_array(path, name)[...]
         return np.asarray(values, dtype=np.int64)
     except BigTError:
         raise

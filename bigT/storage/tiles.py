@@ -14,14 +14,22 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import zarr
-from zarr.storage import LocalStore
-
 from ..errors import BigTError, CorruptStoreError
 from . import _format as fmt
 
 #: The stored tiles of tile row i, ``(j, tile)`` by ascending tile column j.
 TileRowReader = Callable[[int], Iterable[tuple[int, sp.csr_array]]]
+
+
+def zarr_array(root: Path, name: str):
+    """The array ``name`` of the store at ``root`` opened by zarr-python, read only: for
+    arrays whose layout bigT does not read itself (another writer's codecs). zarr is
+    imported here (~0.2 s with its asyncio and fsspec machinery), not with the
+    module: stores bigT wrote never need it."""
+    import zarr
+    from zarr.storage import LocalStore
+
+    return zarr.open_array(LocalStore(root, read_only=True), path=name, mode="r")
 
 
 def tile_error(path: Path, i: int, j: int, problem: str) -> CorruptStoreError:
@@ -33,9 +41,8 @@ class TileReader:
     """Reads the tiles of the store at ``path``: from their files directly when bigT
     wrote them, else through zarr (whose opened arrays are kept for the next read)."""
 
-    def __init__(self, path: Path, store: LocalStore):
+    def __init__(self, path: Path):
         self._path = path
-        self._store = store
         self._arrays: dict[tuple[int, int], tuple] = {}
 
     def read(self, i: int, j: int, shape: tuple[int, int], nnz: int) -> sp.csr_array:
@@ -78,7 +85,7 @@ class TileReader:
         arrays = self._arrays.get((i, j))
         if arrays is None:
             base = fmt.tile_path(i, j)
-            arrays = tuple(zarr.open_array(self._store, path=f"{base}/{name}", mode="r")
+            arrays = tuple(zarr_array(self._path, f"{base}/{name}")
                            for name in fmt.TILE_ARRAYS)
             self._arrays[(i, j)] = arrays
         return arrays
@@ -117,9 +124,8 @@ class RowReader:
     tile row, global column indices): from their files directly when bigT wrote them,
     else through zarr."""
 
-    def __init__(self, path: Path, store: LocalStore, attrs):
+    def __init__(self, path: Path, attrs):
         self._path = path
-        self._store = store
         self._attrs = attrs
 
     def read(self, i: int, columns: np.ndarray, counts: np.ndarray) -> sp.csr_array:
@@ -153,7 +159,7 @@ class RowReader:
             direct = [fmt.read_array_files(self._path / base / name, n, root=self._path)
                       for name, n in zip(fmt.TILE_ARRAYS, lengths)]
             if any(a is None for a in direct):  # not bigT's own layout: zarr reads it
-                direct = [zarr.open_array(self._store, path=f"{base}/{name}", mode="r")[...]
+                direct = [zarr_array(self._path, f"{base}/{name}")[...]
                           for name in fmt.TILE_ARRAYS]
             return direct
         except BigTError:
