@@ -7,12 +7,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import DiskFullError
 from ..progress import progress_bar
 from .block_csr import BlockCSR
 from .block_csr import open as open_store
-from .replace import check_replaceable, move_into_place, temporary_sibling, write_root_attrs
-from .writer import BlockCSRWriter, _deleted_on_failure
+from .replace import check_replaceable, write_root_attrs
+from .writer import BlockCSRWriter, built_aside
 
 
 def upgrade_store(source, path, *, overwrite: bool = False,
@@ -39,19 +38,13 @@ def upgrade_store(source, path, *, overwrite: bool = False,
     path = Path(os.fspath(path))
     check_replaceable(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_sibling(path)
-    try:
-        with _deleted_on_failure(tmp, path, "the store"):
-            writer = BlockCSRWriter(tmp, old.shape, tile_size=old.tile_size, dtype=old.dtype,
-                                    pixel_order=old.pixel_order, metadata=old.metadata)
-            for i in progress_bar(range(old.grid[0]), progress=progress, desc="upgrade",
-                                  unit="tile row"):
-                writer.write_tile_row(i, old.get_tile_row(i))
-            if old.mixing is not None:  # the factors travel with the tiles they factor
-                write_root_attrs(tmp, writer.attrs.replace(mixing=old.mixing))
-            writer.finalize()
-            move_into_place(tmp, path)
-    except DiskFullError as exc:
-        raise DiskFullError(f"disk full while writing ({exc.template}); nothing was changed "
-                            f"at the destination", path, option=exc.option) from exc
+    with built_aside(path) as tmp:
+        writer = BlockCSRWriter(tmp, old.shape, tile_size=old.tile_size, dtype=old.dtype,
+                                pixel_order=old.pixel_order, metadata=old.metadata)
+        for i in progress_bar(range(old.grid[0]), progress=progress, desc="upgrade",
+                              unit="tile row"):
+            writer.write_tile_row(i, old.get_tile_row(i))
+        if old.mixing is not None:  # the factors travel with the tiles they factor
+            write_root_attrs(tmp, writer.attrs.replace(mixing=old.mixing))
+        writer.finalize()
     return open_store(path)

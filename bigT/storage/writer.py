@@ -642,17 +642,26 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     A.eliminate_zeros()
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    with built_aside(path) as tmp:
+        writer = BlockCSRWriter(tmp, A.shape, tile_size=tile_size, dtype=dt,
+                                pixel_order=po, metadata=metadata)
+        for i in range(writer.grid[0]):
+            r0, r1 = writer.tile_row_range(i)
+            writer.write_tile_row(i, A[r0:r1])
+        writer.finalize()
+    return open_store(path)
+
+
+@contextmanager
+def built_aside(path: Path):
+    """A fresh sibling directory of ``path`` to build a whole store in, moved into place
+    when the block ends and deleted when it fails, so ``path`` is never half written;
+    a full disk is a DiskFullError saying nothing changed at ``path``."""
     tmp = temporary_sibling(path)
     try:
         with _deleted_on_failure(tmp, path, "the store"):
-            writer = BlockCSRWriter(tmp, A.shape, tile_size=tile_size, dtype=dt,
-                                    pixel_order=po, metadata=metadata)
-            for i in range(writer.grid[0]):
-                r0, r1 = writer.tile_row_range(i)
-                writer.write_tile_row(i, A[r0:r1])
-            writer.finalize()
+            yield tmp
             move_into_place(tmp, path)
     except DiskFullError as exc:
         raise DiskFullError(f"disk full while writing ({exc.template}); nothing was changed at the "
                             f"destination", path, option=exc.option) from exc
-    return open_store(path)
