@@ -17,20 +17,6 @@ import bigT
 from bigT.cli import main
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    # 12 tile rows of 256: enough tasks for both workers in every pass
-    path = tmp_path_factory.mktemp("scene") / "T.zarr"
-    return bigT.scenes.corner(size=(48, 64), path=path, tile_size=256, preview=False)
-
-
-@pytest.fixture(scope="module")
-def local_inverse(scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("local") / "X.zarr"
-    bigT.stratified_inverse(scene.T, out, terms=3, progress=False)
-    return bigT.open(out).to_scipy().toarray()
-
-
 def _task_prefixes(address) -> set[str]:
     from distributed import Client
 

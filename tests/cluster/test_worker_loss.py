@@ -30,21 +30,7 @@ from bigT.testing import ProcessCluster
 sys.path.insert(0, str(Path(__file__).parent))  # the helper next to this file
 from worker_loss import invert_command, kill_worker, run_with_kill  # noqa: E402
 
-TERMS = 3
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    # 12 tile rows of 256: enough tasks for both workers in every pass
-    path = tmp_path_factory.mktemp("scene") / "T.zarr"
-    return bigT.scenes.corner(size=(48, 64), path=path, tile_size=256, preview=False)
-
-
-@pytest.fixture(scope="module")
-def local_inverse(scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("local") / "X.zarr"
-    bigT.stratified_inverse(scene.T, out, terms=TERMS, progress=False)
-    return bigT.open(out).to_scipy().toarray()
+TERMS = 3  # as the local inverse of conftest.py
 
 
 def _assert_same_inverse(out, local_inverse):
