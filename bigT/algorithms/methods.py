@@ -118,8 +118,8 @@ def _x_updated(ctx: TaskContext, Q: sp.csr_array):
     else:
         stored = X_prev.tile_columns(i)
         touched = np.isin(stored, np.unique(Q.indices // X_prev.tile_size))
-        if X_prev.row_layout and touched.any():
-            touched[:] = True  # a row is read whole: carry all of it or none (linked)
+        if X_prev.row_layout and (touched.any() or Q.nnz):
+            touched[:] = True  # a row is read whole: carry all of it (linked) or none
         part = (X_prev.get_tile_row(i, columns=stored[touched]) if touched.any()
                 else sp.csr_array((ctx.stop - ctx.start, X_prev.shape[1]), dtype=ctx.dtype))
         stored_nnz = X_prev.tile_nnz[X_prev.tile_indptr[i]:X_prev.tile_indptr[i + 1]]

@@ -43,6 +43,9 @@ from .tiles import RowReader, TileReader
 
 # --- the store ---------------------------------------------------------------------
 
+#: Most tile rows ``diagonal`` reads at once (format 2): each is held whole.
+_DIAGONAL_READERS = 4
+
 #: Times ``open`` follows a redirect that moved on while it took the term's lease.
 _LEASE_ATTEMPTS = 5
 
@@ -342,7 +345,9 @@ class BlockCSR:
         def part(i: int) -> tuple[int, np.ndarray]:
             return i, self._read_row(i).diagonal(k=i * ts)  # entries (r, i ts + r)
 
-        with ThreadPoolExecutor(max_workers=min(len(rows), os.cpu_count() or 1) or 1) as pool:
+        # a few threads: each holds a whole tile row
+        workers = max(1, min(len(rows), os.cpu_count() or 1, _DIAGONAL_READERS))
+        with ThreadPoolExecutor(max_workers=workers) as pool:
             for i, d in pool.map(part, rows):
                 out[i * ts:i * ts + d.size] = d[:n - i * ts]
         return out
@@ -505,10 +510,11 @@ class BlockCSR:
 
 def _entries_kept(row: sp.csr_array, keep: np.ndarray) -> sp.csr_array:
     """The entries of CSR ``row`` where the bool mask ``keep`` (nnz,) is set, sorted."""
-    counts = np.add.reduceat(keep.astype(np.int64), row.indptr[:-1]) if row.nnz else None
     indptr = np.zeros(row.shape[0] + 1, np.int64)
-    if counts is not None:
-        # reduceat repeats the next value for an empty row: zero those
+    if row.nnz:
+        # a trailing 0 keeps reduceat's indices in range for empty last rows; it repeats
+        # the next value for every empty row, so those are zeroed
+        counts = np.add.reduceat(np.append(keep, False).astype(np.int64), row.indptr[:-1])
         counts[np.diff(row.indptr) == 0] = 0
         np.cumsum(counts, out=indptr[1:])
     out = sp.csr_array((row.data[keep], row.indices[keep], indptr), shape=row.shape)

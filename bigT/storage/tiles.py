@@ -145,10 +145,17 @@ class RowReader:
         indptr, indices, data = self._read_arrays(i, (rows + 1, nnz, nnz))
         if indptr.shape != (rows + 1,) or indices.shape != (nnz,) or data.shape != (nnz,):
             raise row_error(self._path, i, "array lengths disagree with the tile index")
+        if (indptr.dtype != np.int64 or indices.dtype.kind != "i"
+                or data.dtype != self._attrs.dtype):
+            raise row_error(self._path, i, f"arrays of types {indptr.dtype}, {indices.dtype}, "
+                                           f"{data.dtype}: the format has an int64 indptr, "
+                                           f"integer indices and {self._attrs.dtype} data")
         problem = (_csr_problem(indptr, indices, data, n_cols)
                    or _tile_count_problem(indices, self._attrs.tile_size, columns, counts))
         if problem:
             raise row_error(self._path, i, problem)
+        if nnz < np.iinfo(np.int32).max and indices.dtype == np.int32:
+            indptr = indptr.astype(np.int32)  # else scipy widens (copies) the indices
         out = sp.csr_array((data, indices, indptr), shape=(rows, n_cols))
         out.has_sorted_indices = True  # checked above
         return out
@@ -196,7 +203,7 @@ def _entries_per_tile(indices: np.ndarray, tile_size: int) -> np.ndarray:
     """(n_tile_cols_used,) int64: entries of each tile column, from column ``indices``
     (nnz,) checked to lie in the matrix."""
     width = int(indices.max()) + 1
-    if width > _COLUMN_COUNT_MAX:
+    if width > _COLUMN_COUNT_MAX or width > 4 * indices.size:  # a scratch wider than the row
         return np.bincount(indices // tile_size)
     return np.add.reduceat(np.bincount(indices, minlength=width),
                            np.arange(0, width, tile_size))

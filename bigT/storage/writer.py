@@ -212,7 +212,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
     with _deleted_on_failure(tmp, path, f"tile row {i}"):
         if linked_from is not None:
-            _link_tree(linked_from, tmp)  # the old row's arrays and marker, as they are
+            _link_row(linked_from, tmp)
         else:
             _write_row(tmp, attrs, block, zstd_level)
         return _move_row_into_place(tmp, path, i)
@@ -279,6 +279,35 @@ def _with_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, block: sp.csr_a
     return out, None
 
 
+def _link_row(src: Path, tmp: Path) -> None:
+    """The old row ``src`` recreated at ``tmp`` with its files hard-linked (copied where
+    the file system cannot link), its marker last and, when durable, after the arrays'
+    files and directories are fsynced: a copy's pages reach the disk before a marker
+    announces them, as a written row's do."""
+    tmp.mkdir()
+    for entry in os.scandir(src):
+        if entry.name != "zarr.json":
+            _link_tree(Path(entry.path), tmp / entry.name) if entry.is_dir(
+                follow_symlinks=False) else _link_file(entry.path, tmp / entry.name)
+    if durable():
+        fsync_tree(tmp, include_root=False)
+    _link_file(src / "zarr.json", tmp / "zarr.json")
+    if durable():
+        fsync_dir(tmp)
+
+
+def _link_file(src, dst: Path) -> None:
+    """``dst`` a hard link of ``src``, or a copy where the file system cannot link."""
+    try:
+        os.link(src, dst)
+    except OSError as exc:
+        # file systems without links answer EXDEV, EPERM, EMLINK, ENOTSUP, ENOSYS,
+        # EINVAL...: copy instead; a full disk is a full disk
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        shutil.copyfile(src, dst)
+
+
 def _link_tree(src: Path, dst: Path) -> None:
     """Recreate directory ``src`` at ``dst`` with every file hard-linked (copied where
     the file system cannot link)."""
@@ -287,15 +316,8 @@ def _link_tree(src: Path, dst: Path) -> None:
         target = dst / entry.name
         if entry.is_dir(follow_symlinks=False):
             _link_tree(Path(entry.path), target)
-            continue
-        try:
-            os.link(entry.path, target)
-        except OSError as exc:
-            # file systems without links answer EXDEV, EPERM, EMLINK, ENOTSUP, ENOSYS,
-            # EINVAL...: copy instead; a full disk is a full disk
-            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise
-            shutil.copyfile(entry.path, target)
+        else:
+            _link_file(entry.path, target)
 
 
 def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:

@@ -247,9 +247,9 @@ def test_power_terms_carry_untouched_tile_rows_of_x_by_link(tmp_path, make_store
     C[:half, :half] = rng.uniform(0, 0.6 / half, (half, half))
     T = np.diag(rng.uniform(1.5, 2.5, n)) + C
     linked = []
-    real_link_tree = writer._link_tree
-    monkeypatch.setattr(writer, "_link_tree",
-                        lambda src, dst: (linked.append(src), real_link_tree(src, dst)))
+    real_link_row = writer._link_row
+    monkeypatch.setattr(writer, "_link_row",
+                        lambda src, dst: (linked.append(src), real_link_row(src, dst)))
     out = tmp_path / "X.zarr"
     bigT.stratified_inverse(make_store(T, tile_size=16), out, terms=3, prune=0.0,
                             progress=False)

@@ -22,7 +22,7 @@ from zarr.storage import LocalStore
 
 from bigT import config
 from bigT.cli import main
-from bigT.errors import StoreError
+from bigT.errors import CorruptStoreError, StoreError
 from bigT.storage import (
     BlockCSRWriter,
     KeptTiles,
@@ -348,3 +348,76 @@ def test_tensorstore_reads_a_tile_row(tmp_path, monkeypatch, chunk):
         return ts.open(spec, read=True).result().read().result()
 
     _assert_row_arrays(read, S, A)
+
+
+# --- found by review -----------------------------------------------------------------
+
+def test_some_tile_columns_of_a_row_whose_last_rows_are_empty(tmp_path):
+    """get_tile_row(i, columns) keeps the entries of those tile columns, whatever rows
+    are empty (the last ones included), as scipy's column mask does."""
+    A = sp.lil_array((8, 8))
+    A[0, 0], A[0, 5], A[1, 6] = 1.0, 2.0, 3.0  # rows 2, 3 of tile row 0 empty
+    A[5, 1], A[6, 6] = 4.0, 5.0
+    A = sp.csr_array(A)
+    S = from_scipy(A, tmp_path / "s.zarr", tile_size=4, dtype="float64")
+    for i in range(2):
+        for cols in ([0], [1], [0, 1], []):
+            want = A[i * 4:(i + 1) * 4].toarray()
+            mask = np.zeros(8, bool)
+            for j in cols:
+                mask[j * 4:(j + 1) * 4] = True
+            want[:, ~mask] = 0
+            got = S.get_tile_row(i, columns=cols)
+            np.testing.assert_array_equal(got.toarray(), want)
+            assert np.all(np.diff(got.indptr) >= 0) and got.indptr[-1] == got.nnz
+
+
+def test_a_linked_row_is_fsynced_before_its_marker(tmp_path, monkeypatch):
+    """A row carried by links (or copies) reaches the disk before the marker that
+    announces it, as a written row does: the arrays' files are fsynced, then the marker
+    is linked."""
+    from bigT.storage import writer
+
+    A = _matrix()
+    old = from_scipy(A, tmp_path / "old.zarr", tile_size=TS, dtype="float64")
+    attrs = StoreAttrs((N, N), TS, "float64")
+    create_store(tmp_path / "new.zarr", attrs)
+    order = []
+    real_fsync_tree, real_link_file = writer.fsync_tree, writer._link_file
+    monkeypatch.setattr(writer, "durable", lambda: True)
+    monkeypatch.setattr(writer, "fsync_tree", lambda p, **kw: (order.append("fsync"),
+                                                             real_fsync_tree(p, **kw)))
+    def link(src, dst):
+        marker = Path(dst).name == "zarr.json" and Path(dst).parent.name.endswith(".partial")
+        order.append("marker" if marker else "file")
+        real_link_file(src, dst)
+
+    monkeypatch.setattr(writer, "_link_file", link)
+    lo, hi = old.tile_indptr[0], old.tile_indptr[1]
+    assert write_tile_row(tmp_path / "new.zarr", attrs, 0, sp.csr_array((TS, N)),
+                          keep=KeptTiles(old.path, tuple(old.tile_indices[lo:hi].tolist()),
+                                         tuple(old.tile_nnz[lo:hi].tolist())))
+    assert order.count("file") == 6 and order.index("fsync") > order.index("file")
+    assert order.index("fsync") < order.index("marker") == len(order) - 1
+    np.testing.assert_array_equal(open_store(tmp_path / "new.zarr", allow_incomplete=True)
+                                  .get_tile_row(0).toarray(), _row(A, 0).toarray())
+
+
+def test_row_arrays_of_another_type_are_refused(tmp_path):
+    """A row whose data array holds integers (or whose indices hold floats) is damage:
+    one line naming the row, not a matrix of another dtype or a numpy error."""
+    A = _matrix()
+    S = from_scipy(A, tmp_path / "s.zarr", tile_size=TS, dtype="float64")
+    row = _row(A, 0)
+    store = LocalStore(tmp_path / "s.zarr")
+    for name, values in (("data", row.data.astype(np.int64)),
+                         ("indices", row.indices.astype(np.float64))):
+        shutil.rmtree(tmp_path / "s.zarr" / "rows" / "0" / name)
+        arr = zarr.create_array(store, name=f"rows/0/{name}", shape=values.shape,
+                                dtype=values.dtype, chunks=values.shape,
+                                fill_value=-1)
+        arr[...] = values
+        with pytest.raises(CorruptStoreError, match="tile row 0: arrays of types") as err:
+            open_store(S.path).get_tile_row(0)
+        assert "\n" not in str(err.value)
+        from_scipy(A, tmp_path / "s.zarr", tile_size=TS, dtype="float64", overwrite=True)
