@@ -86,7 +86,8 @@ class PassRunner:
         row block not yet complete in all of them, finalize them from their row
         markers. Returns the stats of the tasks run (none when resumed complete)."""
         n_blocks = self.layout.n_blocks
-        paths = {name: self.store.prepare_term_store(k, name, self._term_attrs(k, metadata))
+        paths = {name: self.store.prepare_term_store(k, name,
+                                                     term_store_attrs(self.layout, k, metadata))
                  for name in p.outputs}
         done = [set(completed_rows(path, n_blocks)) for path in paths.values()]
         todo = [i for i in range(n_blocks) if any(i not in d for d in done)]
@@ -140,10 +141,10 @@ class PassRunner:
             right=p.right, **self.settings.thresholds.spec_fields(),
             kernel_threads=lay.kernel_threads, pass_id=new_pass_id())
 
-    def _term_attrs(self, k: int, metadata: dict) -> StoreAttrs:
-        """A new store of term k: T's shape, dtype and pixel order, the term's tile
-        size, the series' metadata marked incomplete."""
-        lay = self.layout
-        meta = {"inverse": {**metadata, "term": k, "complete": False}}
-        return StoreAttrs(lay.T.shape, lay.tile_size, lay.T.dtype, metadata=meta,
-                          pixel_order=lay.T.pixel_order)
+
+def term_store_attrs(layout: RunLayout, k: int, metadata: dict) -> StoreAttrs:
+    """A new store of term k (X, P or R, on either path): T's shape, dtype and pixel
+    order, the run's tile size, the series' metadata marked incomplete."""
+    meta = {"inverse": {**metadata, "term": k, "complete": False}}
+    return StoreAttrs(layout.T.shape, layout.tile_size, layout.T.dtype, metadata=meta,
+                      pixel_order=layout.T.pixel_order)

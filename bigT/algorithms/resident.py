@@ -35,13 +35,13 @@ import scipy.sparse as sp
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
-from ..schedule.operators import StoreOperand
+from ..schedule.operators import StoreOperand, largest_row_entries
 from ..schedule.spec import BlockStats, row_blocks
 from ..storage import InverseStore, StoreAttrs, completed_rows, write_tile_row
 from ..storage import open as open_store
 from .engine_path import IN_MEMORY
 from .methods import Pass, SeriesMethod
-from .passes import PassTotals
+from .passes import PassTotals, term_store_attrs
 
 #: The term held, the term made and the product's unpruned rows alive at once: the
 #: predicted bytes of a term are this many times the held term's X and P (grown as the
@@ -130,12 +130,7 @@ class ResidentMatVecs:
         row without a positive one), shape (n, 1)."""
         M = self.matrices.M
         if largest:
-            out = np.zeros((M.shape[0], 1))
-            filled = np.flatnonzero(np.diff(M.indptr))
-            if len(filled):
-                top = np.maximum.reduceat(M.data[:M.indptr[-1]], M.indptr[filled])
-                out[filled, 0] = np.maximum(top, 0.0)
-            return out
+            return largest_row_entries(M)
         return self._product(M, V)
 
     def apply_abs_M(self, V: np.ndarray) -> np.ndarray:
@@ -403,9 +398,7 @@ class ResidentPasses:
         step for every output at once on the run's threads (a store write waits mostly
         on the disk's syncs, which release the interpreter)."""
         lay = self.layout
-        meta = {"inverse": {**metadata, "term": k, "complete": False}}
-        attrs = StoreAttrs(lay.T.shape, lay.tile_size, lay.T.dtype, metadata=meta,
-                           pixel_order=lay.T.pixel_order)
+        attrs = term_store_attrs(lay, k, metadata)
         names, pool = list(p.outputs), self._writers
         paths = list(pool.map(lambda name: self.store.prepare_term_store(k, name, attrs),
                               names))

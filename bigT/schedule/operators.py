@@ -206,13 +206,7 @@ class MOperand:
     def largest_entries(self, a: int, b: int) -> np.ndarray:
         """The largest entry of each of M's rows ``a:b`` (0 for a row without a positive
         one), shape (b - a, 1): from M's rows as the products use them, exactly."""
-        M = self.rows(a, b)
-        out = np.zeros((b - a, 1), dtype=np.float64)
-        filled = np.flatnonzero(np.diff(M.indptr))
-        if len(filled):
-            top = np.maximum.reduceat(M.data[:M.indptr[-1]], M.indptr[filled])
-            out[filled, 0] = np.maximum(top, 0.0)
-        return out
+        return largest_row_entries(self.rows(a, b))
 
     def abs_matvec_rows(self, a: int, b: int, V) -> np.ndarray:
         """Rows ``a:b`` of |M| V (|M|: M's entries' absolute values), V of shape (n, k):
@@ -263,3 +257,14 @@ class MOperand:
             out += V[a:b]
         out *= self.active[a:b, None]
         return out
+
+
+def largest_row_entries(M: sp.csr_array) -> np.ndarray:
+    """The largest entry of each row of CSR ``M`` (0 for a row without a positive one),
+    shape (rows, 1), float64: what the spectral radius's bracket needs of M's rows."""
+    out = np.zeros((M.shape[0], 1), dtype=np.float64)
+    filled = np.flatnonzero(np.diff(M.indptr))
+    if len(filled):
+        top = np.maximum.reduceat(M.data[:M.indptr[-1]], M.indptr[filled])
+        out[filled, 0] = np.maximum(top, 0.0)
+    return out
