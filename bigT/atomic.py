@@ -21,7 +21,7 @@ import re
 import socket
 import uuid
 from glob import escape as glob_escape
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Iterable, Iterator
 
 from .errors import DiskFullError, OutputError
@@ -265,27 +265,44 @@ def refuse_overwriting_inputs(outputs: Iterable, inputs: Iterable, *,
     OutputError
         Naming the output (as the path) and the input, and how they meet.
     """
-    sources = [(inp, Path(os.path.realpath(inp))) for inp in inputs if inp is not None]
+    sources = [(inp, _resolved(inp)) for inp in inputs if inp is not None]
     # folders first: a folder that is an input is named as such, not its first file
     for out, replaced_whole in [(f, False) for f in folders if f is not None] + [
             (o, True) for o in outputs if o is not None]:
-        real = Path(os.path.realpath(out))
+        real = _resolved(out)
         for inp, real_inp in sources:
+            if type(real) is not type(real_inp):  # a URL and a local path never meet
+                continue
             if _same_file(real, real_inp):
-                raise OutputError(f"is the input {os.fspath(inp)}: writing it would destroy "
-                                  "the input; choose another output", out)
+                raise OutputError(f"is the input {_text(inp)}: writing it would destroy "
+                                  "the input; choose another output", _text(out))
             if _lies_within(real, real_inp):
-                raise OutputError(f"lies inside the input {os.fspath(inp)}: writing it would "
-                                  "change the input; choose an output outside it", out)
+                raise OutputError(f"lies inside the input {_text(inp)}: writing it would "
+                                  "change the input; choose an output outside it", _text(out))
             if replaced_whole and _lies_within(real_inp, real):
-                raise OutputError(f"holds the input {os.fspath(inp)}, which writing it would "
-                                  "replace; choose another output", out)
+                raise OutputError(f"holds the input {_text(inp)}, which writing it would "
+                                  "replace; choose another output", _text(out))
+
+
+def _text(path) -> str:
+    return os.fspath(path) if isinstance(path, (str, os.PathLike)) else str(path)
+
+
+def _resolved(path) -> "Path | PurePosixPath":
+    """A local path resolved (links, ``..``); a URL of object storage (a string with
+    ``://``, or a store location that is not os.PathLike) as its key path, which has
+    no links to resolve."""
+    if isinstance(path, (str, os.PathLike)) and "://" not in os.fspath(path):
+        return Path(os.path.realpath(path))
+    return PurePosixPath(str(path).replace("://", "/", 1))
 
 
 def _same_file(a: Path, b: Path) -> bool:
     """``a`` and ``b`` (resolved) name one file: equal, or one inode where both exist."""
     if a == b:
         return True
+    if not isinstance(a, Path):  # keys of object storage: their names are all they are
+        return False
     try:
         return os.path.samefile(a, b)
     except OSError:  # one of them does not exist (yet): only the names could tell

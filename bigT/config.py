@@ -280,3 +280,9 @@ BACKGROUND_REMOVAL = True
 #: (+26 %, 8372 fsyncs), the sparse 384x512 corner's 3.8 s -> 4.5 s (+18 %, 10908).
 DURABILITY = "full"
 DURABILITY_LEVELS = ("none", "full")
+
+#: Object storage (issue #31): a writer's lock object is a lease, renewed every quarter
+#: of this many seconds while the writer lives; one not renewed for this long is
+#: abandoned (its writer killed, its machine lost) and the next writer takes it over.
+#: A bucket has no flock that dies with its process.
+OBJECT_LOCK_SECONDS = 120.0

@@ -97,7 +97,9 @@ class BigTError(ValueError):
 
     def __init__(self, message: str, path: str | os.PathLike | None = None, *,
                  option: Option | str | tuple | None = None):
-        self.path = None if path is None else os.fspath(path)
+        # a store in object storage is named by its URL (it is no os.PathLike)
+        self.path = None if path is None else (
+            os.fspath(path) if isinstance(path, (str, os.PathLike)) else str(path))
         self.option = _option(option)
         self.template = message
         self.problem = self._fill(self.option.as_python() if self.option else "")

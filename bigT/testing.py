@@ -1,9 +1,11 @@
 """Helpers for bigT's tests and benchmarks (as ``numpy.testing``): a dask cluster of
-real processes on this machine.
+real processes on this machine, and an S3-compatible server.
 
 :class:`ProcessCluster` starts one ``dask scheduler`` and N ``dask worker`` processes
 (``--nthreads 1``, a memory limit each, no nanny, so the PIDs started are the processes
 that run tasks) on 127.0.0.1 only, and stops every process it started, by PID.
+:class:`S3Server` starts moto's S3 server on 127.0.0.1 with one bucket, and stops it
+by PID.
 """
 
 from __future__ import annotations
@@ -32,10 +34,15 @@ class ProcessCluster:
     memory_limit : str, each worker's ``--memory-limit``
     """
 
-    def __init__(self, tmp: Path, n_workers: int = 2, memory_limit: str = "2GiB"):
+    def __init__(self, tmp: Path, n_workers: int = 2, memory_limit: str = "2GiB", *,
+                 worker_env: dict | None = None, separate_dirs: bool = False):
         self.tmp = tmp
         self.procs: dict[str, subprocess.Popen] = {}
         self._logs = []
+        # workers that share nothing but what they are given: each its own working
+        # directory (and temporary directory), the environment ``worker_env`` adds
+        self._worker_env = dict(worker_env or {})
+        self._separate_dirs = separate_dirs
         try:
             self._launch(n_workers, memory_limit)
         except BaseException:
@@ -48,16 +55,27 @@ class ProcessCluster:
                                   "--no-dashboard", "--scheduler-file", str(sched_file)])
         self.address = self._wait_address(sched_file)
         for k in range(n_workers):
-            self._start(f"worker{k}", [DASK, "worker", self.address, "--host", "127.0.0.1",
-                                       "--nthreads", "1", "--memory-limit", memory_limit,
-                                       "--no-nanny", "--no-dashboard", "--name", f"w{k}"])
+            cwd = None
+            env = {**os.environ, **self._worker_env}
+            if self._separate_dirs:
+                cwd = self.tmp / f"w{k}-home"
+                cwd.mkdir(exist_ok=True)
+                env.update(TMPDIR=str(cwd), HOME=str(cwd))
+            cmd = [DASK, "worker", self.address, "--host", "127.0.0.1", "--nthreads", "1",
+                   "--memory-limit", memory_limit, "--no-nanny", "--no-dashboard",
+                   "--name", f"w{k}"] + (["--local-directory", str(cwd)] if cwd else [])
+            self._start(f"worker{k}", cmd, cwd=cwd, env=env)
         self.wait_for_workers(n_workers)
 
-    def _start(self, name, cmd):
+    def worker_dirs(self) -> list[Path]:
+        """Each worker's own directory (with ``separate_dirs``)."""
+        return sorted(self.tmp.glob("w*-home"))
+
+    def _start(self, name, cmd, cwd=None, env=None):
         log = open(self.tmp / f"{name}.log", "w")
         self._logs.append(log)
         self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                            start_new_session=True)
+                                            start_new_session=True, cwd=cwd, env=env)
 
     def _wait_address(self, sched_file: Path, timeout: float = 60) -> str:
         t0 = time.monotonic()
@@ -134,3 +152,83 @@ def clustered_spectrum(seed: int, top: float, blocks: int = 100, size: int = 20,
         parts.append(B * (r / max(abs(np.linalg.eigvals(B)))))
     return sp.csr_array(sp.block_diag(parts)), float(radii.max())
 
+
+
+class S3Server:
+    """moto's S3-compatible server (``moto[server]``) as a process of its own on
+    127.0.0.1, with one bucket; stopped by its PID.
+
+    Parameters
+    ----------
+    tmp : Path, a directory for its log
+    bucket : str
+
+    Attributes
+    ----------
+    endpoint : str, ``http://127.0.0.1:PORT``
+    env : dict, the environment a client (bigT, a dask worker) needs to reach it:
+        ``AWS_ENDPOINT_URL``, test credentials, a region.
+    """
+
+    def __init__(self, tmp: Path, bucket: str = "bigt-test"):
+        import socket
+
+        self.bucket = bucket
+        with socket.socket() as s:  # a free port on loopback, never another address
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        self.endpoint = f"http://127.0.0.1:{port}"
+        self._log = open(Path(tmp) / "moto.log", "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1",
+                                      "-p", str(port)], stdout=self._log,
+                                     stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            self._wait(port)
+            self.create_bucket(bucket)
+        except BaseException:
+            self.stop()
+            raise
+        self.env = {"AWS_ENDPOINT_URL": self.endpoint, "AWS_ACCESS_KEY_ID": "testing",
+                    "AWS_SECRET_ACCESS_KEY": "testing", "AWS_REGION": "us-east-1",
+                    "AWS_DEFAULT_REGION": "us-east-1"}
+
+    def _wait(self, port: int, timeout: float = 60) -> None:
+        import socket
+
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            if self.proc.poll() is not None:
+                raise RuntimeError("moto server exited")
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                return
+            except OSError:
+                time.sleep(0.05)
+        raise RuntimeError("moto server did not start")
+
+    def create_bucket(self, name: str) -> None:
+        import urllib.request
+
+        urllib.request.urlopen(urllib.request.Request(f"{self.endpoint}/{name}", method="PUT"),
+                               timeout=30).close()
+
+    def url(self, key: str) -> str:
+        """``s3://BUCKET/key``."""
+        return f"s3://{self.bucket}/{key.lstrip('/')}"
+
+    def stop(self) -> None:
+        """SIGTERM, then SIGKILL after a few seconds, by PID."""
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                os.kill(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(timeout=10)
+        self._log.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import BigTError
 from ..storage import InverseStore
+from ..schedule.runner import worker_path
 from .first_bounce import FirstBounce
 from .settings import Thresholds
 
@@ -41,7 +41,7 @@ def inverse_fingerprint(T, fb: FirstBounce, thresholds: Thresholds, method: str)
     h.update(np.asarray(T.tile_nnz, dtype=np.int64).tobytes())
     return {
         "format": FINGERPRINT_FORMAT,
-        "T": {"path": os.path.abspath(T.path), "shape": list(T.shape), "nnz": int(T.nnz),
+        "T": {"path": str(worker_path(T.path)), "shape": list(T.shape), "nnz": int(T.nnz),
               "tile_size": int(T.tile_size), "dtype": str(np.dtype(T.dtype)),
               "tiles": h.hexdigest()[:16]},
         **thresholds.recorded(),

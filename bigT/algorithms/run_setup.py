@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import config
 from ..schedule.memory import MemoryPlan
-from ..schedule.runner import ClusterRunner, local_path
+from ..schedule.runner import ClusterRunner, worker_path
 from ..schedule.spec import MemoryPolicy
 from ..storage import BlockCSR, InverseStore
 from .fingerprint import inverse_fingerprint
@@ -120,7 +120,7 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
 
 def _tasks_path(T, runner, progress: bool) -> str:
     """T's path as the workers will open it, checked on every worker."""
-    T_path = local_path(T.path, "transport T")
+    T_path = worker_path(T.path, "transport T")
     runner.check_paths([T_path])
     if progress and isinstance(runner, ClusterRunner):
         # a cluster run may be long: where to watch it (the dashboard) comes first

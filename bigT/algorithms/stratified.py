@@ -32,7 +32,7 @@ import time
 from .. import config
 from ..atomic import refuse_overwriting_inputs
 from ..errors import NotSquareError
-from ..schedule.runner import local_path, open_runner
+from ..schedule.runner import open_runner, worker_path
 from ..sizes import parse_size
 from ..storage import InverseStore, as_store
 from .engine import InverseEngine
@@ -159,12 +159,12 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     thresholds = checked_thresholds(method, prune, prune_feed, prune_operator)
     scheduler = client if scheduler is None else scheduler
     if isinstance(T, (str, os.PathLike)):
-        T = local_path(T, "transport T")  # a URL is refused here, naming what it is
+        T = worker_path(T, "transport T")  # a URL of a scheme not served is refused here
     T = as_store(T, "T")
     if T.shape[0] != T.shape[1]:
         raise NotSquareError(f"T is {T.shape[0]} x {T.shape[1]}; the inverse needs a square "
                              "T (apply the pixel correspondence first)", T.path)
-    out = local_path(out, "inverse store")
+    out = worker_path(out, "inverse store")
     fb_file = (first_bounce if isinstance(first_bounce, (str, os.PathLike))
                and str(first_bounce) not in ("diag", "identity") else None)  # a .npy read
     refuse_overwriting_inputs([out], [T.path, T.redirected_from, fb_file])
@@ -199,7 +199,7 @@ def _let_go(runner, T, out) -> None:
     inverse's terms (a caller's later work starts with an empty cache), then the
     runner closes what it started."""
     try:
-        runner.end_pass(None, forget=(local_path(T.path), out))
+        runner.end_pass(None, forget=(worker_path(T.path), out))
     except Exception:  # a cluster gone with the run: nothing left to free
         pass
     runner.close()

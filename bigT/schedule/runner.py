@@ -34,6 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 from .. import config
 from ..errors import BigTError, SchedulerError, StoreError
 from ..progress import progress_bar
+from ._backend import ObjectPath, as_location, is_url
 from .memory import MemoryPlan, peak_resident_bytes, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
@@ -155,13 +156,21 @@ class ClusterRunner:
     def check_paths(self, paths) -> None:
         """SchedulerError unless every live worker sees every path (a shared
         filesystem)."""
-        seen = self._on_live_workers(_missing_paths, [os.fspath(p) for p in paths])
+        paths = [p if isinstance(p, ObjectPath) else os.fspath(p) for p in paths]
+        for p in paths:
+            if isinstance(p, ObjectPath) and p.base.startswith("memory"):
+                raise SchedulerError(f"{p} lives in this process's memory: worker processes "
+                                     "cannot reach it (use s3://, gs://, az:// or a shared "
+                                     "directory)")
+        seen = self._on_live_workers(_missing_paths, paths)
         for address, missing in sorted(seen.items()):
             if missing:
-                raise SchedulerError(
-                    f"worker {address} cannot see {missing[0]}: bigT's workers open the "
-                    "stores by path, which must be the same on every worker (a shared "
-                    "filesystem)")
+                where = ("the bucket (check its credentials and AWS_ENDPOINT_URL in the "
+                         "workers' environment)" if is_url(missing[0]) else
+                         "a directory at the same path on every worker (a shared "
+                         "filesystem)")
+                raise SchedulerError(f"worker {address} cannot see {missing[0]}: bigT's "
+                                     f"workers open the stores themselves, from {where}")
 
     def map(self, spec: PassSpec, blocks: list[RowBlock], shared: dict, *,
             progress: bool = False, desc: str = "") -> list[BlockStats]:
@@ -253,7 +262,16 @@ def _worker_lost(answer) -> bool:
 
 
 def _missing_paths(paths) -> list[str]:
-    return [p for p in paths if not os.path.exists(p)]
+    """The paths (URLs) of ``paths`` this worker cannot see."""
+    missing = []
+    for p in paths:
+        try:
+            seen = p.exists() if isinstance(p, ObjectPath) else os.path.exists(p)
+        except Exception:  # no credentials, no route to the server: not seen
+            seen = False
+        if not seen:
+            missing.append(str(p))
+    return missing
 
 
 def _cluster_error(exc: BaseException, spec: PassSpec) -> BaseException:
@@ -272,17 +290,21 @@ def _cluster_error(exc: BaseException, spec: PassSpec) -> BaseException:
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
-def local_path(path, what: str = "store") -> str:
-    """``path`` made absolute (workers resolve it themselves); StoreError for a URL
-    or an in-memory store, which worker processes cannot open."""
+def worker_path(path, what: str = "store"):
+    """The store ``path`` as the workers will open it: a local path made absolute
+    (each worker resolves it against the same shared filesystem), a URL of object
+    storage as its :class:`~bigT.storage.ObjectPath` (each worker opens the bucket
+    with its own credentials). StoreError for an in-memory store or a URL scheme
+    bigT does not serve."""
+    if isinstance(path, ObjectPath):
+        return path
     if not isinstance(path, (str, os.PathLike)):
-        raise StoreError(f"the {what} must be a directory on a filesystem every worker can "
-                         f"reach, got a {type(path).__name__} (in-memory stores cannot be "
-                         "shared between processes)")
+        raise StoreError(f"the {what} must be a directory, or a URL of object storage, "
+                         f"that every worker can reach, got a {type(path).__name__} "
+                         "(in-memory stores cannot be shared between processes)")
     text = os.fspath(path)
     if _URL.match(text):
-        raise StoreError(f"the {what} must be a local directory (bigT's workers open it "
-                         "by path); URLs and in-memory stores are not supported", text)
+        return as_location(text)  # a scheme bigT does not serve is refused, by name
     return os.path.abspath(text)
 
 

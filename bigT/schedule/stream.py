@@ -13,7 +13,6 @@ algorithms layer.
 
 from __future__ import annotations
 
-import os
 from contextlib import contextmanager
 
 import numpy as np
@@ -59,7 +58,7 @@ def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
     ndarray, shape (n_rows, K) or (n_rows,), dtype ``compute_dtype(A)``
     """
     from .matvec import matvec, matvec_spec  # these two import dask (see above)
-    from .runner import ThreadRunner, local_path
+    from .runner import ThreadRunner, worker_path
 
     n_rows, n_cols = A.shape
     dtype = compute_dtype(A)
@@ -72,7 +71,7 @@ def stream_matmul(A, V: np.ndarray, *, runner=None, workers: int | None = None,
     if runner is None:
         runner = ThreadRunner(max(1, min(int(workers or config.COMPENSATE_WORKERS), A.grid[0])))
     budget = 0 if cache_bytes is None else int(cache_bytes)
-    spec = matvec_spec(desc, local_path(A.path), n_rows, A.tile_size, A.dtype,
+    spec = matvec_spec(desc, worker_path(A.path), n_rows, A.tile_size, A.dtype,
                        cache_bytes=budget)
 
     def stored_product(W: np.ndarray) -> np.ndarray:  # S W of the tiles the workers read
@@ -114,7 +113,9 @@ def forget_tiles(runner, *stores) -> None:
     tiles)."""
     from .worker import end_pass  # the worker module's state: only once passes ran
 
-    paths = tuple(os.path.abspath(s.path) for s in stores if s is not None)
+    from .runner import worker_path
+
+    paths = tuple(worker_path(s.path) for s in stores if s is not None)
     if runner is None:
         end_pass(None, paths)
     else:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import os
 import socket
 import sys
-from pathlib import Path
 import threading
 import time
 
@@ -24,7 +23,8 @@ import scipy.sparse as sp
 
 from ..errors import BigTError, DiskFullError, TaskError
 from . import blocks
-from ._backend import (BlockDiagonal, KeptTiles, open_store, read_store_attrs, release_workspaces, row_marker,
+from ._backend import (BlockDiagonal, KeptTiles, as_location, is_url, open_store,
+                       read_store_attrs, release_workspaces, row_marker, store_identity,
                        write_tile_row)
 from .cache import TileCache
 from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
@@ -36,10 +36,10 @@ from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 task_hook = None
 
 
-def _identity(path: str) -> tuple:
-    """(inode, mtime) of a store's root zarr.json: changes when it is rewritten."""
-    st = os.stat(os.path.join(path, "zarr.json"))
-    return st.st_ino, st.st_mtime_ns
+def _identity(path) -> tuple:
+    """What changes when a store's root zarr.json is rewritten (its inode and mtime,
+    an object's ETag)."""
+    return store_identity(path)
 
 
 class _PassState:
@@ -149,7 +149,10 @@ class _ProcessState:
         forget = tuple(str(p) for p in forget)
 
         def gone(path) -> bool:
-            return (bool(forget) and str(path).startswith(forget)) or not os.path.exists(path)
+            if bool(forget) and str(path).startswith(forget):
+                return True
+            # a bucket is not asked about every cached store: those go with ``forget``
+            return not is_url(path) and not os.path.exists(path)
 
         self.cache.drop_where(gone)
         with self.lock:
@@ -269,7 +272,7 @@ class TaskContext:
         path = self.spec.output_path(name)
         keep = None
         if keep_from is not None and len(kept_columns):
-            keep = KeptTiles(Path(self.spec.input_path(keep_from)),
+            keep = KeptTiles(as_location(self.spec.input_path(keep_from)),
                              tuple(int(j) for j in kept_columns),
                              tuple(int(c) for c in kept_nnz))
         return write_tile_row(path, STATE.store_attrs(path), self.block.index, rows, keep=keep)
@@ -375,7 +378,7 @@ def _already_written(spec: PassSpec, block: RowBlock) -> BlockStats | None:
         return None
     nnz = {}
     for name, path in spec.outputs:
-        marker = row_marker(Path(path), block.index)
+        marker = row_marker(as_location(path), block.index)
         if marker is None:
             return None
         nnz[name] = int(sum(marker["tile_nnz"]))

@@ -7,13 +7,15 @@ Public API: :func:`open`, :func:`as_store` (a store or its path), :func:`from_sc
 the versioned inverse store: :class:`InverseStore`; building a store or a file tree
 aside and moving it into place: :func:`temporary_sibling`, :func:`check_replaceable`,
 :func:`move_into_place`, :func:`write_group` (:mod:`bigT.storage.replace`); a
-directory's size on disk: :func:`disk_bytes`.
+directory's size on disk: :func:`disk_bytes`; a store in object storage (a URL):
+:func:`as_location`, :class:`ObjectPath`, :func:`is_url`.
 """
 
 from .attrs import StoreAttrs
 from ._format import row_marker
 from .block_csr import BlockCSR, as_store, open  # noqa: A004
 from .inverse_store import InverseRecord, InverseStore, TermEntry
+from .objects import ObjectPath, as_location, is_url, store_identity
 from .pixel_order import PixelOrder
 from ._format import disk_bytes
 from .replace import (check_replaceable, move_into_place, set_redirect, temporary_sibling,
@@ -31,7 +33,8 @@ from .writer import (
 )
 
 __all__ = [
-    "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "PixelOrder",
+    "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "ObjectPath",
+    "PixelOrder", "as_location", "is_url", "store_identity",
     "StoreAttrs", "TermEntry", "as_store", "check_replaceable", "clean_partial_rows",
     "completed_rows", "create_store", "disk_bytes", "finalize_store", "move_into_place",
     "temporary_sibling", "write_group",

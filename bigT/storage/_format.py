@@ -10,11 +10,14 @@ import json
 import os
 import stat
 from pathlib import Path, PurePosixPath
+from typing import Callable, Iterator
 
 import numpy as np
 
 from .. import config
+from ..atomic import atomic_write_json
 from ..errors import CorruptStoreError, StoreError
+from .objects import ObjectPath
 
 FORMAT_NAME = "bigT-block-csr"
 #: The layout this bigT writes: 2, one group of three arrays per tile row. Version 1
@@ -103,28 +106,43 @@ def write_array_files(root: Path, name: str, values: np.ndarray, fill_value,
     padded with the fill value, followed by its crc32c): ``tests/storage`` compares
     them with zarr's, byte for byte, and reads them back through zarr.
     """
-    import google_crc32c
-    from numcodecs import Zstd  # numcodecs: ~0.15 s, kept off `import bigT.storage`
-
     level = config.ZSTD_LEVEL if level is None else int(level)
     values = np.ascontiguousarray(values)
     dtype = values.dtype.newbyteorder("<") if values.dtype.byteorder == ">" else values.dtype
     n = int(values.shape[0])
     chunk = max(1, min(n, config.CHUNK_ELEMENTS))
-    adir = Path(root) / name
+    meta = json.dumps(_array_json(n, chunk, np.dtype(dtype), fill_value, level), indent=2)
+    adir = root / name
+    if isinstance(adir, ObjectPath):
+        # each object whole, chunks first: an array's zarr.json announces chunks there
+        for c, frame in enumerate(_encoded_chunks(values, dtype, chunk, fill_value, level)):
+            (adir / "c" / str(c)).write_bytes(frame)
+        (adir / "zarr.json").write_bytes(meta.encode())
+        return
+    adir = Path(adir)
     (adir / "c" if n else adir).mkdir(parents=True, exist_ok=True)
     with open(adir / "zarr.json", "w", encoding="utf-8") as f:
-        json.dump(_array_json(n, chunk, np.dtype(dtype), fill_value, level), f, indent=2)
+        f.write(meta)
+    for c, frame in enumerate(_encoded_chunks(values, dtype, chunk, fill_value, level)):
+        with open(adir / "c" / str(c), "wb") as f:
+            f.write(frame)
+
+
+def _encoded_chunks(values: np.ndarray, dtype: np.dtype, chunk: int, fill_value,
+                    level: int) -> Iterator[bytes]:
+    """Each chunk file's bytes: the zstd frame of its little-endian values (the edge
+    chunk padded with ``fill_value``) followed by the frame's crc32c."""
+    import google_crc32c
+    from numcodecs import Zstd  # numcodecs: ~0.15 s, kept off `import bigT.storage`
+
     codec = Zstd(level=level, checksum=False)
-    for c, start in enumerate(range(0, n, chunk)):
+    n = int(values.shape[0])
+    for start in range(0, n, chunk):
         part = values[start:start + chunk].astype(dtype.newbyteorder("<"), copy=False)
         if part.shape[0] < chunk:
             part = np.concatenate([part, np.full(chunk - part.shape[0], fill_value, dtype)])
         frame = codec.encode(part.tobytes())
-        crc = np.uint32(google_crc32c.value(frame)).astype("<u4").tobytes()
-        with open(adir / "c" / str(c), "wb") as f:
-            f.write(frame)
-            f.write(crc)
+        yield frame + np.uint32(google_crc32c.value(frame)).astype("<u4").tobytes()
 
 
 # --- what a store declares, bounded by sense -------------------------------------
@@ -213,7 +231,9 @@ def open_inside(root: Path, rel: str, directory: bool = True) -> int:
 
 def check_no_links(root: Path, rel: str) -> None:
     """LinkInStoreError when a component of ``rel`` below ``root`` is a symbolic link;
-    nothing when the path is not there."""
+    nothing when the path is not there (nor in object storage, which has no links)."""
+    if isinstance(root, ObjectPath):
+        return
     try:
         os.close(open_inside(root, rel))
     except (FileNotFoundError, NotADirectoryError):
@@ -345,8 +365,8 @@ def read_array_files(adir: Path, length: int | None = None, *,
     ValueError
         A chunk's checksum, or a frame that does not decompress to its declared size.
     """
-    import google_crc32c
-
+    if isinstance(adir, ObjectPath):
+        return _read_array_objects(adir, length)
     adir = Path(adir)
     root = adir.parent if root is None else Path(root)
     rel = adir.relative_to(root).as_posix()
@@ -361,46 +381,79 @@ def read_array_files(adir: Path, length: int | None = None, *,
         if not direct:
             check_tree_has_no_links(root, rel)  # zarr reads it by path
             return None
-        out = np.empty(length, dtype)
         if not length:
-            return out.astype(dtype.newbyteorder("="), copy=False)
+            return np.empty(0, dtype.newbyteorder("="))
         try:
             cfd = _open_component("c", dfd, True, root, f"{rel}/c")
         except FileNotFoundError:
-            out[:] = fill
-            return out.astype(dtype.newbyteorder("="), copy=False)
+            return np.full(length, fill, dtype.newbyteorder("="))
         try:
-            chunk_buf = np.empty(chunk if length % chunk else 0, dtype)
-            max_frame = chunk * dtype.itemsize * 2 + 1024 + 4  # zstd's worst case is ~raw size
-            for c, start in enumerate(range(0, length, chunk)):
-                stop = min(start + chunk, length)
-                name = f"{rel}/c/{c}"
-                try:
-                    raw = _read_at(str(c), cfd, max_frame, root, name)
-                except FileNotFoundError:
-                    out[start:stop] = fill
-                    continue
-                frame, stored = raw[:-4], raw[-4:]
-                if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
-                    raise ValueError(f"crc32c checksum mismatch in chunk file {name}")
-                if stop - start == chunk:  # a whole chunk: decoded in place, no copy
-                    if _frame_content_size(frame) is None:
-                        out[start:stop] = fill  # what a short frame leaves, the checks catch
-                    _decode_chunk(frame, out[start:stop], name)
-                    continue
-                # the edge chunk through a buffer: its frame holds the padding too
-                _decode_chunk(frame, chunk_buf, name)
-                out[start:stop] = chunk_buf[:stop - start]
+            return _decoded_chunks(
+                lambda c, most: _read_at(str(c), cfd, most, root, f"{rel}/c/{c}"),
+                length, chunk, dtype, fill, rel)
         finally:
             os.close(cfd)
     finally:
         os.close(dfd)
+
+
+def _read_array_objects(adir: ObjectPath, length: int | None) -> np.ndarray | None:
+    """:func:`read_array_files` of an array in object storage: the same checks, each
+    file an object (there are no links to refuse)."""
+    try:
+        raw = (adir / "zarr.json").read_bytes(METADATA_MAX_BYTES)
+    except ValueError as exc:
+        raise CorruptStoreError(str(exc), adir / "zarr.json") from None
+    meta = parse_json(raw, "zarr.json", adir / "zarr.json")
+    if length is None:
+        length = check_count((meta.get("shape") or [None])[0], "array length",
+                             adir / "zarr.json", high=MAX_SIDE)
+    chunk, dtype, fill, direct = _array_meta(meta, length, adir / "zarr.json")
+    if not direct:
+        return None
+    if not length:
+        return np.empty(0, dtype.newbyteorder("="))
+    return _decoded_chunks(lambda c, most: (adir / "c" / str(c)).read_bytes(most),
+                           length, chunk, dtype, fill, str(adir))
+
+
+def _decoded_chunks(read_chunk: Callable[[int, int], bytes], length: int, chunk: int,
+                    dtype: np.dtype, fill, rel: str) -> np.ndarray:
+    """The array of ``length`` values whose chunk ``c``'s file ``read_chunk(c,
+    max_bytes)`` returns (FileNotFoundError: the chunk reads as ``fill``), each
+    checked against its crc32c and decoded into its declared size."""
+    import google_crc32c
+
+    out = np.empty(length, dtype)
+    chunk_buf = np.empty(chunk if length % chunk else 0, dtype)
+    max_frame = chunk * dtype.itemsize * 2 + 1024 + 4  # zstd's worst case is ~raw size
+    for c, start in enumerate(range(0, length, chunk)):
+        stop = min(start + chunk, length)
+        name = f"{rel}/c/{c}"
+        try:
+            raw = read_chunk(c, max_frame)
+        except FileNotFoundError:
+            out[start:stop] = fill
+            continue
+        frame, stored = raw[:-4], raw[-4:]
+        if len(raw) < 4 or np.frombuffer(stored, "<u4")[0] != google_crc32c.value(frame):
+            raise ValueError(f"crc32c checksum mismatch in chunk file {name}")
+        if stop - start == chunk:  # a whole chunk: decoded in place, no copy
+            if _frame_content_size(frame) is None:
+                out[start:stop] = fill  # what a short frame leaves, the checks catch
+            _decode_chunk(frame, out[start:stop], name)
+            continue
+        # the edge chunk through a buffer: its frame holds the padding too
+        _decode_chunk(frame, chunk_buf, name)
+        out[start:stop] = chunk_buf[:stop - start]
     return out.astype(dtype.newbyteorder("="), copy=False)
 
 
 def check_tree_has_no_links(root: Path, rel: str) -> None:
     """LinkInStoreError for a symbolic link anywhere below ``root/rel`` (an array that
-    zarr reads by path; the whole store for ``verify``)."""
+    zarr reads by path; the whole store for ``verify``); object storage has none."""
+    if isinstance(root, ObjectPath):
+        return
     for dirpath, dirnames, filenames in os.walk(root / rel if rel else root):
         for name in dirnames + filenames:
             if os.path.islink(os.path.join(dirpath, name)):
@@ -413,6 +466,8 @@ def read_json(path: Path, root: Path | None = None) -> dict:
     """Parse a zarr.json (at most :data:`METADATA_MAX_BYTES`); StoreError naming the
     file when it is absent, CorruptStoreError when it is not a JSON object. With
     ``root``, no symbolic link between ``root`` and the file is followed."""
+    if isinstance(path, ObjectPath):
+        return _read_json_object(path)
     root = path.parent if root is None else root
     rel = path.relative_to(root).as_posix()
     parent, _, name = rel.rpartition("/")
@@ -433,8 +488,34 @@ def read_json(path: Path, root: Path | None = None) -> dict:
     return parse_json(raw, "zarr.json", path)
 
 
-def disk_bytes(path: str | os.PathLike) -> int:
-    """Bytes of all files under ``path``."""
+def _read_json_object(path: ObjectPath) -> dict:
+    """:func:`read_json` of an object."""
+    try:
+        raw = path.read_bytes(METADATA_MAX_BYTES)
+    except FileNotFoundError:
+        raise StoreError("not a zarr v3 group (no zarr.json)", path.parent) from None
+    except ValueError as exc:
+        raise StoreError(f"unreadable zarr.json ({exc})", path.parent) from None
+    except OSError as exc:
+        raise StoreError(f"unreadable zarr.json ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0][:160]})", path.parent) from None
+    return parse_json(raw, "zarr.json", path)
+
+
+def write_json(path, obj: dict, durable: bool = True) -> None:
+    """Replace the JSON file ``path`` whole: a reader sees the old one or the new one
+    (:func:`bigT.atomic.atomic_write_json` for a file; one PUT for an object, which
+    an object store applies whole)."""
+    if isinstance(path, ObjectPath):
+        path.write_bytes(json.dumps(obj, indent=2, allow_nan=False).encode())
+    else:
+        atomic_write_json(path, obj, durable)
+
+
+def disk_bytes(path) -> int:
+    """Bytes of all files (objects) under ``path``."""
+    if isinstance(path, ObjectPath):
+        return sum(size for _, size in path.walk_objects())
     total = 0
     for root, _dirs, files in os.walk(path):
         for name in files:
@@ -471,6 +552,13 @@ def row_marker(path: Path, i: int) -> dict | None:
     zarr.json missing, unreadable, larger than :data:`METADATA_MAX_BYTES`, or a link).
     The record's values are the caller's to check."""
     rel = row_path(i)
+    if isinstance(path, ObjectPath):
+        try:
+            meta = parse_json((path / rel / "zarr.json").read_bytes(METADATA_MAX_BYTES),
+                              "zarr.json", path)
+        except (OSError, ValueError):
+            return None
+        return _complete_row(meta)
     try:
         dfd = open_inside(path, rel)
         try:
@@ -480,6 +568,10 @@ def row_marker(path: Path, i: int) -> dict | None:
         meta = parse_json(raw, "zarr.json", path)
     except (OSError, ValueError):  # StoreError is a ValueError
         return None
+    return _complete_row(meta)
+
+
+def _complete_row(meta: dict) -> dict | None:
     rec = meta.get("attributes")
     rec = rec.get(ROW_ATTRS_KEY) if isinstance(rec, dict) else None
     return rec if isinstance(rec, dict) and rec.get("complete") is True else None
@@ -491,7 +583,8 @@ def stored_tile_rows(path: Path, n_tile_rows: int) -> list[int]:
     store declares."""
     check_no_links(path, ROWS_GROUP)
     try:
-        names = os.listdir(path / ROWS_GROUP)
+        names = (path / ROWS_GROUP).child_names() if isinstance(path, ObjectPath) else (
+            os.listdir(path / ROWS_GROUP))
     except (FileNotFoundError, NotADirectoryError):
         return []
     rows = (int(name) for name in names if name.isdigit() and name.isascii()

@@ -33,13 +33,19 @@ from . import checks
 from .attrs import StoreAttrs, read_raw_attrs
 from .channel_mixing import ChannelMixing, mixed_diagonal, mixed_product, mixed_rows
 from .locks import ReaderLease
-from .products import diagonal_of_tiles, matmul_rows, matmul_tiles, reordering, to_row_major
+from .objects import ObjectPath, as_location
+from .products import (
+    diagonal_of_tiles,
+    matmul_rows,
+    matmul_tiles,
+    reordering,
+    to_row_major,
+)
 from .replace import recover_interrupted_replace, write_root_attrs
 from .rows import join_tile_row, rows_between
 from .summary import summary
 from .tile_index import read_tile_index
 from .tiles import RowReader, TileReader
-
 
 # --- the store ---------------------------------------------------------------------
 
@@ -61,23 +67,30 @@ def as_store(A, name: str = "matrix") -> "BlockCSR":
     """
     if isinstance(A, BlockCSR):
         return A
-    if isinstance(A, (str, os.PathLike)):
+    if isinstance(A, (str, os.PathLike, ObjectPath)):
         return open(A)
     raise StoreError(f"{name} must be a bigT store (BlockCSR) or the path of one, "
                      f"got {type(A).__name__}")
 
 
-def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
+def open(path, *, allow_incomplete: bool = False,  # noqa: A001
+         storage_options: dict | None = None) -> "BlockCSR":
     """Open a bigT block-CSR store for reading.
 
     Parameters
     ----------
-    path : str or os.PathLike
-        Directory of the zarr v3 group. A group whose ``attrs["bigT"]["redirect"]``
-        names a sub-path is followed (one level): that is a versioned store.
+    path : str, os.PathLike or URL
+        Directory of the zarr v3 group, or its URL in object storage
+        (``s3://bucket/prefix/T.zarr``, ``gs://``, ``az://``, ``memory://``). A group
+        whose ``attrs["bigT"]["redirect"]`` names a sub-path is followed (one level):
+        that is a versioned store.
     allow_incomplete : bool
         Open a store whose writing was interrupted; tile rows not marked complete then
         read as empty (``.missing_tile_rows`` lists them).
+    storage_options : dict, optional
+        For a URL: options of the object store (``endpoint``, ``region``,
+        ``client_options``...); the standard environment variables give the rest
+        (``AWS_ENDPOINT_URL``, ``AWS_ACCESS_KEY_ID``, ...).
 
     Raises
     ------
@@ -88,7 +101,7 @@ def open(path, *, allow_incomplete: bool = False) -> "BlockCSR":  # noqa: A001
     CorruptStoreError
         The tile index is damaged or disagrees with the recorded nnz.
     """
-    root = Path(os.fspath(path))
+    root = as_location(path, storage_options)
     if not root.exists():
         recover_interrupted_replace(root)  # a replace killed half way: the old store back
     for _attempt in range(_LEASE_ATTEMPTS):
@@ -152,7 +165,7 @@ class BlockCSR:
 
     def __init__(self, path: Path, attrs: StoreAttrs, *, allow_incomplete: bool = False,
                  redirected_from: Path | None = None, lease: ReaderLease | None = None):
-        self.path = Path(path)
+        self.path = as_location(path)
         self._lease = lease  # released with this object
         self.redirected_from = redirected_from
         self.attrs = attrs

@@ -28,7 +28,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..atomic import atomic_write_json, hidden_sibling, remove_stale_temp_files
+from ..atomic import hidden_sibling, remove_stale_temp_files
 from ..errors import StoreError
 from . import _format as fmt
 from .attrs import StoreAttrs
@@ -42,6 +42,8 @@ from .locks import (
     remove_trash,
     remove_unless_read,
 )
+from .objects import ObjectPath, as_location
+from .replace import remove_tree
 from .writer import (
     clean_partial_rows,
     create_store,
@@ -177,7 +179,7 @@ class InverseStore:
     """
 
     def __init__(self, path):
-        self.path = Path(os.fspath(path))
+        self.path = as_location(path)
         self.lock = WriterLock(self.path)
         self._removals: list = []  # threads deleting dropped terms (drop_term, settle)
 
@@ -189,6 +191,12 @@ class InverseStore:
         """Delete the whole store (one this run created and finished no term in),
         renamed away first: a crash during the deletion leaves nothing under its name
         (the next writer deletes the trash)."""
+        if isinstance(self.path, ObjectPath):  # no rename: deleted in place, lock last
+            for entry in self.path.iterdir():
+                if entry.name != WRITER_LOCK:
+                    remove_tree(entry)
+            self.lock.release()
+            return
         trash = hidden_sibling(self.path, "trash")
         with contextlib.suppress(FileNotFoundError):
             os.rename(self.path, trash)
@@ -198,7 +206,7 @@ class InverseStore:
     # --- the record --------------------------------------------------------------
 
     def _root(self) -> dict | None:
-        if not (self.path / "zarr.json").exists():
+        if not (self.path / "zarr.json").is_file():
             return None
         return fmt.read_json(self.path / "zarr.json")  # bounded, a link refused
 
@@ -214,7 +222,7 @@ class InverseStore:
         """Replace the record in the root's attributes (one atomic rename)."""
         root = self._root() or fmt.group_json({})
         root.setdefault("attributes", {})[INVERSE_ATTR] = record.to_dict()
-        atomic_write_json(self.path / "zarr.json", root)
+        fmt.write_json(self.path / "zarr.json", root)
 
     def open_or_create(self, params: Mapping, overwrite: bool = False) -> InverseRecord:
         """The record of the inverse at ``path``: a new one (the directory created), or
@@ -239,7 +247,7 @@ class InverseStore:
             raise
 
     def _open_locked(self, params: dict, overwrite: bool) -> InverseRecord:
-        remove_stale_temp_files(self.path)
+        _remove_temp_files(self.path)
         remove_trash(self.path)
         record = self.read_record()
         if overwrite and record is not None:
@@ -291,12 +299,14 @@ class InverseStore:
         record goes, then the trash."""
         for entry in self.path.iterdir():
             if _TERM_DIR.fullmatch(entry.name):
-                os.rename(entry, hidden_sibling(entry, "trash"))
+                if isinstance(entry, ObjectPath):  # no rename: the term deleted first
+                    entry.remove_tree()
+                else:
+                    os.rename(entry, hidden_sibling(entry, "trash"))
         (self.path / "zarr.json").unlink(missing_ok=True)
         for entry in self.path.iterdir():
             if entry.name != WRITER_LOCK:
-                # a link is deleted as itself, never what it points at
-                shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+                remove_tree(entry)  # a link is deleted as itself, never what it points at
 
     def reconcile(self, record: InverseRecord) -> InverseRecord:
         """Adopt the term the redirect points at when the record lags behind it (a
@@ -333,7 +343,7 @@ class InverseStore:
         fmt.check_no_links(self.path, path.relative_to(self.path).as_posix())
         fmt.check_no_links(path, fmt.ROWS_GROUP)
         if path.parent.is_dir():  # the term directory's group record, cut before renaming
-            remove_stale_temp_files(path.parent)
+            _remove_temp_files(path.parent)
         recover_interrupted_replace(path)
         if path.exists():
             try:
@@ -343,9 +353,9 @@ class InverseStore:
             if old is not None and (old.shape, old.tile_size, old.dtype, old.version) == (
                     attrs.shape, attrs.tile_size, attrs.dtype, attrs.version):
                 clean_partial_rows(path, old.grid[0])
-                remove_stale_temp_files(path)
+                _remove_temp_files(path)
                 return path
-            shutil.rmtree(path)
+            remove_tree(path)
         create_store(path, attrs)
         return path
 
@@ -387,6 +397,13 @@ class InverseStore:
         for entry in directory.iterdir():
             if entry.is_dir() and not entry.is_symlink() and not (entry / READER_LEASE).exists():
                 shutil.rmtree(entry, ignore_errors=True)
+
+
+def _remove_temp_files(directory) -> None:
+    """The temporary files killed writers left in ``directory`` (none in object
+    storage, where an object is put whole)."""
+    if not isinstance(directory, ObjectPath):
+        remove_stale_temp_files(directory)
 
 
 def _our_litter(name: str) -> bool:

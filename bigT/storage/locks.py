@@ -35,6 +35,8 @@ from pathlib import Path
 from .. import config
 from ..atomic import dead_writers_siblings, hidden_sibling
 from ..errors import StoreError
+from .object_lock import ObjectLock
+from .objects import ObjectPath, as_location
 
 try:
     import fcntl
@@ -114,17 +116,29 @@ class WriterLock(_HeldFile):
     """
 
     def __init__(self, root: str | os.PathLike, command: str = "bigT invert"):
-        self.file = Path(os.fspath(root)) / WRITER_LOCK
+        root = as_location(root)
+        self.file = root / WRITER_LOCK
         self.command = command
         self._fd: int | None = None
+        # in object storage, a lease object (no flock dies with a process there)
+        self._object = ObjectLock(self.file, command, root) if isinstance(
+            root, ObjectPath) else None
 
     def acquire(self) -> "WriterLock":
+        if self._object is not None:
+            self._object.acquire()
+            return self
         if fcntl is None or self._fd is not None:
             return self
         self._fd = _lock_exclusively(self.file, self.command, self.file.parent)
         return self
 
     # release() drops the lock; the file stays (unlinking it would race a waiting writer)
+
+    def release(self) -> None:
+        if self._object is not None:
+            self._object.release()
+        super().release()
 
     def __enter__(self) -> "WriterLock":
         return self.acquire()
@@ -150,13 +164,18 @@ class ReplaceLock(_HeldFile):
     """
 
     def __init__(self, path: str | os.PathLike, command: str):
-        self.path = Path(os.fspath(path))
+        self.path = as_location(path)
         self.file = self.path.with_name(f".{self.path.name}.bigT-writer.lock")
         self.command = command
         self._fd: int | None = None
         self._inner = WriterLock(self.path, command)
+        self._object = ObjectLock(self.file, command, self.path) if isinstance(
+            self.path, ObjectPath) else None
 
     def acquire(self) -> "ReplaceLock":
+        if self._object is not None:
+            self._object.acquire()
+            return self
         if fcntl is None or self._fd is not None:
             return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -182,6 +201,8 @@ class ReplaceLock(_HeldFile):
 
     def release(self) -> None:
         self._inner.release()
+        if self._object is not None:
+            self._object.release()
         if self._fd is not None:
             with contextlib.suppress(OSError):  # deleted before the lock is dropped
                 os.unlink(self.file)
@@ -205,7 +226,12 @@ class ReaderLease(_HeldFile):
     def __init__(self, store: str | os.PathLike):
         self._fd: int | None = None
         self.valid = True
-        store = Path(os.fspath(store))
+        store = as_location(store)
+        if isinstance(store, ObjectPath):
+            # no shared lock in a bucket: a dropped term is deleted at once, and a
+            # reader of it then fails naming the missing row (docs/FORMAT.md)
+            self.valid = (store / "zarr.json").is_file()
+            return
         if fcntl is not None:
             try:
                 self._fd = os.open(store / READER_LEASE, os.O_RDONLY)
@@ -222,8 +248,11 @@ class ReaderLease(_HeldFile):
 
 
 def create_reader_lease(store: str | os.PathLike) -> None:
-    """Give a store a lease file, before it is published to readers."""
-    Path(os.fspath(store), READER_LEASE).touch()
+    """Give a store a lease file, before it is published to readers (none in object
+    storage, where a lease cannot be held)."""
+    store = as_location(store)
+    if not isinstance(store, ObjectPath):
+        Path(store, READER_LEASE).touch()
 
 
 def _remove_tree(trash: Path, removals: list | None) -> None:
@@ -266,7 +295,10 @@ def remove_unless_read(directory: str | os.PathLike, removals: list | None = Non
     bool
         True when it is gone; False when a reader holds it (left for a later call).
     """
-    directory = Path(os.fspath(directory))
+    directory = as_location(directory)
+    if isinstance(directory, ObjectPath):
+        directory.remove_tree()  # no leases there (ReaderLease): deleted at once
+        return True
     held: list[int] = []
     try:
         # the leases of the stores directly inside, never through a link out of it
@@ -298,6 +330,9 @@ def remove_unless_read(directory: str | os.PathLike, removals: list | None = Non
 
 
 def remove_trash(parent: str | os.PathLike) -> None:
-    """Delete the ``.trash`` directories in ``parent`` whose writer is gone."""
+    """Delete the ``.trash`` directories in ``parent`` whose writer is gone (object
+    storage has none: nothing is renamed there)."""
+    if isinstance(parent, ObjectPath):
+        return
     for entry in dead_writers_siblings(Path(os.fspath(parent)), "trash"):
         shutil.rmtree(entry, ignore_errors=True)

@@ -17,10 +17,11 @@ import shutil
 from pathlib import Path, PurePosixPath
 
 from .. import config
-from ..atomic import atomic_write_json, dead_writers_siblings, fsync_dir, fsync_tree, hidden_sibling
+from ..atomic import dead_writers_siblings, fsync_dir, fsync_tree, hidden_sibling
 from ..errors import IncompleteStoreError, StoreError
 from . import _format as fmt
 from .attrs import StoreAttrs, read_raw_attrs
+from .objects import ObjectPath, as_location
 
 
 def durable() -> bool:
@@ -40,11 +41,25 @@ def is_bigt_or_empty(path: Path) -> bool:
         return False
 
 
+def remove_tree(path) -> None:
+    """Delete the directory (or the objects below the prefix) ``path``, what is
+    missing ignored; a symbolic link is deleted as itself."""
+    if isinstance(path, ObjectPath):
+        path.remove_tree()
+    elif os.path.islink(path):
+        os.unlink(path)
+    else:
+        shutil.rmtree(path, ignore_errors=True)
+
+
 def remove_existing(path: Path, overwrite: bool) -> None:
     """Refuse an existing path unless ``overwrite``; never delete what is not a bigT store."""
     if path.exists():
         check_replaceable(path, overwrite)
-        shutil.rmtree(path)
+        if isinstance(path, ObjectPath):
+            path.remove_tree()
+        else:
+            shutil.rmtree(path)
 
 
 def check_replaceable(path: Path, overwrite: bool) -> None:
@@ -69,7 +84,8 @@ def move_into_place(tmp: Path, path: Path) -> None:
     """Replace ``path`` (absent, or a bigT store) by the complete directory ``tmp``.
 
     Two renames on the same file system; if the second fails the old store is renamed
-    back, so ``path`` is never left missing or half replaced. A process killed between
+    back, so ``path`` is never left missing or half replaced. (Object storage has no
+    rename: :func:`bigT.storage.writer.built_aside` builds there in place.) A process killed between
     the two leaves ``path`` missing and the old store in a hidden ``.old`` sibling:
     :func:`recover_interrupted_replace` (run by every writer and by ``open``) puts it
     back.
@@ -106,9 +122,9 @@ def recover_interrupted_replace(path) -> None:
     replacement left beside ``path``: a missing ``path`` gets its old store back from
     the ``.old`` sibling; ``.old``, ``.partial`` and ``.trash`` siblings of dead
     writers are deleted. Siblings of writers still running are left alone."""
-    path = Path(os.fspath(path))
-    if not path.parent.is_dir():
-        return
+    path = as_location(path)
+    if isinstance(path, ObjectPath) or not path.parent.is_dir():
+        return  # nothing is renamed in object storage, so nothing is left beside it
     old = dead_writers_siblings(path.parent, "old", path.name)
     if old and not path.exists():
         with contextlib.suppress(OSError):  # another process may have restored it
@@ -122,10 +138,10 @@ def recover_interrupted_replace(path) -> None:
 def write_root_attrs(path: Path, attrs: StoreAttrs) -> None:
     """Set ``attributes["bigT"]`` of the root ``zarr.json`` of the store at ``path`` to
     ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`)."""
-    meta_path = Path(path) / "zarr.json"
-    meta = fmt.read_json(meta_path) if meta_path.exists() else fmt.group_json({})
+    meta_path = as_location(path) / "zarr.json"
+    meta = fmt.read_json(meta_path) if meta_path.is_file() else fmt.group_json({})
     meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = attrs.to_dict()
-    atomic_write_json(meta_path, meta, durable())
+    fmt.write_json(meta_path, meta, durable())
 
 
 def set_redirect(path, target: str) -> None:
@@ -142,7 +158,7 @@ def set_redirect(path, target: str) -> None:
     target : str
         Relative POSIX path of a complete bigT store inside ``path``.
     """
-    root = Path(os.fspath(path))
+    root = as_location(path)
     dest = fmt.redirect_target(target, root)
     attrs = read_raw_attrs(dest)
     if "redirect" in attrs:
@@ -155,10 +171,10 @@ def set_redirect(path, target: str) -> None:
     level = root
     for part in PurePosixPath(target).parts[:-1]:
         level = level / part
-        if not (level / "zarr.json").exists():
-            atomic_write_json(level / "zarr.json", fmt.group_json({}), durable())
+        if not (level / "zarr.json").is_file():
+            fmt.write_json(level / "zarr.json", fmt.group_json({}), durable())
     meta_path = root / "zarr.json"
-    meta = fmt.read_json(meta_path) if meta_path.exists() else fmt.group_json({})
+    meta = fmt.read_json(meta_path) if meta_path.is_file() else fmt.group_json({})
     if meta.get("node_type") != "group":
         raise StoreError("cannot set a redirect: zarr.json is not a group", root)
     bigt = dict((meta.get("attributes") or {}).get(fmt.ATTRS_KEY) or {})
@@ -170,17 +186,18 @@ def set_redirect(path, target: str) -> None:
     # the target's files were fsynced when it was finalized; the names that lead to it
     # (a term directory made by mkdir) are made durable here, before the flip points
     # at them (config.DURABILITY)
-    for level in [dest.parent, *dest.parent.parents] if durable() else []:
+    local = not isinstance(root, ObjectPath)
+    for level in [dest.parent, *dest.parent.parents] if durable() and local else []:
         fsync_dir(level)
         if level == root:
             break
-    atomic_write_json(meta_path, meta, durable())
+    fmt.write_json(meta_path, meta, durable())
 
 
 def write_group(path, attributes: dict) -> None:
     """Make ``path`` a zarr v3 group holding ``attributes``, its zarr.json replaced
     whole (created with its parents when missing): the groups around the stores, such
     as a scene's ``ground_truth/``."""
-    path = Path(os.fspath(path))
+    path = as_location(path)
     path.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(path / "zarr.json", fmt.group_json(attributes), durable())
+    fmt.write_json(path / "zarr.json", fmt.group_json(attributes), durable())

@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
+
 from ..errors import BigTError, CorruptStoreError
 from . import _format as fmt
+from .objects import ObjectPath
 
 #: The stored tiles of tile row i, ``(j, tile)`` by ascending tile column j.
 TileRowReader = Callable[[int], Iterable[tuple[int, sp.csr_array]]]
@@ -27,6 +29,12 @@ def zarr_array(root: Path, name: str):
     imported here (~0.2 s with its asyncio and fsspec machinery), not with the
     module: stores bigT wrote never need it."""
     import zarr
+
+    if isinstance(root, ObjectPath):
+        from zarr.storage import ObjectStore
+
+        return zarr.open_array(ObjectStore(root.store, read_only=True),
+                               path=f"{root.key}/{name}".lstrip("/"), mode="r")
     from zarr.storage import LocalStore
 
     return zarr.open_array(LocalStore(root, read_only=True), path=name, mode="r")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
 import shutil
 import uuid
@@ -30,8 +31,9 @@ from .attrs import StoreAttrs, read_raw_attrs
 from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .pixel_order import PIXEL_ORDERS, PixelOrder
+from .objects import ObjectPath, as_location
 from .replace import (check_replaceable, durable, move_into_place, remove_existing,
-                      temporary_sibling, write_root_attrs)
+                      remove_tree, temporary_sibling, write_root_attrs)
 
 
 def _check_dtype(dtype, where) -> np.dtype:
@@ -59,13 +61,13 @@ def _deleted_on_failure(tmp: Path, path: Path, what: str):
     try:
         yield
     except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove_tree(tmp)
         wrapped = _wrap_oserror(exc, path, what)
         if wrapped is not None:
             raise wrapped from exc
         raise
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove_tree(tmp)
         raise
 
 
@@ -113,10 +115,12 @@ def _validate_block(path: Path, attrs: StoreAttrs, i: int, block) -> sp.csr_arra
 def create_store(path, attrs: StoreAttrs) -> None:
     """Write the header of an empty store at ``path`` (root and ``rows`` groups):
     what :func:`write_tile_row` and :func:`finalize_store` need to find."""
-    path = Path(path)
+    path = as_location(path)
     attrs.check_json(path)
     try:
-        if path.exists() or path.name.endswith(".partial"):
+        # in object storage, in place: objects are put whole, and the root's
+        # ``complete`` flag, set last by finalize_store, is what readers trust
+        if isinstance(path, ObjectPath) or path.exists() or path.name.endswith(".partial"):
             # an empty directory to write into (the caller's choice), or a store built
             # aside already (nobody reads it before it is renamed into place)
             path.mkdir(parents=True, exist_ok=True)
@@ -140,13 +144,13 @@ def create_store(path, attrs: StoreAttrs) -> None:
 
 def _write_header(path: Path, attrs: StoreAttrs) -> None:
     (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
-    atomic_write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}), durable())
+    fmt.write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}), durable())
     write_root_attrs(path, attrs)
 
 
 def read_store_attrs(path) -> StoreAttrs:
     """The attributes of the (non-redirect) store at ``path``."""
-    path = Path(path)
+    path = as_location(path)
     raw = read_raw_attrs(path)
     if "redirect" in raw:
         raise StoreError("is a redirect (versioned) store root, not a store to write", path)
@@ -199,7 +203,7 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     bool
         False when the row was already complete (nothing written).
     """
-    path, i = Path(path), int(i)
+    path, i = as_location(path), int(i)
     if not 0 <= i < attrs.grid[0]:
         raise ShapeMismatchError(f"tile row {i} out of range [0, {attrs.grid[0]})", path)
     _check_writable_version(path, read_store_attrs(path))  # the disk's, not the caller's
@@ -209,6 +213,8 @@ def write_tile_row(path, attrs: StoreAttrs, i: int, block, zstd_level=None,
     linked_from = None
     if keep is not None:
         block, linked_from = _with_kept_tiles(keep, attrs, i, block, path)
+    if isinstance(path, ObjectPath):
+        return _put_row(path, attrs, i, block, zstd_level, linked_from)
     tmp = path / fmt.ROWS_GROUP / f".{i}.{uuid.uuid4().hex[:12]}.partial"
     with _deleted_on_failure(tmp, path, f"tile row {i}"):
         if linked_from is not None:
@@ -228,9 +234,35 @@ def _check_writable_version(path: Path, attrs: StoreAttrs) -> None:
                          option=Option("convert(old, new)", cli="bigT convert OLD -o NEW"))
 
 
+def _put_row(path: ObjectPath, attrs: StoreAttrs, i: int, block: sp.csr_array, level,
+             linked_from: ObjectPath | None) -> bool:
+    """:func:`write_tile_row` in object storage, where nothing is renamed: the row's
+    objects are put in place, then its marker, created only where none is
+    (``If-None-Match``). A row without its marker is invisible to readers (and deleted
+    by :func:`clean_partial_rows`); of two writers of one row (a retried task) the
+    second's marker is refused and it returns False. Their arrays are the same bytes:
+    a row's computation is deterministic (docs/FORMAT.md, "Object storage")."""
+    dest = path / fmt.row_path(i)
+    if linked_from is not None:  # copied in the server: no byte comes here
+        for name in fmt.TILE_ARRAYS:
+            (linked_from / name).copy_tree_to(dest / name)
+        marker = (linked_from / "zarr.json").read_bytes(fmt.METADATA_MAX_BYTES)
+    else:
+        marker = _write_row_arrays(dest, attrs, block, level)
+    return (dest / "zarr.json").create(marker)
+
+
 def _write_row(tmp: Path, attrs: StoreAttrs, block: sp.csr_array, level) -> None:
     """The row's group in ``tmp``: its three arrays, then (last) its marker."""
     tmp.mkdir()
+    marker = _write_row_arrays(tmp, attrs, block, level)
+    if durable():
+        fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
+    atomic_write_json(tmp / "zarr.json", json.loads(marker), durable())
+
+
+def _write_row_arrays(tmp, attrs: StoreAttrs, block: sp.csr_array, level) -> bytes:
+    """Write the row's three arrays below ``tmp``; returns its marker's JSON bytes."""
     indices = block.indices.astype(fmt.indices_dtype(attrs.shape[1]), copy=False)
     fmt.write_array_files(tmp, "indptr", block.indptr.astype(fmt.INDPTR_DTYPE, copy=False),
                           fmt.FILL_INT, level)
@@ -240,11 +272,9 @@ def _write_row(tmp: Path, attrs: StoreAttrs, block: sp.csr_array, level) -> None
                           config.ZSTD_LEVEL_VALUES if level is None else level)
     counts = np.bincount(indices // attrs.tile_size) if indices.size else np.zeros(0, np.int64)
     cols = np.flatnonzero(counts)
-    if durable():
-        fsync_tree(tmp, include_root=False)  # the marker's own fsyncs cover tmp itself
-    atomic_write_json(tmp / "zarr.json", fmt.group_json({fmt.ROW_ATTRS_KEY: {
+    return json.dumps(fmt.group_json({fmt.ROW_ATTRS_KEY: {
         "complete": True, "tile_columns": cols.tolist(), "tile_nnz": counts[cols].tolist()}}),
-        durable())
+        indent=2).encode()
 
 
 def _with_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, block: sp.csr_array,
@@ -253,7 +283,7 @@ def _with_kept_tiles(keep: KeptTiles, attrs: StoreAttrs, i: int, block: sp.csr_a
     tiles checked against the old row's marker (a row that claims tiles it does not
     hold would be a store that lies), then linked when they are the whole old row and
     ``block`` is empty, else read and added to ``block``."""
-    source = Path(keep.store)
+    source = as_location(keep.store)
     old_attrs = read_store_attrs(source)
 
     def layout(a: StoreAttrs):
@@ -338,8 +368,9 @@ def _move_row_into_place(tmp: Path, path: Path, i: int) -> bool:
 def completed_rows(path, n_rows: int) -> dict[int, tuple[list[int], list[int]]]:
     """``{i: (tile_columns, tile_nnz)}`` of the tile rows marked complete on disk."""
     out = {}
+    path = as_location(path)
     for i in range(n_rows):
-        rec = fmt.row_marker(Path(path), i)
+        rec = fmt.row_marker(path, i)
         if rec is not None:
             out[i] = (list(rec["tile_columns"]), list(rec["tile_nnz"]))
     return out
@@ -350,16 +381,17 @@ def clean_partial_rows(path, n_rows: int) -> int:
     row directories without a completion marker (bigT before 0.2 wrote rows in
     place). Run by the one process that owns the store, before writers start, never
     while they write. Returns the number of directories deleted."""
-    rows = Path(path) / fmt.ROWS_GROUP
+    path = as_location(path)
+    rows = path / fmt.ROWS_GROUP
     gone = 0
     if not rows.is_dir():
         return 0
     for entry in rows.iterdir():
         stale = entry.name.endswith(".partial") or (
             entry.name.isdigit() and int(entry.name) < n_rows
-            and fmt.row_marker(Path(path), int(entry.name)) is None)
+            and fmt.row_marker(path, int(entry.name)) is None)
         if stale and entry.is_dir():
-            shutil.rmtree(entry, ignore_errors=True)
+            remove_tree(entry)
             gone += 1
     return gone
 
@@ -374,7 +406,8 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
     IncompleteStoreError
         Naming the tile rows not yet written.
     """
-    path = Path(path)
+    path = as_location(path)
+    local = not isinstance(path, ObjectPath)  # an object is durable once put
     attrs = read_store_attrs(path)
     if attrs.complete:
         return open_store(path)
@@ -392,9 +425,9 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
     try:
         for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
             fmt.write_array_files(path, name, values, fmt.FILL_INT, zstd_level)
-            if durable():
+            if durable() and local:
                 fsync_tree(path / name)
-        if durable():
+        if durable() and local:
             fsync_dir(path)  # the arrays' names, before the flag that says they are there
         write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
     except OSError as exc:
@@ -454,7 +487,7 @@ class BlockCSRWriter:
     def __init__(self, path, shape, *, tile_size: int | None = None, dtype="float32",
                  pixel_order: PixelOrder | None = None, metadata: dict | None = None,
                  resume: bool = False, overwrite: bool = False, zstd_level: int | None = None):
-        self.path = Path(os.fspath(path))
+        self.path = as_location(path)
         try:
             shape = tuple(int(s) for s in shape)
         except (TypeError, ValueError):
@@ -630,7 +663,7 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
     -------
     BlockCSR
     """
-    path = Path(os.fspath(path))
+    path = as_location(path)
     if input_order not in ("row-major", "matrix"):
         raise ValueError(f"input_order must be 'row-major' or 'matrix', got {input_order!r}")
     if pixel_order not in PIXEL_ORDERS:
@@ -678,7 +711,16 @@ def from_scipy(A, path, *, tile_size: int | None = None, dtype=None, image_shape
 def built_aside(path: Path):
     """A fresh sibling directory of ``path`` to build a whole store in, moved into place
     when the block ends and deleted when it fails, so ``path`` is never half written;
-    a full disk is a DiskFullError saying nothing changed at ``path``."""
+    a full disk is a DiskFullError saying nothing changed at ``path``.
+
+    In object storage there is no rename: the store is built at ``path`` itself (an
+    old one deleted first), and until ``finalize`` marks it complete readers refuse it
+    as incomplete; a failure leaves it so, for a rerun to replace."""
+    if isinstance(path, ObjectPath):
+        if path.exists():
+            remove_tree(path)  # check_replaceable allowed it: a bigT store, overwrite
+        yield path
+        return
     tmp = temporary_sibling(path)
     try:
         with _deleted_on_failure(tmp, path, "the store"):

@@ -1,0 +1,118 @@
+"""Stores in a bucket of a real S3-compatible server (moto on 127.0.0.1): written and
+read back equal to scipy, through the library and the command line, and every check a
+local store gets (damage, a second writer, hostile URLs)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import bigT
+from bigT.errors import CorruptStoreError, StoreError
+from bigT.storage import ObjectPath, as_location, disk_bytes, from_scipy
+
+
+def _matrix(n=700, seed=1):
+    R = sp.random(n, n, density=0.04, random_state=seed, format="csr", dtype=np.float32)
+    return (sp.eye(n, dtype=np.float32) + R * (0.5 / abs(R).sum(1).max())).tocsr()
+
+
+def test_a_store_written_to_the_bucket_reads_back_equal_to_scipy(s3_url):
+    A = _matrix()
+    S = from_scipy(A, f"{s3_url}/T.zarr", tile_size=128)
+    assert isinstance(S.path, ObjectPath)
+    back = bigT.open(f"{s3_url}/T.zarr")
+    assert (back.to_scipy() != A).nnz == 0
+    x = np.random.default_rng(0).random(A.shape[0])
+    np.testing.assert_allclose(back @ x, A @ x, rtol=1e-5)
+    np.testing.assert_array_equal(back.diagonal(), A.diagonal())
+    assert back.verify()["nnz"] == A.nnz
+    assert disk_bytes(back.path) > 0
+
+
+def test_the_bucket_holds_the_keys_a_local_store_holds_as_files(s3_url, tmp_path):
+    A = _matrix(300)
+    from_scipy(A, tmp_path / "T.zarr", tile_size=128)
+    S = from_scipy(A, f"{s3_url}/T.zarr", tile_size=128)
+    local = sorted(p.relative_to(tmp_path / "T.zarr").as_posix()
+                   for p in (tmp_path / "T.zarr").rglob("*") if p.is_file())
+    remote = sorted(k[len(S.path.key) + 1:] for k, _ in S.path.walk_objects())
+    assert remote == [k for k in local if not k.startswith(".")]
+
+
+def test_a_damaged_object_is_found_by_verify(s3_url):
+    S = from_scipy(_matrix(300), f"{s3_url}/T.zarr", tile_size=128)
+    chunk = S.path / "rows" / "1" / "data" / "c" / "0"
+    raw = bytearray(chunk.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(raw))
+    with pytest.raises((CorruptStoreError, ValueError), match="rows/1|checksum|tile row 1"):
+        bigT.open(S.path).verify()
+
+
+def test_a_second_writer_of_an_inverse_is_refused_by_the_lock_object(s3_url):
+    from bigT.storage.locks import WriterLock
+
+    first = WriterLock(as_location(f"{s3_url}/X.zarr")).acquire()
+    try:
+        with pytest.raises(StoreError, match="is being written by"):
+            WriterLock(as_location(f"{s3_url}/X.zarr")).acquire()
+    finally:
+        first.release()
+    WriterLock(as_location(f"{s3_url}/X.zarr")).acquire().release()  # free again
+
+
+def test_a_lock_of_a_dead_process_of_this_machine_is_taken_over(s3_url):
+    import json
+    import socket
+
+    lock = as_location(f"{s3_url}/X.zarr") / ".bigT-writer.lock"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    lock.write_bytes(json.dumps({"command": "bigT invert", "pid": dead.pid,
+                                 "host": socket.gethostname()}).encode())
+    from bigT.storage.locks import WriterLock
+
+    held = WriterLock(lock.parent).acquire()
+    assert json.loads(lock.read_bytes())["pid"] == os.getpid()
+    held.release()
+    assert not lock.is_file()
+
+
+@pytest.mark.parametrize("url, problem", [
+    ("s3:///T.zarr", "without a bucket"),
+    ("s3://bucket/a/../T.zarr", "'..'"),
+    ("http://example.com/T.zarr", "not served"),
+])
+def test_a_bad_url_is_refused_in_one_line(url, problem):
+    with pytest.raises(StoreError, match=problem):
+        bigT.open(url)
+
+
+def _cli(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "bigT.cli", *map(str, args)],
+                          capture_output=True, text=True, env={**os.environ, **(env or {})},
+                          timeout=300)
+
+
+def test_convert_to_a_url_writes_the_bucket_and_no_local_directory(s3_url, tmp_path):
+    A = _matrix(400)
+    sp.save_npz(tmp_path / "T.npz", A)
+    out = _cli("convert", tmp_path / "T.npz", "-o", f"{s3_url}/run/T.zarr", env={"PWD": str(tmp_path)})
+    assert out.returncode == 0, out.stderr
+    assert not (tmp_path / "s3:").exists() and not os.path.exists("s3:")
+    assert (bigT.open(f"{s3_url}/run/T.zarr").to_scipy() != A).nnz == 0
+    info = _cli("info", f"{s3_url}/run/T.zarr")
+    assert info.returncode == 0 and "400" in info.stdout, info.stderr
+
+
+def test_a_missing_store_in_the_bucket_is_one_line_exit_2(s3_url):
+    out = _cli("info", f"{s3_url}/nothing.zarr")
+    assert out.returncode == 2
+    assert "Traceback" not in out.stderr and "nothing.zarr" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
