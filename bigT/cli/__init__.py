@@ -171,6 +171,8 @@ def build_parser(*, complete: bool = True) -> argparse.ArgumentParser:
     for command in sub.choices.values():
         command.defer(_add_quiet)
     for command in _leaf_parsers(parser):
+        command.defer(_add_storage_options)
+    for command in _leaf_parsers(parser):
         command.set_defaults(_parser=command)
         if command.prog in STORE_WRITERS:
             command.defer(_add_durability)
@@ -184,6 +186,37 @@ def _add_quiet(command: argparse.ArgumentParser) -> None:
     command.add_argument("-q", "--quiet", action="store_true",
                          help="print nothing but errors and warnings: no progress bars, "
                          "no summary (the outputs are written as usual)")
+
+
+def _add_storage_options(command: argparse.ArgumentParser) -> None:
+    command.add_argument(
+        "--storage-options", metavar="JSON", default=None,
+        help="options of the object store for s3://, gs://, az:// paths, a JSON object "
+             "(e.g. '{\"endpoint\": \"http://127.0.0.1:9000\", \"region\": "
+             "\"eu-west-1\"}'); credentials come from the usual environment variables "
+             "(AWS_ACCESS_KEY_ID, AWS_ENDPOINT_URL, ...)")
+
+
+@contextlib.contextmanager
+def _storage_options(args):
+    """With ``--storage-options``: every URL of the run (and the worker processes it
+    starts) gets them, through ``BIGT_STORAGE_OPTIONS``; checked before the run."""
+    text = getattr(args, "storage_options", None)
+    if text is None:
+        yield
+        return
+    from ..storage.objects import OPTIONS_ENV, default_storage_options
+
+    saved = os.environ.get(OPTIONS_ENV)
+    os.environ[OPTIONS_ENV] = text
+    try:
+        default_storage_options()  # a StoreError, one line, for what is not an object
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop(OPTIONS_ENV, None)
+        else:
+            os.environ[OPTIONS_ENV] = saved
 
 
 def _add_durability(command: argparse.ArgumentParser) -> None:
@@ -266,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        with _quieted(args), _durability(args):
+        with _quieted(args), _durability(args), _storage_options(args):
             return int(args.func(args) or 0)
     except BigTError as exc:
         parser_of_command = getattr(args, "_parser", None)

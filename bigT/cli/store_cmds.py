@@ -76,8 +76,10 @@ def convert_cmd(args) -> int:
     from ..storage.convert import check_values, load_matrix
     from ..storage.locks import ReplaceLock
 
+    from ..storage import is_url
+
     refuse_overwriting_inputs([args.output], [args.input])
-    if os.path.isdir(args.input):
+    if is_url(args.input) or os.path.isdir(args.input):  # a store: rewritten, not loaded
         return _upgrade(args)
     # a second convert (or scene, or invert) of the same store is refused here, at once
     with ReplaceLock(args.output, "bigT convert"):

@@ -351,6 +351,30 @@ class ObjectPath:
             obstore.copy(self.store, key, dest.key + key[len(self.key):])
 
 
+#: Environment variable holding the storage options (a JSON object) every URL gets
+#: when none are given: how the command line's ``--storage-options`` reaches the
+#: stores it opens, and the worker processes it starts.
+OPTIONS_ENV = "BIGT_STORAGE_OPTIONS"
+
+
+def default_storage_options() -> dict:
+    """The storage options of :data:`OPTIONS_ENV` (empty when unset); StoreError for
+    a value that is not a JSON object."""
+    import json
+
+    text = os.environ.get(OPTIONS_ENV, "").strip()
+    if not text:
+        return {}
+    try:
+        options = json.loads(text)
+    except ValueError as exc:
+        raise StoreError(f"storage options are not JSON ({exc})") from None
+    if not isinstance(options, dict):
+        raise StoreError("storage options must be a JSON object, such as "
+                         '{"endpoint": "http://127.0.0.1:9000", "region": "us-east-1"}')
+    return options
+
+
 def as_location(path, storage_options: Mapping | None = None):
     """A store's location: an :class:`ObjectPath` for a URL of object storage, a
     :class:`pathlib.Path` for anything else (a ``file://`` URL included).
@@ -360,8 +384,9 @@ def as_location(path, storage_options: Mapping | None = None):
     path : str, os.PathLike or ObjectPath
     storage_options : mapping, optional
         For a URL: obstore's ``from_url`` options (``endpoint``, ``region``,
-        ``client_options``...); the AWS, Google and Azure environment variables hold
-        the rest.
+        ``client_options``...); default those of the environment variable
+        ``BIGT_STORAGE_OPTIONS`` (JSON). The AWS, Google and Azure environment
+        variables hold the rest.
 
     Raises
     ------
@@ -370,8 +395,10 @@ def as_location(path, storage_options: Mapping | None = None):
     """
     from pathlib import Path
 
+    if storage_options is None:
+        storage_options = default_storage_options()
     if isinstance(path, ObjectPath):
-        return path if storage_options is None else ObjectPath(
+        return path if not storage_options else ObjectPath(
             path.base, path.key, _frozen_options(storage_options))
     if isinstance(path, str):
         scheme = url_scheme(path)

@@ -4,10 +4,9 @@ bigT reads but does not add rows to."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 from ..progress import progress_bar
+from .objects import as_location
 from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .replace import check_replaceable, write_root_attrs
@@ -23,8 +22,8 @@ def upgrade_store(source, path, *, overwrite: bool = False,
 
     Parameters
     ----------
-    source : str or os.PathLike
-    path : str or os.PathLike
+    source : str, os.PathLike or URL
+    path : str, os.PathLike or URL (object storage: built in place, see ``built_aside``)
     overwrite : bool
         Replace an existing bigT store at ``path``.
     progress : bool or None
@@ -35,7 +34,7 @@ def upgrade_store(source, path, *, overwrite: bool = False,
     BlockCSR, the new store
     """
     old = open_store(source)
-    path = Path(os.fspath(path))
+    path = as_location(path)
     check_replaceable(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     with built_aside(path) as tmp:
