@@ -156,7 +156,7 @@ class ClusterRunner:
     def check_paths(self, paths) -> None:
         """SchedulerError unless every live worker sees every path (a shared
         filesystem)."""
-        paths = [p if isinstance(p, ObjectPath) else os.fspath(p) for p in paths]
+        paths = [as_location(p) if is_url(p) else os.fspath(p) for p in paths]
         for p in paths:
             if isinstance(p, ObjectPath) and p.base.startswith("memory"):
                 raise SchedulerError(f"{p} lives in this process's memory: worker processes "

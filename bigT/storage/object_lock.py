@@ -116,8 +116,6 @@ class ObjectLock:
                     return         # error: the next writer's takeover decides
 
     def release(self) -> None:
-        import obstore
-
         self._stop.set()
         with self._lock:
             etag, self._etag = self._etag, None
@@ -126,6 +124,8 @@ class ObjectLock:
         self._thread = None
         if etag is not None:
             try:
+                import obstore
+
                 obstore.delete(self.obj.store, self.obj.key)
             except Exception:  # an abandoned lock is taken over by the next writer
                 pass
