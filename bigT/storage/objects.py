@@ -65,6 +65,31 @@ def _thawed(options: tuple) -> dict:
             for k, v in options}
 
 
+@dataclass
+class Traffic:
+    """Requests and bytes this process exchanged with object storage (a benchmark's
+    "bytes moved"); :data:`TRAFFIC` counts them."""
+
+    requests: int = 0
+    bytes_read: int = 0
+    bytes_written: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def add(self, read: int = 0, written: int = 0) -> None:
+        with self._lock:
+            self.requests += 1
+            self.bytes_read += read
+            self.bytes_written += written
+
+    def snapshot(self) -> tuple[int, int, int]:
+        """(requests, bytes read, bytes written) so far."""
+        with self._lock:
+            return self.requests, self.bytes_read, self.bytes_written
+
+
+#: This process's traffic with object storage.
+TRAFFIC = Traffic()
+
 _STORES: dict = {}
 _STORES_LOCK = threading.Lock()
 
@@ -240,15 +265,22 @@ class ObjectPath:
         except FileNotFoundError:
             raise FileNotFoundError(str(self)) from None
         if max_bytes is not None and result.meta["size"] > max_bytes:
+            TRAFFIC.add()
             raise ValueError(f"{self.key} is larger than {max_bytes} bytes")
-        return bytes(result.bytes())
+        data = bytes(result.bytes())
+        TRAFFIC.add(read=len(data))
+        return data
 
     @_requests
     def write_bytes(self, data: bytes) -> None:
         """Put the object whole (an object store replaces it in one step)."""
         import obstore
 
-        obstore.put(self.store, self.key, data)
+        # one PUT, never a multipart upload: the largest object bigT writes is a chunk
+        # of 2^27 values (1 GiB), under S3's 5 GiB for one PUT, and a writer killed
+        # mid-PUT leaves no invisible, billed, half-finished upload behind
+        obstore.put(self.store, self.key, data, use_multipart=False)
+        TRAFFIC.add(written=len(data))
 
     @_requests
     def create(self, data: bytes) -> bool:
@@ -257,17 +289,20 @@ class ObjectPath:
         import obstore
 
         try:
-            obstore.put(self.store, self.key, data, mode="create")
+            obstore.put(self.store, self.key, data, mode="create", use_multipart=False)
         except Exception as exc:  # obstore's AlreadyExistsError / PreconditionError
             if _conditional_refusal(exc):
+                TRAFFIC.add()
                 return False
             raise
+        TRAFFIC.add(written=len(data))
         return True
 
     @_requests
     def size(self) -> int:
         import obstore
 
+        TRAFFIC.add()
         try:
             return int(obstore.head(self.store, self.key)["size"])
         except FileNotFoundError:
@@ -284,6 +319,7 @@ class ObjectPath:
     def _listing(self) -> dict:
         import obstore
 
+        TRAFFIC.add()
         return obstore.list_with_delimiter(self.store, self.key + "/" if self.key else None)
 
     def child_names(self) -> list[str]:
