@@ -96,7 +96,8 @@ def test_a_deferred_parser_once_used_holds_the_options_of_the_whole_one_in_order
                             "--durability", "none"])
     assert (args.terms, args.quiet, args.durability) == (3, True, "none")
     assert options(lazy, "invert") == options(build_parser(), "invert")
-    assert options(lazy, "invert")[-2:] == [["-q", "--quiet"], ["--durability"]]
+    assert options(lazy, "invert")[-3:] == [["-q", "--quiet"], ["--storage-options"],
+                                            ["--durability"]]
 
 
 def test_the_encodings_the_cli_offers_are_the_library_s():

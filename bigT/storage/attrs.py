@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import BigTError, CorruptStoreError, IncompleteStoreError, StoreError
 from . import _format as fmt
 from .channel_mixing import ChannelMixing
+from .objects import ObjectPath
 from .pixel_order import PixelOrder
 
 
@@ -192,9 +193,12 @@ def read_raw_attrs(path: Path) -> dict:
     StoreError
         No such directory, no zarr v3 group, no bigT attributes, a newer version.
     """
-    if not path.exists():
+    if isinstance(path, ObjectPath):  # one request: a missing zarr.json is no store
+        if not (path / "zarr.json").is_file():
+            raise StoreError("no such store", path)
+    elif not path.exists():
         raise StoreError("no such store", path)
-    if not path.is_dir():
+    elif not path.is_dir():
         raise StoreError("not a bigT store (not a directory)", path)
     meta = fmt.read_json(path / "zarr.json")
     if meta.get("zarr_format") != 3 or meta.get("node_type") != "group":

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from ..errors import BigTError, CorruptStoreError
 from . import _format as fmt
-from .objects import ObjectPath
+from .objects import ObjectPath, concurrently
 
 #: The stored tiles of tile row i, ``(j, tile)`` by ascending tile column j.
 TileRowReader = Callable[[int], Iterable[tuple[int, sp.csr_array]]]
@@ -170,9 +170,16 @@ class RowReader:
 
     def _read_arrays(self, i: int, lengths: tuple[int, int, int]) -> list[np.ndarray]:
         base = fmt.row_path(i)
+
+        def read(array: tuple[str, int]):
+            return fmt.read_array_files(self._path / base / array[0], array[1], root=self._path)
+
         try:
-            direct = [fmt.read_array_files(self._path / base / name, n, root=self._path)
-                      for name, n in zip(fmt.TILE_ARRAYS, lengths)]
+            arrays = list(zip(fmt.TILE_ARRAYS, lengths))
+            # in object storage the three arrays' requests go together (latency, not
+            # bandwidth, is what a small row's read waits for)
+            direct = (concurrently(read, arrays) if isinstance(self._path, ObjectPath)
+                      else [read(a) for a in arrays])
             if any(a is None for a in direct):  # not bigT's own layout: zarr reads it
                 direct = [zarr_array(self._path, f"{base}/{name}")[...]
                           for name in fmt.TILE_ARRAYS]

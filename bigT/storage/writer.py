@@ -31,7 +31,7 @@ from .attrs import StoreAttrs, read_raw_attrs
 from .block_csr import BlockCSR
 from .block_csr import open as open_store
 from .pixel_order import PIXEL_ORDERS, PixelOrder
-from .objects import ObjectPath, as_location
+from .objects import ObjectPath, as_location, concurrently
 from .replace import (check_replaceable, durable, move_into_place, remove_existing,
                       remove_tree, temporary_sibling, write_root_attrs)
 
@@ -264,12 +264,16 @@ def _write_row(tmp: Path, attrs: StoreAttrs, block: sp.csr_array, level) -> None
 def _write_row_arrays(tmp, attrs: StoreAttrs, block: sp.csr_array, level) -> bytes:
     """Write the row's three arrays below ``tmp``; returns its marker's JSON bytes."""
     indices = block.indices.astype(fmt.indices_dtype(attrs.shape[1]), copy=False)
-    fmt.write_array_files(tmp, "indptr", block.indptr.astype(fmt.INDPTR_DTYPE, copy=False),
-                          fmt.FILL_INT, level)
-    fmt.write_array_files(tmp, "indices", indices, fmt.FILL_INT, level)
-    # the values at their own level unless the caller chose one for every array
-    fmt.write_array_files(tmp, "data", block.data, fmt.FILL_FLOAT,
-                          config.ZSTD_LEVEL_VALUES if level is None else level)
+    arrays = [("indptr", block.indptr.astype(fmt.INDPTR_DTYPE, copy=False), fmt.FILL_INT, level),
+              ("indices", indices, fmt.FILL_INT, level),
+              # the values at their own level unless the caller chose one for every array
+              ("data", block.data, fmt.FILL_FLOAT,
+               config.ZSTD_LEVEL_VALUES if level is None else level)]
+    if isinstance(tmp, ObjectPath):  # the three arrays' PUTs in flight together
+        concurrently(lambda a: fmt.write_array_files(tmp, *a), arrays)
+    else:
+        for a in arrays:
+            fmt.write_array_files(tmp, *a)
     counts = np.bincount(indices // attrs.tile_size) if indices.size else np.zeros(0, np.int64)
     cols = np.flatnonzero(counts)
     return json.dumps(fmt.group_json({fmt.ROW_ATTRS_KEY: {
