@@ -23,6 +23,15 @@ log-log plot is written beside the record RESULTS.md is made from (``_results``:
     python benchmarks/bench_scale.py --max-size 2073600  # the full-HD point: ~30 min
 
 A ``--workdir`` that already holds a scene reuses it.
+
+``--cluster-model`` checks and plots the model of a cluster run instead
+(``cluster_model.py``): ``bigT invert`` of one scene (default 192x256, out of core) on
+local threads, ``--scheduler local:1`` and ``local:2``, each ``--repeats`` times
+interleaved (the best kept); the model built from the threads run and from the
+1-worker run predicts the others (error per configuration), then full HD and 4K on
+N = 1..128 workers on a shared filesystem and an object store::
+
+    python benchmarks/bench_scale.py --cluster-model [--size 192x256] [--repeats 2]
 """
 
 from __future__ import annotations
@@ -192,24 +201,185 @@ def record_rows(res, rows, args) -> None:
 
 
 def plot(rows, path: str) -> str:
+    """Time (s) and peak memory (GiB) against n, each on its own labelled log axis."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = [r["n"] for r in rows]
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    for key, label, marker in (("invert_s", "4-term inverse (s)", "o"),
-                               ("build_s", "scene build (s)", "s"),
-                               ("peak_gib", "inverse peak RSS (GiB)", "^")):
+    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10.5, 4.4))
+    for key, label, marker in (("invert_s", "4-term inverse", "o"),
+                               ("build_s", "scene build", "s")):
         ys = [r[key] for r in rows]
-        ax.loglog(n, ys, marker=marker, label=f"{label}, slope {fit_exponent(n, ys):.2f}")
+        ax_t.loglog(n, ys, marker=marker, label=f"{label}, slope {fit_exponent(n, ys):.2f}")
     ref = [rows[0]["invert_s"] * x / n[0] for x in n]
-    ax.loglog(n, ref, "k:", lw=1, label="slope 1 (linear in n)")
-    ax.set_xlabel("n (projector pixels)")
-    ax.set_title("bigT: cost against n at ~constant nonzeros per row (2 cores)", fontsize=10)
+    ax_t.loglog(n, ref, "k:", lw=1, label="slope 1 (linear in n)")
+    ax_t.set_ylabel("wall time (s)")
+    ax_t.set_title("time", fontsize=10)
+    for key, label, marker in (("peak_gib", "inverse: peak RSS", "^"),
+                               ("build_peak_gib", "scene build: peak RSS", "v")):
+        ys = [r[key] for r in rows]
+        ax_m.loglog(n, ys, marker=marker, label=f"{label}, slope {fit_exponent(n, ys):.2f}")
+    ax_m.set_ylabel("peak resident memory (GiB)")
+    ax_m.set_title("memory", fontsize=10)
+    for ax in (ax_t, ax_m):
+        ax.set_xlabel("n (projector pixels)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    fig.suptitle("bigT: cost against n at ~constant nonzeros per row (2 cores)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+CLUSTER_CONFIGS = (("threads", None, 1, 2), ("local:1", "local:1", 1, 1),
+                   ("local:2", "local:2", 2, 1))
+
+
+def invert_report(scene: str, out: str, scheduler, args) -> dict:
+    """One out-of-core ``bigT invert`` in a fresh process; its JSON report."""
+    report = out + ".json"
+    cmd = [sys.executable, "-m", "bigT.cli", "invert", scene, "-o", out, "--terms",
+           str(args.terms), "--prune", str(args.prune), "--memory-limit", args.memory_limit,
+           "--no-progress", "--overwrite", "--json", report]
+    if scheduler:
+        cmd += ["--scheduler", scheduler]
+    env = {**os.environ, "BIGT_IN_MEMORY": "0"}  # a cluster run is out of core: so is this
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if proc.returncode:
+        raise SystemExit(f"invert on {scheduler or 'threads'} failed: {proc.stderr.strip()}")
+    with open(report) as fh:
+        return json.load(fh)
+
+
+def store_bandwidth(path: str) -> tuple[float, float]:
+    """(bytes/s, seconds per file) reading every file of the store at ``path``, as the
+    run met it (read once to warm the page cache, then timed)."""
+    files = [os.path.join(d, f) for d, _, fs in os.walk(path) for f in fs]
+    for f in files:
+        open(f, "rb").read()
+    t0 = time.perf_counter()
+    nbytes = sum(len(open(f, "rb").read()) for f in files)
+    wall = time.perf_counter() - t0
+    return nbytes / wall, wall / max(1, len(files))
+
+
+def cluster_model(args) -> None:
+    import cluster_model as cm
+
+    H, W = args.size
+    work = os.path.join(args.workdir, f"corner-{H}x{W}")
+    os.makedirs(work, exist_ok=True)
+    scene = os.path.join(work, "T.zarr")
+    if not os.path.exists(scene):
+        run_child("build", args, (H, W), scene)
+    warm_up()
+    best: dict = {}
+    for rep in range(args.repeats):
+        for label, scheduler, _, _ in CLUSTER_CONFIGS:
+            r = invert_report(scene, os.path.join(work, f"X-{label}.zarr"), scheduler, args)
+            total = sum(h["seconds"] for h in r["history"]) + r["seconds_spectral_radius"]
+            print(f"run {rep + 1} {label}: {total:.2f} s (terms and spectral radius)",
+                  flush=True)
+            if label not in best or total < best[label][0]:
+                best[label] = (total, r)
+    bandwidth, per_file = store_bandwidth(scene)
+    local = cm.local_storage(bandwidth, per_file)
+    # the local cluster's vectors cross loopback: pickled and copied, ~2 GB/s
+    sched = {"threads": cm.DASK_THREADS,
+             "cluster": replace_network(cm.DASK_DISTRIBUTED, 2e9)}
+    rows, checks = [], {}
+    for base in ("threads", "local:1"):
+        run = cm.RecordedRun.from_report(best[base][1], local)
+        checks[base] = run
+        for label, _, workers, threads in CLUSTER_CONFIGS:
+            if label == base:
+                continue
+            p = cm.predict(run, H * W, workers, local,
+                           sched["threads" if label == "threads" else "cluster"],
+                           threads=threads, tile_size=best[label][1]["tile_size"])
+            m = cm.measured_from_report(label, workers, best[label][1])
+            m = cm.Measured(m.label, m.workers, m.seconds_terms, m.seconds_spectral,
+                            m.peak_per_worker, p)
+            rows.append([base, label, p.seconds, m.seconds_terms + m.seconds_spectral,
+                         100 * m.error, p.memory_per_worker / 2**20,
+                         m.peak_per_worker / 2**20, 100 * m.memory_error])
+    print(f"\nstorage here: {bandwidth / 1e9:.2f} GB/s, {per_file * 1e6:.0f} us per file "
+          "(page cache)")
+    print(f"{'from':>8} {'predicts':>8} {'pred s':>7} {'meas s':>7} {'err %':>6} "
+          f"{'pred MiB':>8} {'meas MiB':>8} {'err %':>6}")
+    for r in rows:
+        print(f"{r[0]:>8} {r[1]:>8} {r[2]:>7.2f} {r[3]:>7.2f} {r[4]:>+6.0f} {r[5]:>8.0f} "
+              f"{r[6]:>8.0f} {r[7]:>+6.0f}")
+    table = cm.prediction_table(checks["local:1"])
+    print(f"\n{'n':>9} {'storage':>18} " + " ".join(f"{'N=' + str(n):>8}" for n in cm.WORKERS))
+    out_rows = []
+    for n in (cm.FULL_HD, cm.UHD_4K):
+        for st in (cm.SHARED_FS, cm.OBJECT_STORE):
+            ps = [p for p in table if p.n == n and p.storage == st.name]
+            print(f"{n:>9} {st.name:>18} " + " ".join(f"{p.seconds:>8.0f}" for p in ps))
+            print(f"{'':>9} {'GiB per worker':>18} "
+                  + " ".join(f"{p.memory_per_worker / 2**30:>8.2f}" for p in ps))
+            out_rows += [[n, st.name, p.workers, p.seconds, p.memory_per_worker / 2**30,
+                          p.batched] for p in ps]
+    res = Results(run_name("cluster-model"), "The cluster run, predicted and checked",
+                  "python benchmarks/bench_scale.py " + " ".join(sys.argv[1:]))
+    res.table("check", f"the model against the runs made here ({H}x{W} corner, "
+              f"{args.terms} terms, out of core, best of {args.repeats})",
+              ["from", "predicts", "predicted s", "measured s", "error %",
+               "predicted MiB/worker", "measured MiB/worker", "memory error %"], rows,
+              note="seconds: the spectral radius and the terms (set-up and the cluster's "
+                   f"start left out); storage here {bandwidth / 1e9:.2f} GB/s (page cache)")
+    res.table("predicted", "predicted inverse (spectral radius and 4 terms) on N dask "
+              "workers of 1 thread, 8 GiB each, from the 1-worker run",
+              ["n", "storage", "workers", "seconds", "GiB per worker", "batched"], out_rows,
+              note=f"{cm.SHARED_FS.name}: {cm.SHARED_FS.source}; {cm.OBJECT_STORE.name}: "
+                   f"{cm.OBJECT_STORE.source}; scheduler: {cm.DASK_DISTRIBUTED.source}")
+    name = f"{res.name}.png"
+    print("plot:", plot_cluster(table, rows, H * W, str(res.figure_path(name))))
+    res.figure(name, "predicted time against workers at full HD and 4K, shared filesystem "
+               "and object store; right: the check against the runs made here")
+    res.save()
+
+
+def replace_network(scheduler, network: float):
+    from dataclasses import replace
+
+    return replace(scheduler, network=network)
+
+
+def plot_cluster(table, checks, n_here: int, path: str) -> str:
+    """Predicted seconds against N (log-log) for full HD and 4K, shared filesystem
+    (solid) and object store (dashed); beside it the runs made here, predicted and
+    measured."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import cluster_model as cm
+
+    fig, (ax, ax_c) = plt.subplots(1, 2, figsize=(11, 4.4),
+                                   gridspec_kw={"width_ratios": [2, 1]})
+    for n, colour, name in ((cm.FULL_HD, "C0", "full HD"), (cm.UHD_4K, "C3", "4K UHD")):
+        for st, style in ((cm.SHARED_FS, "-"), (cm.OBJECT_STORE, "--")):
+            ps = [p for p in table if p.n == n and p.storage == st.name]
+            ax.loglog([p.workers for p in ps], [p.seconds for p in ps], style, color=colour,
+                      marker="o", ms=3, label=f"{name}, {st.name}")
+    ax.set_xlabel("dask workers N (1 thread each)")
+    ax.set_ylabel("predicted wall time of the inverse (s)")
+    ax.set_title("predicted: spectral radius + 4 terms, from the 1-worker run", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
+    labels = [f"{r[1]}\nfrom {r[0]}" for r in checks]
+    x = range(len(checks))
+    ax_c.bar([i - 0.2 for i in x], [r[2] for r in checks], 0.4, label="predicted")
+    ax_c.bar([i + 0.2 for i in x], [r[3] for r in checks], 0.4, label="measured")
+    ax_c.set_xticks(list(x), labels, fontsize=7)
+    ax_c.set_ylabel("wall time (s)")
+    ax_c.set_title(f"checked here (n = {n_here}, 2 cores)", fontsize=10)
+    ax_c.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     return path
@@ -230,10 +400,20 @@ def main(argv=None):
     p.add_argument("--no-compensate", action="store_true")
     p.add_argument("--workdir", default="bench-out/scale")
     p.add_argument("--json", default=None)
+    p.add_argument("--cluster-model", action="store_true",
+                   help="check the cluster model on threads, local:1 and local:2 and plot "
+                        "its predictions (see the module's docstring)")
+    p.add_argument("--repeats", type=int, default=2, help="runs of each configuration "
+                   "(--cluster-model; the best kept)")
     p.add_argument("--_child", default=None, help=argparse.SUPPRESS)
     p.add_argument("--scene", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--size", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--size", default=None,
+                   help="HxW of the --cluster-model scene (default 192x256)")
     args = p.parse_args(argv)
+    if args.cluster_model:
+        args.size = tuple(int(s) for s in (args.size or "192x256").split("x"))
+        cluster_model(args)
+        return
     if args._child:
         args.size = tuple(int(s) for s in args.size.split("x"))
         res = child_build(args) if args._child == "build" else child_invert(args)
@@ -280,7 +460,6 @@ def main(argv=None):
               f"{r['build_peak_gib']:>9.2f} {r['invert_s']:>9.1f} {terms:>24} "
               f"{r['peak_gib']:>8.2f} {r['X_disk_gib']:>6.2f} {r['sampled_error']:>9.2e} "
               f"{comp}")
-    ns = [r["n"] for r in rows]
     res = Results(run_name("scale"), "Cost of a 4-term inverse against n",
                   "python benchmarks/bench_scale.py " + " ".join(sys.argv[1:]))
     record_rows(res, rows, args)

@@ -212,7 +212,7 @@ class InverseEngine:
         self.record = publish_term(self.store, self.record, X,
                                    term_record(k, stats, X, residual, t0,
                                                IN_MEMORY if self.path.in_memory
-                                               else OUT_OF_CORE),
+                                               else OUT_OF_CORE, self.runner.costs.since(t0)),
                                    self._series_metadata())
         self.XZ = residual.XZ
 

@@ -59,4 +59,5 @@ def inverse_report(outcome: RunOutcome, layout: RunLayout, record: SeriesRecord,
         memory=layout.memory_text(), scheduler=runner.describe(), threads=runner.threads,
         tile_size=layout.tile_size, tasks=totals.tasks, task_overhead_ms=totals.overhead_ms(),
         peak_memory=tuple(sorted(runner.peak_memory().items())),
-        engine_path=path.name, engine_path_reason=path.reason)
+        engine_path=path.name, engine_path_reason=path.reason,
+        task_costs=runner.costs.total())

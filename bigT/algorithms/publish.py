@@ -29,10 +29,11 @@ def series_metadata(method: str, thresholds: Thresholds, fb: FirstBounce,
 
 
 def term_record(k: int, stats: list[BlockStats], X, residual: TermResidual,
-                t0: float, engine_path: str = "out-of-core") -> TermRecord:
+                t0: float, engine_path: str = "out-of-core", tasks=()) -> TermRecord:
     """Term k's record from its tasks' stats, its X and its residual estimate; ``t0``
     is ``time.perf_counter()`` when the term began; ``engine_path`` the path that
-    computed it (:mod:`.engine_path`)."""
+    computed it (:mod:`.engine_path`); ``tasks`` what its tasks cost, by kind
+    (:meth:`bigT.schedule.costs.CostLedger.since`)."""
     now = time.perf_counter()
     return TermRecord(
         term=k, seconds=now - t0,
@@ -43,7 +44,8 @@ def term_record(k: int, stats: list[BlockStats], X, residual: TermResidual,
         residual=residual.relative, residual_abs=residual.absolute,
         multiply_adds=int(sum(s.multiply_adds for s in stats)),
         kernel_seconds=float(sum(s.kernel_seconds for s in stats)),
-        residual_seconds=now - residual.started, engine_path=engine_path)
+        residual_seconds=now - residual.started, engine_path=engine_path,
+        tasks=tuple(tasks))
 
 
 def publish_term(store: InverseStore, record: SeriesRecord, X, term: TermRecord,

@@ -14,6 +14,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from ..schedule.costs import TaskCosts
 from ..storage.inverse_store import InverseRecord, TermEntry, as_count, damaged_record
 
 
@@ -27,7 +28,10 @@ class TermRecord:
     tasks: thread-seconds). Records written before these were counted read 0.
     ``engine_path`` is the path that computed it, ``"in-memory"`` or ``"out-of-core"``
     (:mod:`.engine_path`; stored only for the former: records without it read the
-    latter).
+    latter). ``tasks`` is what the term's tasks cost, one
+    :class:`~bigT.schedule.costs.TaskCosts` per kind (its passes and its residual
+    estimate's mat-vecs; empty for a term computed in memory, and in records written
+    before they were kept).
     """
 
     term: int
@@ -43,6 +47,7 @@ class TermRecord:
     kernel_seconds: float = 0.0
     residual_seconds: float = 0.0
     engine_path: str = "out-of-core"
+    tasks: tuple[TaskCosts, ...] = ()
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "TermRecord":
@@ -51,7 +56,9 @@ class TermRecord:
         values = {}
         for f in dataclasses.fields(cls):
             v = d.get(f.name, None if f.default is dataclasses.MISSING else f.default)
-            if f.name in ("residual", "residual_abs"):
+            if f.name == "tasks":
+                values[f.name] = tuple(TaskCosts.from_dict(t) for t in v or ())
+            elif f.name in ("residual", "residual_abs"):
                 values[f.name] = None if v is None else float(v)
             elif f.type in ("float", float):  # a string under future annotations
                 values[f.name] = float(v or 0.0)
@@ -64,10 +71,15 @@ class TermRecord:
     def to_dict(self) -> dict:
         """The stored keys; ``engine_path`` only for a term computed in memory, so that
         an out-of-core run writes the keys it wrote before the in-memory path existed
-        (an absent key reads as out of core)."""
+        (an absent key reads as out of core); ``tasks`` only when the term's tasks
+        were measured."""
         d = dataclasses.asdict(self)
         if d["engine_path"] == "out-of-core":
             del d["engine_path"]
+        if d["tasks"]:
+            d["tasks"] = [t.to_dict() for t in self.tasks]
+        else:
+            del d["tasks"]
         return d
 
     def to_entry(self) -> TermEntry:

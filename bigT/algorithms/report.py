@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+from ..schedule.costs import TaskCosts
 from ..schedule.memory import human_bytes
 from ..spectral import ABS_BOUND, spectral_meaning
 from .records import TermRecord
@@ -24,6 +25,9 @@ class InverseReport:
     ``spectral_uncertainty`` is (:meth:`bigT.spectral.SpectralRadius.meaning`).
     ``engine_path`` is ``"in-memory"`` or ``"out-of-core"`` (the path the run's last
     term took; each term's is in ``history``), ``engine_path_reason`` why.
+    ``task_costs`` is what this run's tasks cost, one
+    :class:`~bigT.schedule.costs.TaskCosts` per kind (the spectral radius's mat-vecs
+    included; each term's are in ``history``).
     """
 
     path: str
@@ -57,6 +61,7 @@ class InverseReport:
     spectral_computed: bool = True
     engine_path: str = "out-of-core"
     engine_path_reason: str = ""
+    task_costs: tuple[TaskCosts, ...] = ()
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -87,7 +92,19 @@ class InverseReport:
         if self.peak_memory:
             lines.append("peak resident memory: " + ", ".join(
                 f"{who} {human_bytes(b)}" for who, b in self.peak_memory))
+        if self.task_costs:
+            lines.append(self._costs_line())
         return "\n".join(lines)
+
+    def _costs_line(self) -> str:
+        """What the tasks cost by kind: tasks, time in them, bytes read (once per
+        process of it) and written."""
+        parts = [f"{c.kind} {c.tasks} in {c.task_seconds:.2f} s, read "
+                 f"{human_bytes(c.bytes_read)}"
+                 + (f" ({human_bytes(c.bytes_read_shared)} once per process)"
+                    if c.bytes_read_shared else "")
+                 + f", wrote {human_bytes(c.bytes_written)}" for c in self.task_costs]
+        return "tasks by kind: " + "; ".join(parts)
 
     def _ran_line(self) -> str:
         """Where the run ran: in memory (and why), or its tasks on the scheduler."""

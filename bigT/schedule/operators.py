@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from . import blocks
 from ._backend import BlockDiagonal, diagonal_blocks, scale_rows, spmm_dense
 from .cache import TileCache
+from .costs import SharedRead
 from .memory import stored_bytes
 
 
@@ -136,7 +137,8 @@ class StoreOperand:
         lets it go)."""
         with self._lock:
             if self._whole is None:
-                self._whole = self.assembled(np.flatnonzero(self.nonempty), cached=False)
+                with SharedRead():  # read once here for the process's tasks: a broadcast
+                    self._whole = self.assembled(np.flatnonzero(self.nonempty), cached=False)
             return self._whole
 
     def release(self) -> None:

@@ -35,6 +35,7 @@ from .. import config
 from ..errors import BigTError, SchedulerError, StoreError
 from ..progress import progress_bar
 from ._backend import ObjectPath, as_location, is_url
+from .costs import CostLedger
 from .memory import MemoryPlan, peak_resident_bytes, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
@@ -46,10 +47,12 @@ def _bar(progress: bool, total: int, desc: str):
 
 
 class ThreadRunner:
-    """Tasks on ``workers`` threads of this process (dask's threaded scheduler)."""
+    """Tasks on ``workers`` threads of this process (dask's threaded scheduler).
+    ``costs`` records what each pass's tasks cost (:class:`~.costs.CostLedger`)."""
 
     def __init__(self, workers: int = 2):
         self.workers = max(1, int(workers))
+        self.costs = CostLedger()
 
     @property
     def threads(self) -> int:
@@ -79,6 +82,7 @@ class ThreadRunner:
         import dask.threaded
         from dask.callbacks import Callback
 
+        began = time.perf_counter()
         call = dask.delayed(run_block, pure=False)
         tasks = [call(spec, b, shared, dask_key_name=f"{spec.op}-{spec.pass_id}-{b.index}")
                  for b in blocks]
@@ -88,12 +92,14 @@ class ThreadRunner:
                   Callback(posttask=lambda *_: bar.update(1))):  # a task finished
                 # the threaded scheduler's own function: a scheduler named by string
                 # makes dask import distributed (0.25 s) to look for a client first
-                return list(dask.compute(*tasks, scheduler=dask.threaded.get, pool=pool))
+                stats = list(dask.compute(*tasks, scheduler=dask.threaded.get, pool=pool))
         finally:
             # dask raises at a task's first failure while the others still run: they
             # finish (or are cancelled) before the caller goes on, so no thread of a
             # failed run writes into a store the caller may clean or resume
             pool.shutdown(wait=True, cancel_futures=True)
+        self.costs.record(spec.op, began, stats, shared, self.workers)
+        return stats
 
     def end_pass(self, pass_id: str | None = None, forget=()) -> None:
         """Let go of a pass's shared items (all when None) and of cached rows of the
@@ -116,11 +122,14 @@ class ClusterRunner:
     client : distributed.Client
     owned : list
         Objects to close with the runner (a client and cluster made here).
+
+    ``costs`` records what each pass's tasks cost (:class:`~.costs.CostLedger`).
     """
 
     def __init__(self, client, owned=()):
         self.client = client
         self.owned = list(owned)
+        self.costs = CostLedger()
 
     def _workers(self) -> dict:
         return self.client.scheduler_info(n_workers=-1)["workers"]
@@ -176,6 +185,7 @@ class ClusterRunner:
             progress: bool = False, desc: str = "") -> list[BlockStats]:
         from distributed import as_completed  # distributed: ~0.5 s, only with a cluster
 
+        began = time.perf_counter()
         keys = [f"{spec.op}-{spec.pass_id}-{b.index}" for b in blocks]
         futures, held, results = [], {}, []
         try:
@@ -191,7 +201,9 @@ class ClusterRunner:
             raise _cluster_error(exc, spec) from None
         finally:
             del futures, held
-        return sorted(results, key=lambda s: s.index)
+        results.sort(key=lambda s: s.index)
+        self.costs.record(spec.op, began, results, shared, self.threads)
+        return results
 
     def _hold_shared(self, spec: PassSpec, shared: dict) -> dict:
         """The pass's shared vectors as futures of tasks that return them (see the

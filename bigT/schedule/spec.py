@@ -147,6 +147,11 @@ class BlockStats:
     y : (stop - start, k) ndarray or None, a mat-vec's rows
     multiply_adds : int, the multiply-adds of the task's sparse products
     kernel_seconds : float, the time spent inside the product kernel
+    bytes_read, bytes_written, read_calls, write_calls : int, the task's thread's I/O
+        (:class:`~.costs.ThreadIO`)
+    bytes_read_shared : int, the part of ``bytes_read`` read once for every task of
+        the pass in this process (a right factor held whole)
+    resident_bytes : int, the process's resident set when the task ended
     """
 
     index: int
@@ -160,6 +165,12 @@ class BlockStats:
     y: np.ndarray | None = None
     multiply_adds: int = 0
     kernel_seconds: float = 0.0
+    bytes_read: int = 0
+    bytes_written: int = 0
+    read_calls: int = 0
+    write_calls: int = 0
+    bytes_read_shared: int = 0
+    resident_bytes: int = 0
 
     def replace(self, **changes) -> "BlockStats":
         return dataclasses.replace(self, **changes)

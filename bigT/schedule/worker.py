@@ -27,7 +27,8 @@ from ._backend import (BlockDiagonal, KeptTiles, as_location, is_url, open_store
                        read_store_attrs, release_workspaces, row_marker, store_identity,
                        write_tile_row)
 from .cache import TileCache
-from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory
+from .costs import shared_read_bytes, thread_io
+from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory, resident_bytes
 from .operators import MOperand, StoreOperand, needed_rows
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 
@@ -398,10 +399,10 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
     """
     if task_hook is not None:
         task_hook(spec.op, block.index)
-    t0 = time.perf_counter()
+    t0, io0, shared0 = time.perf_counter(), thread_io(), shared_read_bytes()
     done = _already_written(spec, block)
     if done is not None:
-        return done.replace(seconds=time.perf_counter() - t0, worker=worker_name())
+        return _measured(done, t0, io0, shared0)
     try:
         ctx = TaskContext(spec, block, shared)
         budget = ctx.cache_budget()
@@ -424,7 +425,18 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
     except Exception as exc:
         raise TaskError(f"{spec.op} (term {spec.term}, rows {block.start}:{block.stop}) "
                         f"failed: {type(exc).__name__}: {exc}", spec.T) from None
-    return stats.replace(seconds=time.perf_counter() - t0, worker=worker_name())
+    return _measured(stats, t0, io0, shared0)
+
+
+def _measured(stats: BlockStats, t0: float, io0, shared0: int) -> BlockStats:
+    """``stats`` with what the task cost since ``time.perf_counter()`` was ``t0``, its
+    thread's I/O was ``io0`` and its shared reads ``shared0`` (:mod:`.costs`)."""
+    io = thread_io().minus(io0)
+    return stats.replace(seconds=time.perf_counter() - t0, worker=worker_name(),
+                         bytes_read=io.read_bytes, bytes_written=io.written_bytes,
+                         read_calls=io.read_calls, write_calls=io.write_calls,
+                         bytes_read_shared=shared_read_bytes() - shared0,
+                         resident_bytes=resident_bytes())
 
 
 def run_mapped_block(block: RowBlock, *, spec: PassSpec, shared: dict) -> BlockStats:

@@ -41,6 +41,7 @@ FREE = {"bigT.metadata"}
 #: Records that repeat another (the doc says so in words): checked against its table.
 SAME_AS = {"bigT.metadata.scene": "bigT_scene",
            "bigT.metadata.inverse.record": "bigT_inverse.history[]",
+           "bigT.metadata.inverse.record.tasks[]": "bigT_inverse.history[].tasks[]",
            "bigT.metadata.inverse.mixing": "bigT_inverse.mixing",
            "bigT_inverse.params.mixing": "bigT.metadata.mixing"}
 
