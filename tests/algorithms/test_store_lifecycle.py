@@ -160,9 +160,11 @@ def test_a_store_in_the_older_record_layout_opens_and_resumes(tmp_path, make_sto
     new = j["attributes"]["bigT_inverse"]
     assert set(OLD_RECORD_KEYS) <= set(new) and set(new) - set(OLD_RECORD_KEYS) == {
         "spectral_method"}
-    assert all(set(h) == set(OLD_TERM_KEYS) for h in new["history"])
+    # a term's record now also holds its task costs (issue #32), absent from the older
+    assert all(set(h) == set(OLD_TERM_KEYS) | {"tasks"} for h in new["history"])
     old = {k: new[k] for k in OLD_RECORD_KEYS}
-    old["history"] = [{**h, "seconds": 10.0 + h["term"]} for h in new["history"]]
+    old["history"] = [{**{k: h[k] for k in OLD_TERM_KEYS}, "seconds": 10.0 + h["term"]}
+                      for h in new["history"]]
     j["attributes"]["bigT_inverse"] = old
     root.write_text(json.dumps(j))
 
