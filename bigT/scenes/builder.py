@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -44,7 +43,7 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from ..progress import progress_bar
-from ..storage import BlockCSRWriter, PixelOrder, check_replaceable
+from ..storage import BlockCSRWriter, ObjectPath, PixelOrder, as_location, check_replaceable
 from . import geometry, palette, radiosity, stored
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES
 from .colouring import ColourParts, resolve_rig
@@ -207,7 +206,17 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
                         "(dihedral4 through bigT.scenes.dihedral4 or make)")
     if path is None:
         raise BigTError("path is required: the directory of the scene's T store")
-    path = Path(os.fspath(path))
+    path = as_location(path)
+    if isinstance(path, ObjectPath):  # built on this machine's disk, then put whole
+        check_replaceable(path, overwrite)
+        local = build(name, size, stored.scratch_path(path), albedo=albedo, density=density,
+                      ff_cut=ff_cut, threshold=threshold, noise=noise,
+                      noise_floor=noise_floor, blur=blur, seed=seed, tile_size=tile_size,
+                      dtype=dtype, pixel_order=pixel_order, memory_limit=memory_limit,
+                      preview=preview, progress=progress, overwrite=True, colour=colour,
+                      mixing=mixing, rig=rig)
+        return stored.publish_remote(local.path, path, preview_path(local.path) if preview
+                                     else None, preview_path(path))
     size = tuple(int(s) for s in (DEFAULT_SIZES[name] if size is None else size))
     if len(size) != 2 or min(size) < 1:
         raise ShapeMismatchError(f"size must be (H, W) with H, W >= 1, got {size}")

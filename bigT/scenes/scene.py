@@ -15,7 +15,6 @@ A)^-1 C^-1 F, so the exact inverse is F^-1 (I - C A C^-1), again tile row by til
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import zarr
 
 from ..errors import BigTError, ShapeMismatchError, StoreError
 from ..spectral import spectral_meaning
-from ..storage import PixelOrder
+from ..storage import PixelOrder, as_location, open_zarr
 from ..storage import open as open_store
 from .ground_truth import GROUND_TRUTH, SCENE_ATTR
 from .rig import ColourRig
@@ -314,13 +313,13 @@ def load(path) -> Scene:
 
     Raises StoreError (naming the path) when the store holds no readable ground truth.
     """
-    path = Path(os.fspath(path))
+    path = as_location(path)
     T = open_store(path)
     gt = path / GROUND_TRUTH
     try:
-        summary = zarr.open_group(str(gt), mode="r").attrs.asdict()[SCENE_ATTR]
+        summary = open_zarr(gt).attrs.asdict()[SCENE_ATTR]
         A = open_store(gt / "A")
-        F = np.asarray(zarr.open_array(str(gt / "F"), mode="r")[:], np.float64)
+        F = np.asarray(open_zarr(gt / "F")[:], np.float64)
     except BigTError:
         raise
     except (OSError, KeyError, ValueError, zarr.errors.BaseZarrError) as exc:
@@ -339,7 +338,7 @@ def load(path) -> Scene:
 def _read_blocks(path: Path, shape) -> np.ndarray:
     """A colour scene's (H W, 3, 3) rig blocks from the ground truth at ``path``."""
     try:
-        blocks = np.asarray(zarr.open_array(str(path), mode="r")[...], np.float64)
+        blocks = np.asarray(open_zarr(path)[...], np.float64)
     except (OSError, KeyError, ValueError, zarr.errors.BaseZarrError) as exc:
         raise StoreError(f"no readable rig blocks ({exc.__class__.__name__}: {exc})",
                          path) from None

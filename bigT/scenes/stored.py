@@ -15,6 +15,7 @@ import errno
 import json
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -30,6 +31,9 @@ from ..storage import BlockCSRWriter, PixelOrder
 from ..atomic import atomic_write_json
 from . import radiosity
 from .geometry import Patches
+
+if TYPE_CHECKING:  # the scene module imports this one
+    from .scene import Scene
 
 #: The parameters of an interrupted build, compared with those of the next call.
 BUILD_RECORD = "scene-build.json"
@@ -173,3 +177,30 @@ def diagonal_blocks(store, channels: int = 3) -> np.ndarray:
         on = r // c == col // c
         blocks[r[on] // c, r[on] % c, col[on] % c] = rows.data[on]
     return blocks
+
+
+def scratch_path(remote) -> Path:
+    """Where a scene bound for object storage (``remote``, an ObjectPath) is built on
+    this machine first: a directory of the system's temporary directory named after the
+    URL, so a rerun of an interrupted build resumes there."""
+    import hashlib
+    import tempfile
+
+    digest = hashlib.sha256(str(remote).encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / f"bigT-scene-{digest}" / remote.name
+
+
+def publish_remote(local: Path, remote, preview: Path | None, remote_preview) -> "Scene":
+    """Put the scene built at ``local`` (its T store, ground truth inside) at the URL
+    ``remote``, the store's root last (a reader sees it once all of it is there), and
+    its preview PNG beside it; then delete the local copy and open the remote one."""
+    from ..storage import upload_tree
+    from .scene import load
+
+    if remote.exists():  # check_replaceable allowed it: a bigT store, replaced
+        remote.remove_tree()
+    upload_tree(local, remote)
+    if preview is not None and preview.is_file():
+        remote_preview.write_bytes(preview.read_bytes())
+    shutil.rmtree(local.parent, ignore_errors=True)
+    return load(remote)

@@ -15,8 +15,9 @@ from .attrs import StoreAttrs
 from ._format import row_marker
 from .block_csr import BlockCSR, as_store, open  # noqa: A004
 from .inverse_store import InverseRecord, InverseStore, TermEntry
-from .objects import ObjectPath, as_location, is_url, store_identity
+from .objects import ObjectPath, as_location, is_url, store_identity, upload_tree
 from .pixel_order import PixelOrder
+from .tiles import open_zarr
 from ._format import disk_bytes
 from .replace import (check_replaceable, move_into_place, set_redirect, temporary_sibling,
                       write_group)
@@ -34,7 +35,7 @@ from .writer import (
 
 __all__ = [
     "BlockCSR", "BlockCSRWriter", "InverseRecord", "InverseStore", "KeptTiles", "ObjectPath",
-    "PixelOrder", "as_location", "is_url", "store_identity",
+    "PixelOrder", "as_location", "is_url", "open_zarr", "store_identity", "upload_tree",
     "StoreAttrs", "TermEntry", "as_store", "check_replaceable", "clean_partial_rows",
     "completed_rows", "create_store", "disk_bytes", "finalize_store", "move_into_place",
     "temporary_sibling", "write_group",

@@ -7,6 +7,7 @@ read with ``scipy.io.loadmat``; v7.3/HDF5 files are not supported) and dense Num
 
 from __future__ import annotations
 
+import io
 import os
 import zipfile
 from pathlib import Path
@@ -17,6 +18,7 @@ import scipy.sparse as sp
 
 from ..atomic import atomic_output
 from ..errors import InvalidMatrixError, StoreError, short_reason
+from .objects import ObjectPath, as_location
 
 INPUT_SUFFIXES = (".npz", ".mtx", ".mtx.gz", ".mat", ".npy")
 OUTPUT_SUFFIXES = (".npz", ".mtx")
@@ -170,17 +172,27 @@ def _load_mat(path: Path, var: str | None):
                      option="var")
 
 
-def save_matrix(A, path) -> Path:
-    """Write the sparse matrix ``A`` to .npz (scipy save_npz, CSR) or .mtx."""
-    path = Path(os.fspath(path))
+def save_matrix(A, path):
+    """Write the sparse matrix ``A`` to .npz (scipy save_npz, CSR) or .mtx: a file,
+    or an object of object storage (a URL, put whole in one request)."""
+    path = as_location(path)
     kind = _suffix(path, OUTPUT_SUFFIXES)
     if kind is None:
         raise StoreError(f"unknown output format (known: {', '.join(OUTPUT_SUFFIXES)})", path)
+    if isinstance(path, ObjectPath):
+        buffer = io.BytesIO()
+        _write_matrix(A, buffer, kind)
+        path.write_bytes(buffer.getvalue())
+        return path
     # through a file object: given a name, numpy and scipy append a lower-case suffix
     # to one they do not recognise (OUT.NPZ)
     with atomic_output(path, "the exported matrix") as tmp, open(tmp, "wb") as f:
-        if kind == ".npz":
-            sp.save_npz(f, sp.csr_array(A), compressed=True)
-        else:
-            scipy.io.mmwrite(f, sp.coo_array(A))
+        _write_matrix(A, f, kind)
     return path
+
+
+def _write_matrix(A, f, kind: str) -> None:
+    if kind == ".npz":
+        sp.save_npz(f, sp.csr_array(A), compressed=True)
+    else:
+        scipy.io.mmwrite(f, sp.coo_array(A))

@@ -476,6 +476,35 @@ def as_location(path, storage_options: Mapping | None = None):
     return Path(os.fspath(path))
 
 
+def upload_tree(local, dest: ObjectPath) -> int:
+    """Put every file below the local directory ``local`` at the same keys below
+    ``dest`` (their requests in flight together), the root ``zarr.json`` last, so a
+    reader of ``dest`` sees a store only once all of it is there. Symbolic links are
+    refused (a store holds none). Returns the bytes put."""
+    from pathlib import Path
+
+    local = Path(local)
+    files = []
+    for dirpath, dirnames, filenames in os.walk(local):
+        for name in dirnames + filenames:
+            if os.path.islink(os.path.join(dirpath, name)):
+                raise StoreError(f"{name} is a symbolic link: a store holds none",
+                                 os.path.join(dirpath, name))
+        files += [Path(dirpath, name) for name in filenames]
+    root_meta = local / "zarr.json"
+    body = [f for f in files if f != root_meta]
+
+    def put(f) -> int:
+        data = f.read_bytes()
+        (dest / f.relative_to(local).as_posix()).write_bytes(data)
+        return len(data)
+
+    total = sum(concurrently(put, body))
+    if root_meta.is_file():
+        total += put(root_meta)
+    return total
+
+
 def store_identity(path) -> tuple:
     """What changes when the store at ``path`` has its root ``zarr.json`` rewritten:
     (inode, mtime) of the file, (ETag, time) of the object. Caches key on it."""

@@ -40,6 +40,19 @@ def zarr_array(root: Path, name: str):
     return zarr.open_array(LocalStore(root, read_only=True), path=name, mode="r")
 
 
+def open_zarr(path):
+    """The zarr group or array at ``path`` (a directory or an :class:`ObjectPath`),
+    opened read-only by zarr-python: for the groups around bigT's stores that bigT
+    does not read itself (a scene's ground truth)."""
+    import zarr
+
+    if isinstance(path, ObjectPath):
+        from zarr.storage import ObjectStore
+
+        return zarr.open(ObjectStore(path.store, read_only=True), path=path.key, mode="r")
+    return zarr.open(str(path), mode="r")
+
+
 def tile_error(path: Path, i: int, j: int, problem: str) -> CorruptStoreError:
     """The error of a bad tile (i, j) of the store at ``path``."""
     return CorruptStoreError(f"tile ({i}, {j}): {problem}", path)

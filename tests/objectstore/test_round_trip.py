@@ -116,3 +116,27 @@ def test_a_missing_store_in_the_bucket_is_one_line_exit_2(s3_url):
     assert out.returncode == 2
     assert "Traceback" not in out.stderr and "nothing.zarr" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_a_scene_built_into_the_bucket_opens_and_inverts_from_the_command_line(s3_url, tmp_path):
+    out = _cli("scene", "corner", "--size", "24x32", "-o", f"{s3_url}/scene/T.zarr", "-q",
+               env={"TMPDIR": str(tmp_path)})
+    assert out.returncode == 0, out.stderr
+    scene = bigT.scenes.load(f"{s3_url}/scene/T.zarr")
+    assert scene.T.shape == (768, 768) and scene.A.nnz > 0
+    assert (as_location(f"{s3_url}/scene") / "T-preview.png").is_file()
+    assert not list(tmp_path.glob("bigT-scene-*")), "the local build is deleted"
+    inv = _cli("invert", f"{s3_url}/scene/T.zarr", "-o", f"{s3_url}/scene/X.zarr", "--terms",
+               "2", "-q")
+    assert inv.returncode == 0, inv.stderr
+
+
+def test_export_to_the_bucket_puts_one_object_scipy_reads(s3_url, tmp_path):
+    import io
+
+    A = _matrix(200)
+    from_scipy(A, f"{s3_url}/T.zarr", tile_size=128)
+    out = _cli("export", f"{s3_url}/T.zarr", "-o", f"{s3_url}/T.npz")
+    assert out.returncode == 0, out.stderr
+    back = sp.load_npz(io.BytesIO(as_location(f"{s3_url}/T.npz").read_bytes()))
+    assert (back != A).nnz == 0
