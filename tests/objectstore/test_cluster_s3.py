@@ -58,3 +58,33 @@ def test_a_memory_store_is_refused_for_worker_processes(scene, cluster):
     with pytest.raises(SchedulerError, match="memory"):
         bigT.stratified_inverse("memory:///c/T.zarr", "memory:///c/X.zarr", terms=1,
                                 progress=False, scheduler=cluster.address, in_memory=False)
+
+
+@pytest.mark.slow  # ~80 s: three runs on the cluster (make test-all)
+def test_a_worker_killed_mid_run_is_survived_with_the_stores_in_the_bucket(scene, cluster, s3,
+                                                                           tmp_path):
+    """``bigT invert`` with T and X in the bucket, worker1 SIGKILLed at 40 % of an
+    undisturbed run and replaced: exit 0 and the local threaded inverse."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "cluster"))
+    from worker_loss import run_with_kill
+
+    T_url = s3.url("loss/T.zarr")
+    upgrade_store(scene.T.path, T_url)
+    local = tmp_path / "X.zarr"
+    bigT.stratified_inverse(scene.T, local, terms=TERMS, progress=False, in_memory=False)
+
+    def command(out):
+        return [sys.executable, "-m", "bigT.cli", "invert", T_url, "-o", out, "--terms",
+                str(TERMS), "--scheduler", cluster.address, "--no-progress"]
+
+    undisturbed = run_with_kill(cluster, command(s3.url("loss/X0.zarr")), None)
+    assert undisturbed.returncode == 0, undisturbed.output
+    run = run_with_kill(cluster, command(s3.url("loss/X1.zarr")), 0.4 * undisturbed.seconds)
+    assert run.returncode == 0, run.output
+    assert run.killed
+    assert abs(bigT.open(s3.url("loss/X1.zarr")).to_scipy()
+               - bigT.open(local).to_scipy()).max() == 0
+    cluster.wait_for_workers(2)
