@@ -189,8 +189,10 @@ def _add_quiet(command: argparse.ArgumentParser) -> None:
 
 
 def _add_storage_options(command: argparse.ArgumentParser) -> None:
+    from ._argtypes import json_object
+
     command.add_argument(
-        "--storage-options", metavar="JSON", default=None,
+        "--storage-options", metavar="JSON", default=None, type=json_object,
         help="options of the object store for s3://, gs://, az:// paths, a JSON object "
              "(e.g. '{\"endpoint\": \"http://127.0.0.1:9000\", \"region\": "
              "\"eu-west-1\"}'); credentials come from the usual environment variables "

@@ -21,7 +21,7 @@ from typing import Any, Callable
 from ..sizes import parse_size
 
 __all__ = ["integer", "number", "memory_size", "size_or_zero", "image_size", "scheduler_address",
-           "clip_range", "density"]
+           "clip_range", "density", "json_object"]
 
 
 def _fail(message: str) -> argparse.ArgumentTypeError:
@@ -135,6 +135,19 @@ def image_size(text: str) -> tuple[int, int]:
 
 
 image_size.__name__ = "image size HxW"
+
+
+def json_object(text: str) -> str:
+    """``text`` when it is a JSON object (``--storage-options``), refused here else."""
+    import json
+
+    try:
+        value = json.loads(text)
+    except ValueError as exc:
+        raise _fail(f"must be a JSON object, got {text!r:.60} ({exc})") from None
+    if not isinstance(value, dict):
+        raise _fail(f'must be a JSON object such as {{"region": "eu-west-1"}}, got {text!r:.60}')
+    return text
 
 
 def scheduler_address(text: str) -> str:

@@ -3,6 +3,7 @@ threaded runner, mat-vecs, zero tile pairs never read, the tile cache, row block
 finer than T's tiles, and the same result on an in-process distributed.Client."""
 
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -146,13 +147,19 @@ def test_in_process_client_same_result(tmp_path):
     np.testing.assert_array_equal(X, Y)
 
 
-def test_in_memory_or_url_stores_are_refused(tmp_path):
+def test_in_memory_stores_and_unserved_urls_are_refused(tmp_path):
+    from bigT.schedule.runner import worker_path
+    from bigT.storage import ObjectPath
+
     A = _dominant(16, 4)
     T = from_scipy(sp.csr_array(A), tmp_path / "T.zarr", tile_size=16, dtype="float64")
-    with pytest.raises(bigT.StoreError, match="local directory"):
-        bigT.stratified_inverse(T, "memory://X", terms=1, progress=False)
+    with pytest.raises(bigT.StoreError, match="not served"):
+        bigT.stratified_inverse(T, "ftp://host/X.zarr", terms=1, progress=False)
     with pytest.raises(bigT.StoreError, match="in-memory"):
         bigT.stratified_inverse(T, {"zarr.json": b""}, terms=1, progress=False)
+    # a URL of object storage goes to the workers as itself, a path made absolute
+    assert isinstance(worker_path("s3://bucket/X.zarr"), ObjectPath)
+    assert worker_path("X.zarr") == str(Path("X.zarr").resolve())
 
 
 def test_a_rerun_task_whose_rows_are_written_recomputes_nothing(tmp_path):
