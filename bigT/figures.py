@@ -49,31 +49,41 @@ def legend_below(ax, ncol: int = 1, **kwargs) -> None:
 
 
 def label_points(ax, xy: Sequence[tuple[float, float]], texts: Sequence[str], *,
-                 fontsize: float = 7, **kwargs) -> None:
+                 colors: Sequence | None = None, fontsize: float = 7, **kwargs) -> None:
     """Annotate data points without the labels overlapping one another.
 
     Each label tries offsets around its point (right-above first, then right-below,
-    left, further out) and takes the first whose box meets no label placed before it;
-    the axes' limits and scales must be final (call after ``set_xscale`` etc.).
+    left, further out) and takes the first whose box meets no label placed before it
+    and no other point's marker. The axes' limits and scales must be final (call after
+    ``set_xscale`` etc.).
 
     Parameters
     ----------
     ax : matplotlib Axes
     xy : (x, y) per point, in data coordinates
     texts : one label per point
-    **kwargs : passed to ``ax.annotate`` (colour, ...)
+    colors : one text colour per point (default: black)
+    **kwargs : passed to ``ax.annotate``
     """
-    fig = ax.figure
-    renderer = fig.canvas.get_renderer()
+    from matplotlib.transforms import Bbox  # matplotlib is loaded: the axes exist
+
+    renderer = ax.figure.canvas.get_renderer()
+    # offsets in points, nearest first; the last is taken even where it overlaps
     offsets = [(4, 3), (4, -9), (-4, 3), (-4, -9), (4, 12), (4, -18), (-4, 12), (-4, -18),
                (4, 21), (4, -27)]
+    colors = colors if colors is not None else ["black"] * len(texts)
+    # the markers are obstacles too: a label may not cover another point
+    marks = [Bbox.from_bounds(px - 5, py - 5, 10, 10)
+             for px, py in ax.transData.transform(np.asarray(xy, dtype=float))]
     placed = []
-    for (x, y), text in zip(xy, texts):
+    for i, ((x, y), text, colour) in enumerate(zip(xy, texts, colors)):
+        others = placed + marks[:i] + marks[i + 1:]
         for k, (dx, dy) in enumerate(offsets):
             ann = ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy),
-                              ha="left" if dx > 0 else "right", fontsize=fontsize, **kwargs)
+                              ha="left" if dx > 0 else "right", fontsize=fontsize,
+                              color=colour, **kwargs)
             box = ann.get_window_extent(renderer).expanded(1.05, 1.1)
-            if k == len(offsets) - 1 or not any(box.overlaps(b) for b in placed):
+            if k == len(offsets) - 1 or not any(box.overlaps(b) for b in others):
                 placed.append(box)
                 break
             ann.remove()
