@@ -176,6 +176,8 @@ class CodeState:
             return f"commit {self.commit} (whether the tree was clean is unknown)"
         if self.clean:
             return f"commit {self.commit}, clean tree"
+        if not self.changed_count:  # an older stamp: "+dirty", the files not named
+            return f"commit {self.commit} with uncommitted changes: not any commit's code"
         more = self.changed_count - len(self.changed)
         files = ", ".join(self.changed) + (f" and {more} more" if more > 0 else "")
         return (f"commit {self.commit} with uncommitted changes to {self.changed_count} "

@@ -341,7 +341,8 @@ def tradeoff_settings(rec: Record) -> dict[str, list[Setting]]:
             secs, err = _num(r.get("cumulative s")), _num(r.get("error"))
             if secs is None or err is None:
                 continue
-            what = f"{r.get('method')}, {r.get('term')} terms" + (
+            terms = r.get("term")
+            what = f"{r.get('method')}, {terms} term{'' if terms == 1 else 's'}" + (
                 f", prune {prune}" if prune else "")
             out.setdefault(scene, []).append(Setting(scene, what, secs, err))
     sweep = rec.table("pareto")
@@ -559,15 +560,17 @@ def summary(records: dict[str, Record]) -> list[str]:
     return lines
 
 
+#: The test a benchmark writes into a claim's measured text: "(holds: rho >= 1)", with
+#: at most one level of parentheses inside.
+_TEST = re.compile(r"\s*\(holds: ((?:[^()]|\([^()]*\))*)\)")
+
+
 def split_test(measured: str) -> tuple[str, str]:
     """A claim's measured text and the test it was judged by: the benchmarks write the
-    test last, as "(holds: rho >= 1)"; the table gives it its own column, so that a row
-    never reads "(holds: ...) | no"."""
-    text = measured.rstrip()
-    if text.endswith(")") and "(holds: " in text:
-        head, _, test = text.rpartition("(holds: ")
-        return head.rstrip(" ;,"), test[:-1]
-    return text, ""
+    test into the text, as "(holds: rho >= 1)"; the table gives it its own column, so
+    that a row never reads "(holds: ...) | no"."""
+    tests = _TEST.findall(measured)
+    return _TEST.sub("", measured).strip(), "; ".join(tests)
 
 
 def claims_table(records: Iterable[Record]) -> list[str]:

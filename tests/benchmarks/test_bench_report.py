@@ -131,7 +131,8 @@ def paper_out(tmp_path, monkeypatch):
     paper.claim("Fig. 6(a)", speed, "engine, prune 1e-05: 2.1x", False)
     paper.claim("Fig. 6(a)", speed, "engine, prune 1e-07: 1.9x", False)
     paper.claim("Fig. 6(a)", speed, "plain scipy: 8.4x", True)
-    paper.claim("Fig. 5", "the two curves are very close", "gap 6 % (holds: < 10 %)", True)
+    paper.claim("Fig. 5", "the two curves are very close",
+                "gap 6 % (holds: < 10 %); rho(M) 0.16 (diag T)", True)
     paper.claim("Fig. 6(a)", "convergence does not happen for F = I",
                 "rho(I - T) = 0.930: the error falls (holds: rho >= 1)", False)
     paper.claim("Fig. 8", "a real camera's noise", "not simulated", None)
@@ -166,7 +167,7 @@ def test_claims_table_puts_the_test_in_its_own_column(paper_out, tmp_path):
     md = report.write(paper_out, tmp_path / "RESULTS.md").read_text()
     rows = {r[2]: r for r in _claims_rows(md)}
     assert rows["rho(I - T) = 0.930: the error falls"][3:] == ["rho >= 1", "no"]
-    assert rows["gap 6 %"][3:] == ["< 10 %", "yes"]
+    assert rows["gap 6 %; rho(M) 0.16 (diag T)"][3:] == ["< 10 %", "yes"]  # a test mid-text
     assert rows["not simulated"][3:] == ["–", "–"]
     assert "(holds:" not in md
 
@@ -248,7 +249,9 @@ def test_a_clean_run_says_all_records_share_its_commit(out, tmp_path):
 
 
 def test_an_old_stamp_string_still_reads():
-    assert _results.CodeState.from_dict("6fde496+dirty") == _results.CodeState("6fde496", False)
+    old = _results.CodeState.from_dict("6fde496+dirty")
+    assert old == _results.CodeState("6fde496", False)
+    assert old.words() == "commit 6fde496 with uncommitted changes: not any commit's code"
     assert _results.CodeState.from_dict("6fde496").words() == "commit 6fde496, clean tree"
 
 
