@@ -121,6 +121,9 @@ class Results:
     claims: list[Claim] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     started: float = field(default_factory=time.time)
+    #: The code this record was measured with, read as it is saved (a plan run in parts,
+    #: or a tree edited during a long run, would otherwise hide behind the run's stamp).
+    code: dict = field(default_factory=dict)
 
     def table(self, key: str, title: str, columns: Sequence[str],
               rows: Sequence[Sequence[Any]], note: str = "") -> None:
@@ -146,11 +149,55 @@ class Results:
         """Write ``<name>.json`` into :func:`out_dir` and return its path."""
         record = asdict(self)
         record["seconds"] = time.time() - self.started
+        record["code"] = asdict(code_state())
         path = out_dir() / f"{self.name}.json"
         tmp = path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(_jsonable(record), indent=1))
         os.replace(tmp, path)
         return path
+
+
+@dataclass(frozen=True)
+class CodeState:
+    """Which commit the benchmarks ran and whether the work tree matched it.
+
+    ``clean`` is None when git could not tell (no checkout); ``changed`` names the
+    files that differed from the commit (at most :data:`CHANGED_SHOWN`; the results a
+    run writes are not counted: they are not the code that made them)."""
+
+    commit: str  # short hash of HEAD, "unknown" without git
+    clean: bool | None
+    changed: list[str] = field(default_factory=list)
+    changed_count: int = 0
+
+    def words(self) -> str:
+        """"commit 1a2b3c4, clean tree" or the changes that make it no commit's state."""
+        if self.clean is None:
+            return f"commit {self.commit} (whether the tree was clean is unknown)"
+        if self.clean:
+            return f"commit {self.commit}, clean tree"
+        if not self.changed_count:  # an older stamp: "+dirty", the files not named
+            return f"commit {self.commit} with uncommitted changes: not any commit's code"
+        more = self.changed_count - len(self.changed)
+        files = ", ".join(self.changed) + (f" and {more} more" if more > 0 else "")
+        return (f"commit {self.commit} with uncommitted changes to {self.changed_count} "
+                f"file{'s' if self.changed_count != 1 else ''} ({files}): not any "
+                "commit's code")
+
+    @classmethod
+    def from_dict(cls, d: dict | str | None) -> "CodeState":
+        """From a record or stamp; an older stamp's ``"1a2b3c4+dirty"`` string too."""
+        if isinstance(d, dict) and d:
+            return cls(d.get("commit", "unknown"), d.get("clean"), list(d.get("changed", [])),
+                       d.get("changed_count", len(d.get("changed", []))))
+        if isinstance(d, str) and d:
+            head, dirty = d.removesuffix("+dirty"), d.endswith("+dirty")
+            return cls(head, None if head == "unknown" else not dirty)
+        return cls("unknown", None)
+
+
+#: Changed files named in a stamp (the count is always given).
+CHANGED_SHOWN = 5
 
 
 @dataclass(frozen=True)
@@ -163,18 +210,18 @@ class Machine:
     usable_cores: int  # the affinity: what this process may run on
     memory_gib: float
     python: str
-    commit: str  # short hash, "+dirty" when the work tree differed from it
+    code: CodeState
     versions: dict[str, str]
     load_average: list[float]  # at the start: the machine may be shared
     started: float
 
     def line(self) -> str:
-        """One line: the machine, then the versions."""
+        """One line: the machine, the code, then the versions."""
         when = time.strftime("%Y-%m-%d %H:%M", time.localtime(self.started))
         vers = ", ".join(f"{k} {v}" for k, v in self.versions.items())
         return (f"{self.cpu_model}, {self.cores} cores ({self.usable_cores} usable), "
-                f"{self.memory_gib:.1f} GiB; bigT {self.commit}, Python {self.python}, "
-                f"{vers}; {when}")
+                f"{self.memory_gib:.1f} GiB; bigT {self.code.words()}; Python "
+                f"{self.python}, {vers}; {when}")
 
     def save(self, directory: Path) -> Path:
         path = Path(directory) / MACHINE_FILE
@@ -184,7 +231,12 @@ class Machine:
     @classmethod
     def load(cls, directory: Path) -> "Machine | None":
         path = Path(directory) / MACHINE_FILE
-        return cls(**json.loads(path.read_text())) if path.exists() else None
+        if not path.exists():
+            return None
+        d = json.loads(path.read_text())
+        d["code"] = CodeState.from_dict(d.pop("code", None) or d.pop("commit", None))
+        d.pop("commit", None)
+        return cls(**d)
 
 
 def _proc_field(path: str, key: str) -> str | None:
@@ -199,19 +251,26 @@ def _proc_field(path: str, key: str) -> str | None:
     return None
 
 
-def _git_commit(root: Path) -> str:
-    """Short hash of HEAD, "+dirty" when tracked or untracked files differ from it (the
-    results this run writes excepted: they are not the code that made them)."""
+def code_state(root: Path | None = None) -> CodeState:
+    """HEAD's short hash and whether tracked or untracked files differ from it (the
+    results a run writes excepted: they are not the code that made them)."""
+    root = root or Path(__file__).resolve().parent.parent
+
     def git(*args):
-        return subprocess.run(["git", "-C", str(root), *args], capture_output=True,
-                              text=True, timeout=30).stdout.strip()
+        out = subprocess.run(["git", "-C", str(root), *args], capture_output=True,
+                             text=True, timeout=30)
+        if out.returncode:
+            raise OSError(out.stderr.strip())
+        return out.stdout
+
     try:
-        head = git("rev-parse", "--short", "HEAD")
-        dirty = git("status", "--porcelain", "--", ".", ":!benchmarks/results",
-                    ":!benchmarks/RESULTS.md", ":!bench-out")
+        head = git("rev-parse", "--short", "HEAD").strip()
+        status = git("status", "--porcelain", "--", ".", ":!benchmarks/results",
+                     ":!benchmarks/RESULTS.md", ":!bench-out")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return (head or "unknown") + ("+dirty" if dirty else "")
+        return CodeState("unknown", None)
+    changed = [line[3:] for line in status.splitlines() if line.strip()]
+    return CodeState(head or "unknown", not changed, changed[:CHANGED_SHOWN], len(changed))
 
 
 def _versions() -> dict[str, str]:
@@ -240,7 +299,7 @@ def machine(root: Path | None = None) -> Machine:
         or platform.machine(),
         cores=os.cpu_count() or 1, usable_cores=usable,
         memory_gib=int(kib.split()[0]) / 2**20 if kib else float("nan"),
-        python=platform.python_version(), commit=_git_commit(root), versions=_versions(),
+        python=platform.python_version(), code=code_state(root), versions=_versions(),
         load_average=[round(v, 2) for v in os.getloadavg()], started=time.time())
 
 

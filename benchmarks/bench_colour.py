@@ -187,7 +187,8 @@ def main(argv=None) -> int:
     for r in runs:
         print(f"{r.label:8s} {r.seconds:7.2f} s  nnz(X) {r.nnz}  {r.seconds / base:.2f}x grey"
               f"  | {r.describe}")
-    res.table("inverse", f"Cornell box {H}x{W}, {TERMS} terms, prune {PRUNE}: grey against "
+    res.table("inverse", f"Cornell box {H}x{W}, {TERMS} terms, "
+              f"{', '.join(f'{k} {v:g}' for k, v in PRUNE.items())}: grey against "
               "colour (general and global-mixing paths), same geometry",
               ["path", "seconds", "nnz(X)", "x grey"], rows)
     res.value("general_over_grey", round(runs[1].seconds / base, 2),

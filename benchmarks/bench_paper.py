@@ -72,7 +72,7 @@ import bigT  # noqa: E402
 from _results import Results, run_name  # noqa: E402
 from bigT.compensation import (  # noqa: E402
     compensate, fluctuation, relative_error, relight, scan_line)
-from bigT.figures import save_figure, scan_lines  # noqa: E402
+from bigT.figures import legend_below, number, save_figure, scan_lines  # noqa: E402
 from bigT.config import DEFAULT_PRUNE  # noqa: E402
 
 
@@ -270,16 +270,16 @@ def refusal_of_identity(scene, work: Path) -> str:
 def plot_fig5(curves: dict, path: Path) -> None:
     """log10 error against n, one curve per first bounce."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for c, marker in zip(curves.values(), "os^"):
         ax.plot(range(len(c["log_err"])), c["log_err"], marker=marker, ms=4,
-                label=f"{c['label']}, rho(M) = {c['rho']:.3f}")
-    ax.set_xlabel("n (T_n^-1, eq. 13)")
-    ax.set_ylabel("log10 ||T_n^-1 - T^-1||_F")
-    ax.set_title("Fig. 5: the 4x4 dihedral (eq. 34), bigT.stratified_inverse, unpruned",
-                 fontsize=10)
+                label=f"{c['label']}, spectral radius rho(M) = {number(c['rho'])}")
+    ax.set_xlabel("terms n of the stratified inverse T_n^-1 (eq. 13)")
+    ax.set_ylabel("error, log10 ||T_n^-1 - T^-1||_F")
+    ax.set_title("Fig. 5: error against the exact inverse, term by term\n"
+                 "the paper's 4x4 example (eq. 34), no pruning", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="best")  # three curves, two falling: a corner stays empty
     fig.tight_layout()
     save_figure(fig, path)
 
@@ -405,9 +405,10 @@ def cumulative_engine_seconds(report) -> list[float]:
 
 
 def plot_fig6(curves: dict, engine: dict, series: dict, t_inv: float, path: Path) -> None:
-    """(a) error and cumulative time per term, (b) the residual, side by side."""
+    """(a) error and cumulative time per term, (b) the residual, side by side; each
+    panel's legend under it, where it covers no curve."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 6.2))
     for (label, c), marker in zip(curves.items(), "os^"):
         n = range(len(c["error"]))
         axes[0].plot(n, np.log10(c["error"]), marker=marker, ms=4, label=label)
@@ -415,23 +416,28 @@ def plot_fig6(curves: dict, engine: dict, series: dict, t_inv: float, path: Path
     for (prune, (secs, report)), color in zip(
             ((k, v) for k, v in engine.items() if isinstance(k, float)), ("C0", "C1")):
         axes[1].plot(range(CORNELL_TERMS + 1), cumulative_engine_seconds(report), "o-", ms=4,
-                     color=color, label=f"bigT.stratified_inverse, prune {prune:g}: "
-                     "spectral radius + terms")
+                     color=color, label=f"bigT, prune {prune:g}: its terms' times summed "
+                     "(from the spectral radius estimate on)")
         # the whole call also opens, sets up and closes its stores and threads
         axes[1].plot([CORNELL_TERMS], [secs], "*", ms=11, color=color,
-                     label=f"the whole call, prune {prune:g} ({secs:.2f} s)")
+                     label=f"bigT's whole call, stores opened and closed included, prune "
+                     f"{prune:g} ({number(secs)} s)")
     for (prune, (secs, (_, times))), color in zip(series.items(), ("C0", "C1")):
         axes[1].plot(range(CORNELL_TERMS + 1), times, "s--", ms=4, color=color,
-                     label=f"same series in plain scipy, prune {prune:g}")
-    axes[1].axhline(t_inv, color="k", lw=1.2, label=f"numpy.linalg.inv ({t_inv:.2f} s)")
-    titles = ["(a) log10 ||T_n^-1 - T^-1||_F", "(a) time to T_n^-1 (s)",
-              "(b) log10 ||T T_n^-1 - I||_F"]
-    for ax, title, where in zip(axes, titles, ("best", "center left", "best")):
-        ax.set_xlabel("n (T_n^-1, eq. 13)")
+                     label=f"the same series in plain scipy, in memory, prune {prune:g}")
+    axes[1].axhline(t_inv, color="k", lw=1.2,
+                    label=f"the exact inverse, numpy.linalg.inv ({number(t_inv)} s)")
+    titles = ["(a) error against the exact inverse", "(a) time to compute T_n^-1",
+              "(b) residual: how far T T_n^-1 is from I"]
+    ylabels = ["log10 ||T_n^-1 - T^-1||_F", "seconds (cumulative)", "log10 ||T T_n^-1 - I||_F"]
+    for ax, title, ylabel in zip(axes, titles, ylabels):
+        ax.set_xlabel("terms n of the stratified inverse T_n^-1 (eq. 13)")
+        ax.set_ylabel(ylabel)
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc=where)  # the time panel's top holds numpy's line
-    fig.suptitle("Fig. 6: the Cornell box, this machine", fontsize=10)
+        legend_below(ax)
+    fig.suptitle("Fig. 6: the Cornell box on this machine, against the number of terms",
+                 fontsize=11)
     fig.tight_layout()
     save_figure(fig, path)
 
@@ -764,13 +770,14 @@ def corner_run(plan: Plan, work: Path) -> CornerRun:
 def plot_fig9(terms: list[CornerTerm], what: str, path: Path) -> None:
     """RMSE against bounces, log scale."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(5.6, 3.8))
+    fig, ax = plt.subplots(figsize=(6.2, 4.0))
     bounces = np.arange(1, len(terms) + 1)
     ax.semilogy(bounces, [t.rmse for t in terms], "o-")
     ax.set_xticks(bounces)
-    ax.set_xlabel("bounces (the paper's count; bigT terms = bounces - 1)")
-    ax.set_ylabel("RMSE against pinv(T)")
-    ax.set_title(f"Fig. 9: {what}", fontsize=9)
+    ax.set_xlabel("light bounces (the paper's count; bigT's terms = bounces - 1)")
+    ax.set_ylabel("RMSE of T_n^-1 against pinv(T)")
+    ax.set_title(f"Fig. 9: error of the stratified inverse against the pseudo-inverse\n{what}",
+                 fontsize=9)
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
     save_figure(fig, path)

@@ -415,11 +415,21 @@ def _pyplot():
     return plt
 
 
+def scene_words(spec: "SceneSpec") -> str:
+    """A scene key in plain words for a figure's title: "wall corner 96x128, sparse"."""
+    names = {"corner": "wall corner", "cornell": "Cornell box", "hemispheres": "hemispheres"}
+    H, W = spec.size
+    return f"{names.get(spec.name, spec.name)} {H}x{W} ({spec.density} light transport)"
+
+
 def plot_terms(points: list[TermPoint], title: str, path: Path) -> None:
     """Error (solid, markers labelled by term) and residual estimate (dotted) against
     cumulative time, one colour per method, log y."""
+    from bigT.figures import label_points, legend_outside
+
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    fig, ax = plt.subplots(figsize=(8.2, 4.4))
+    labelled = []
     for method in METHODS:
         pts = [p for p in points if p.method == method]
         if not pts:
@@ -427,21 +437,27 @@ def plot_terms(points: list[TermPoint], title: str, path: Path) -> None:
         t = [p.seconds for p in pts]
         ax.plot(t, [p.error for p in pts], "o-", color=COLORS[method], label=method)
         ax.plot(t, [p.residual for p in pts], ":", color=COLORS[method], alpha=0.6)
-        for p in pts:
-            ax.annotate(str(p.term), (p.seconds, p.error), textcoords="offset points",
-                        xytext=(4, 4), fontsize=7, color=COLORS[method])
-    ax.axhline(TARGET_ERROR, color="grey", lw=0.8, ls="--")
-    _finish(plt, fig, ax, "cumulative engine time, s (terms 0..n)",
-            "relative error ||X_n - T^-1||_F (dotted: residual)", title, path)
+        labelled += [(p, COLORS[method]) for p in pts]
+    ax.plot([], [], ":", color="grey", label="residual estimate\n(same colour: method)")
+    ax.axhline(TARGET_ERROR, color="grey", lw=0.8, ls="--",
+               label=f"error {TARGET_ERROR:g} (the target)")
+    ax.set_yscale("log")
+    # labels placed once the axes are set, all in one call: none may cover another
+    label_points(ax, [(p.seconds, p.error) for p, _ in labelled],
+                 [f"{p.term}" for p, _ in labelled], colors=[c for _, c in labelled])
+    _finish(plt, fig, ax, "time, s: the engine's term times summed (terms 0..n)",
+            "relative error ||X_n - T^-1||_F / ||T^-1||_F", title, path, legend_outside)
 
 
-def _finish(plt, fig, ax, xlabel: str, ylabel: str, title: str, path: Path) -> None:
-    """Log y axis, labels, legend and grid; the figure saved to ``path`` and closed."""
+def _finish(plt, fig, ax, xlabel: str, ylabel: str, title: str, path: Path,
+            legend) -> None:
+    """Log y axis, labels, legend (placed by ``legend(ax)``) and grid; the figure saved
+    to ``path`` and closed."""
     ax.set_yscale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
+    legend(ax)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -460,24 +476,29 @@ def _log_time_axis(ax, seconds: list[float]) -> None:
 
 
 def plot_sweep(points: list[SweepPoint], front: set[int], title: str, path: Path) -> None:
-    """All sweep points (labelled by prune) and the Pareto front, log-log."""
+    """All sweep points (labelled by prune, /feed where P_k was pruned harder) and the
+    Pareto front, log-log; labels placed so that none overlaps another."""
+    from bigT.figures import label_points, legend_outside
+
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    for label in ("power", "horner", "power fed"):
+    fig, ax = plt.subplots(figsize=(8.2, 4.6))
+    for label, words in (("power", "power"), ("horner", "horner"),
+                         ("power fed", "power, P_k pruned\nharder (label prune/feed)")):
         pts = [p for p in points if p.setting.label == label]
         if pts:
             ax.scatter([p.seconds for p in pts], [p.error for p in pts], color=COLORS[label],
-                       label=label, zorder=3)
-    for p in points:
-        text = f"{p.setting.prune:g}" + ("" if p.setting.feed is None else f"/{p.setting.feed:g}")
-        ax.annotate(text, (p.seconds, p.error), textcoords="offset points", xytext=(4, 3),
-                    fontsize=6)
+                       label=words, zorder=3)
     on = sorted((points[i] for i in front), key=lambda p: p.seconds)
     ax.step([p.seconds for p in on], [p.error for p in on], "k-", where="post", lw=0.8,
-            label="Pareto front")
+            label="Pareto front: no setting\nis faster and more accurate")
+    ax.set_yscale("log")
+    ax.margins(y=0.12)  # room for the labels of the outermost points
     _log_time_axis(ax, [p.seconds for p in points])
-    _finish(plt, fig, ax, "engine time, s (terms 0..4)", "||X - T^-1||_F / ||T^-1||_F",
-            title, path)
+    label_points(ax, [(p.seconds, p.error) for p in points],
+                 [f"{p.setting.prune:g}" + ("" if p.setting.feed is None else f"/{p.setting.feed:g}")
+                  for p in points])
+    _finish(plt, fig, ax, "time, s: the engine's term times summed (terms 0..4)",
+            "relative error ||X - T^-1||_F / ||T^-1||_F", title, path, legend_outside)
 
 
 # --- the two parts ----------------------------------------------------------------------------
@@ -511,7 +532,8 @@ def part_a(spec: SceneSpec, workdir: Path, res: Results, memory_limit) -> list[T
     print(markdown(title, TERM_COLUMNS, rows, note), flush=True)
     res.table(f"terms:{spec.key}", title, TERM_COLUMNS, rows, note)
     png = f"tradeoff-{spec.key}.png"
-    plot_terms(points, f"{spec.key} (n = {scene.T.shape[0]}), prune {PRUNE:g}",
+    plot_terms(points, f"Error against time, term by term (labels: term)\n"
+                       f"{scene_words(spec)}, n = {scene.T.shape[0]:,}, prune {PRUNE:g}",
                res.figure_path(png))
     res.figure(png, f"{spec.key}: error against cumulative engine time per term "
                     "(dotted: residual estimate; dashed: 1e-4)")
@@ -536,8 +558,8 @@ def part_b(spec: SceneSpec, settings: list[Setting], workdir: Path, res: Results
     res.table("sweep", title, SWEEP_COLUMNS, sweep_rows(points, front), note)
     res.table("pareto", f"Pareto front of time against error: {spec.key}", PARETO_COLUMNS,
               pareto_rows(points, front), note)
-    plot_sweep(points, front, f"{spec.key}: 4 terms, prune swept (labels prune/feed)",
-               res.figure_path("tradeoff-pruning.png"))
+    plot_sweep(points, front, f"Error against time over prune thresholds (labels: prune)\n"
+                              f"{scene_words(spec)}, 4 terms", res.figure_path("tradeoff-pruning.png"))
     res.figure("tradeoff-pruning.png", f"{spec.key}: time against error over prune "
                                        "thresholds, and the Pareto front")
     return points

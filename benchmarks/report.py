@@ -18,6 +18,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -30,6 +31,7 @@ from _results import (  # noqa: E402
     MACHINE_FILE,
     OUT_ENV,
     Claim,
+    CodeState,
     Figure,
     Machine,
     Table,
@@ -102,6 +104,7 @@ class Record:
     notes: list[str]
     seconds: float | None
     started: float | None
+    code: CodeState | None  # None: a record from before records named their code
 
     @classmethod
     def from_json(cls, d: dict) -> "Record":
@@ -110,7 +113,8 @@ class Record:
                    [Figure(**f) for f in d.get("figures", [])],
                    {v["key"]: Value(**v) for v in d.get("values", [])},
                    [Claim(**c) for c in d.get("claims", [])], list(d.get("notes", [])),
-                   d.get("seconds"), d.get("started"))
+                   d.get("seconds"), d.get("started"),
+                   CodeState.from_dict(d["code"]) if d.get("code") else None)
 
     def table(self, key: str) -> Table | None:
         return next((t for t in self.tables if t.key == key), None)
@@ -305,41 +309,86 @@ def summary_alternatives(rec: Record | None) -> list[str]:
     return out or [f"The alternatives table has no timed rows: {NOT_MEASURED}."]
 
 
-def _is_front(x: Any) -> bool:
-    return x is True or str(x).strip().lower() in ("yes", "true", "1", "✓", "x", "*")
+#: The error targets the tradeoff summary answers, loosest first.
+TRADEOFF_TARGETS = (1e-2, 1e-3, 1e-4)
 
 
-def _decades(errors: list[float]) -> list[float]:
-    """Up to three error targets (powers of ten) the front spans, loosest first."""
-    lo, hi = min(errors), max(errors)
-    top = 10.0 ** math.ceil(math.log10(hi))
-    targets = [top / 10**i for i in range(12) if top / 10**i >= lo]
-    return targets[-3:] if targets else [top]
+@dataclass(frozen=True)
+class Setting:
+    """One measured setting of a tradeoff table: what it was, its time and its error."""
+
+    scene: str
+    what: str  # "power, 4 terms, prune 1e-05"
+    seconds: float
+    error: float
+
+
+def _after(pattern: str, text: str) -> str | None:
+    """The first group of ``pattern`` in ``text`` (a table's note or title), or None."""
+    m = re.search(pattern, text or "")
+    return m.group(1) if m else None
+
+
+def tradeoff_settings(rec: Record) -> dict[str, list[Setting]]:
+    """Every setting the tradeoff tables measured, per scene: each term of each method
+    (``terms:<scene>``, at the prune its note states) and each pruning-sweep run
+    (``pareto``, on the scene its title names). One list per scene, so that a summary
+    sentence weighs every setting its tables show, and nothing else."""
+    out: dict[str, list[Setting]] = {}
+    for t in rec.tables_from("terms:"):
+        scene, prune = t.key.split(":", 1)[1], _after(r"prune ([0-9.e+-]+)\.", t.note)
+        for r in _rows(t):
+            secs, err = _num(r.get("cumulative s")), _num(r.get("error"))
+            if secs is None or err is None:
+                continue
+            terms = r.get("term")
+            what = f"{r.get('method')}, {terms} term{'' if terms == 1 else 's'}" + (
+                f", prune {prune}" if prune else "")
+            out.setdefault(scene, []).append(Setting(scene, what, secs, err))
+    sweep = rec.table("pareto")
+    if sweep is not None:
+        scene = (sweep.title.rsplit(": ", 1)[-1] if ": " in sweep.title else sweep.key)
+        terms = _after(r"(\d+) terms each", sweep.note)
+        for r in _rows(sweep):
+            secs, err = _num(r.get("seconds")), _num(r.get("error"))
+            if secs is None or err is None:
+                continue
+            feed = r.get("feed")
+            what = (f"{r.get('method')}" + (f", {terms} terms" if terms else "")
+                    + f", prune {fmt(r.get('prune'))}"
+                    + ("" if feed in (None, "", "-") else f", P_k pruned at {fmt(feed)}"))
+            out.setdefault(scene, []).append(Setting(scene, what, secs, err))
+    return out
+
+
+def fastest_within(settings: list[Setting], target: float) -> Setting | None:
+    """The quickest setting whose error is at most ``target`` (None: none reaches it)."""
+    ok = [s for s in settings if s.error <= target]
+    return min(ok, key=lambda s: (s.seconds, s.error)) if ok else None
 
 
 def summary_tradeoff(rec: Record | None) -> list[str]:
-    """Per scene: the fastest setting on the Pareto front reaching each error target."""
-    tables = rec.tables_from("pareto") if rec else []
-    if not tables:
+    """Per scene, one answer per error target: the fastest setting its tables show
+    reaching it, or the lowest error any reached."""
+    per_scene = tradeoff_settings(rec) if rec else {}
+    if not per_scene:
         return [f"Time against error (the prune threshold and method trade): {NOT_MEASURED}."]
     out = []
-    for t in tables:
-        front = [r for r in _rows(t) if _is_front(r.get("on front"))
-                 and _num(r.get("error")) is not None and _num(r.get("seconds")) is not None]
-        if not front:
-            continue
+    for scene, settings in per_scene.items():
         parts = []
-        for target in _decades([_num(r["error"]) for r in front]):
-            ok = [r for r in front if _num(r["error"]) <= target]
-            if ok:
-                r = min(ok, key=lambda r: _num(r["seconds"]))
-                parts.append(f"error ≤ {fmt(target)} takes {fmt(r['seconds'])} s "
-                             f"({r.get('method')}, prune {fmt(r.get('prune'))}, feed "
-                             f"{fmt(r.get('feed'))}: error {fmt(r['error'])}, nnz(X) "
-                             f"{fmt(r.get('nnz(X)'))})")
-        out.append(f"{t.title or t.key}: " + "; ".join(parts) + ".")
-    return (out or [f"The Pareto tables have no front: {NOT_MEASURED}."]) + _quoted_values(
-        rec, "best:")
+        for target in TRADEOFF_TARGETS:
+            best = fastest_within(settings, target)
+            if best is None:
+                low = min(settings, key=lambda s: s.error)
+                parts.append(f"none of its {len(settings)} settings reaches error ≤ "
+                             f"{fmt(target)} (lowest: {fmt(low.error)}, {low.what}, "
+                             f"{fmt(low.seconds)} s)")
+                break  # a tighter target is not reached either
+            parts.append(f"error ≤ {fmt(target)} takes {fmt(best.seconds)} s ({best.what}: "
+                         f"error {fmt(best.error)})")
+        out.append(f"{scene}, fastest of the {len(settings)} settings measured: "
+                   + "; ".join(parts) + ".")
+    return out
 
 
 def _quoted_values(rec: Record, prefix: str) -> list[str]:
@@ -437,19 +486,56 @@ def summary_target(rec: Record | None) -> list[str]:
             f"the time of the best fixed setting found by a sweep ({cases})."]
 
 
+@dataclass(frozen=True)
+class ClaimVerdict:
+    """One of the paper's claims and every check of it in this run."""
+
+    figure: str
+    paper: str
+    checks: list[Claim]
+
+    @property
+    def judged(self) -> list[Claim]:
+        return [c for c in self.checks if c.holds is not None]
+
+    @property
+    def failed(self) -> list[Claim]:
+        return [c for c in self.judged if not c.holds]
+
+    @property
+    def holds(self) -> bool | None:
+        """True when every judged check holds, False when one fails, None when none is
+        judged."""
+        return None if not self.judged else not self.failed
+
+
+def claim_verdicts(records: Iterable[Record]) -> list[ClaimVerdict]:
+    """The claims of every record, each claim once with all its checks (a claim measured
+    several ways, e.g. Fig. 6(a)'s speed by the engine and by plain scipy, is one claim)."""
+    groups: dict[tuple[str, str], list[Claim]] = {}
+    for r in records:
+        for c in r.claims:
+            groups.setdefault((c.figure, c.paper), []).append(c)
+    return [ClaimVerdict(f, p, cs) for (f, p), cs in groups.items()]
+
+
 def summary_paper(records: Iterable[Record], found: bool) -> list[str]:
-    """How many of the paper's claims hold, and which do not."""
-    claims = [c for r in records for c in r.claims]
+    """How many of the paper's claims hold, and which do not: one count and one list,
+    both over the same claims (each claim once however many ways it was checked)."""
     if not found:
         return [f"Figs. 5, 6, 9 and 10(a) reproduced on bigT's scenes: {NOT_MEASURED}."]
-    judged = [c for c in claims if c.holds is not None]
-    held = [c for c in judged if c.holds]
-    text = f"{len(held)} of {len(judged)} of the paper's claims checked hold on bigT's scenes"
-    # each failing claim once (a claim measured several ways fails once here); the
-    # measured values are in the claims table, too long for a sentence
-    failed = dict.fromkeys(f'{c.figure} "{c.paper}"' for c in judged if not c.holds)
-    return [text + ("; not: " + "; ".join(failed) + " (measured values in the table below)"
-                    if failed else "") + "."]
+    verdicts = [v for v in claim_verdicts(records) if v.holds is not None]
+    failing = [v for v in verdicts if not v.holds]
+    checks = sum(len(v.judged) for v in verdicts)
+    text = (f"{len(verdicts) - len(failing)} of the {len(verdicts)} claims of the paper "
+            f"checked hold on bigT's scenes ({checks} checks in all)")
+    if failing:
+        named = [f'{v.figure} "{v.paper}"' + (
+            f" ({len(v.failed)} of its {len(v.judged)} checks fail)"
+            if len(v.judged) > 1 else "") for v in failing]
+        which = "the one that does not" if len(failing) == 1 else f"the {len(failing)} that do not"
+        text += f"; {which}: " + "; ".join(named) + " (measured values in the table below)"
+    return [text + "."]
 
 
 def summary(records: dict[str, Record]) -> list[str]:
@@ -474,14 +560,33 @@ def summary(records: dict[str, Record]) -> list[str]:
     return lines
 
 
+#: The test a benchmark writes into a claim's measured text: "(holds: rho >= 1)", with
+#: at most one level of parentheses inside.
+_TEST = re.compile(r"\s*\(holds: ((?:[^()]|\([^()]*\))*)\)")
+
+
+def split_test(measured: str) -> tuple[str, str]:
+    """A claim's measured text and the test it was judged by: the benchmarks write the
+    test into the text, as "(holds: rho >= 1)"; the table gives it its own column, so
+    that a row never reads "(holds: ...) | no"."""
+    tests = _TEST.findall(measured)
+    return _TEST.sub("", measured).strip(), "; ".join(tests)
+
+
 def claims_table(records: Iterable[Record]) -> list[str]:
-    claims = [(r.name, c) for r in records for c in r.claims]
+    claims = [c for r in records for c in r.claims]
     lines = ["## The paper's claims against this run", ""]
     if not claims:
         return lines + [f"The paper's figures: {NOT_MEASURED}.", ""]
-    lines += ["| figure | the paper | measured here | holds |", "|---|---|---|---|"]
-    lines += [f"| {_cell(c.figure)} | {_cell(c.paper)} | {_cell(c.measured)} | "
-              f"{'–' if c.holds is None else fmt(bool(c.holds))} |" for _, c in claims]
+    lines += ["*Each row is one check: what was measured, the test the claim must pass, "
+              "and whether this run passes it.*", "",
+              "| figure | the paper | measured here | the claim holds when | holds here |",
+              "|---|---|---|---|---|"]
+    for c in claims:
+        measured, test = split_test(c.measured)
+        verdict = "–" if c.holds is None else fmt(bool(c.holds))
+        lines.append(f"| {_cell(c.figure)} | {_cell(c.paper)} | {_cell(measured)} | "
+                     f"{_cell(test) or '–'} | {verdict} |")
     return lines + [""]
 
 
@@ -504,7 +609,8 @@ def _status(run: Run | None, rec: Record | None, out: Path, base: Path,
     """The line under a section's heading: command, exit, time, log; or the failure."""
     if run is None:
         when = _when(rec.started) if rec else "?"
-        return [f"Not run by this plan: the record is from {when}.", ""]
+        return [f"Not run by this plan: the record is from {when}." + _other_code(rec, stamp),
+                ""]
     log = out / run.log
     head = f"`{' '.join(run.command)}`"
     link = f"[{run.log}]({_link(log, base)})"
@@ -517,7 +623,19 @@ def _status(run: Run | None, rec: Record | None, out: Path, base: Path,
     stale = ""
     if rec and stamp and rec.started and rec.started < stamp.started - 1:
         stale = f" The record below is from an earlier run ({_when(rec.started)})."
-    return [f"{head}: ran in {fmt(run.seconds)} s; its output: {link}.{stale}", ""]
+    return [f"{head}: ran in {fmt(run.seconds)} s; its output: {link}.{stale}"
+            + _other_code(rec, stamp), ""]
+
+
+def _other_code(rec: Record | None, stamp: Machine | None) -> str:
+    """A sentence when ``rec`` was measured with other code than the run's stamp names."""
+    if rec is None or stamp is None:
+        return ""
+    if rec.code is None:
+        return " Its record does not say which code measured it."
+    if rec.code != stamp.code:
+        return f" **Measured with {rec.code.words()}** (the run started at {stamp.code.words()})."
+    return ""
 
 
 def section(i: int, name: str, run: Run | None, rec: Record | None, out: Path,
@@ -595,7 +713,7 @@ def render(out: Path, results: Path) -> str:
     order = list(plan.order) if plan else []
     order += [n for n in records if n not in order]
     lines = ["# bigT benchmark results", ""]
-    lines += _stamp_lines(stamp, plan)
+    lines += _stamp_lines(stamp, plan, records)
     lines += summary(records)
     lines += claims_table(records[n] for n in order if n in records)
     for i, name in enumerate(order, 1):
@@ -608,7 +726,8 @@ def _duration(seconds: float) -> str:
     return f"{fmt(seconds)} s" if seconds < 120 else f"{fmt(seconds / 60)} min"
 
 
-def _stamp_lines(stamp: Machine | None, plan: Plan | None) -> list[str]:
+def _stamp_lines(stamp: Machine | None, plan: Plan | None,
+                 records: dict[str, Record] | None = None) -> list[str]:
     if stamp is None:  # records without run_all.py: the best stamp left is this machine
         stamp, taken = machine(), "as this report was written: no machine.json"
     else:
@@ -622,6 +741,28 @@ def _stamp_lines(stamp: Machine | None, plan: Plan | None) -> list[str]:
              f"**Machine and versions** (taken {taken}): {stamp.line()}; load average "
              f"{' / '.join(fmt(v) for v in stamp.load_average)} at the start. "
              "Timings on a shared machine drift; compare within one table.", ""]
+    return lines + code_lines(stamp.code, records or {})
+
+
+def code_lines(start: CodeState, records: dict[str, Record]) -> list[str]:
+    """Which code the records were measured with: one sentence when all agree with the
+    run's start, else the records that differ; a warning when it was no commit's code."""
+    lines = []
+    if start.clean is False:
+        lines += [f"**Not from a committed state:** the run started at {start.words()}; "
+                  "its numbers cannot be reproduced from a commit.", ""]
+    other = {n: r.code for n, r in records.items() if r.code is not None and r.code != start}
+    unknown = [n for n, r in records.items() if r.code is None]
+    if records and not other and not unknown:
+        lines += [f"**Code:** all {len(records)} records were measured with {start.words()}.",
+                  ""]
+    if other:
+        lines += ["**Code:** measured with other code than the run started at: "
+                  + "; ".join(f"`{n}` with {c.words()}" for n, c in other.items()) + ".", ""]
+    if unknown:
+        lines += [f"**Code:** {len(unknown)} record{'s' if len(unknown) > 1 else ''} "
+                  f"({', '.join(unknown)}) do not say which code measured them (older "
+                  "records).", ""]
     return lines
 
 

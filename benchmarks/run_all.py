@@ -13,6 +13,14 @@ and ``BIGT_BENCH_NAME`` naming its record; its printed output is kept as
 beside it. A benchmark that fails is reported as failed there, with the end of its log.
 A whole plan first removes the records an earlier run left in the folder; ``--only``
 keeps the others' (RESULTS.md marks them as from an earlier run).
+
+The committed results (``benchmarks/RESULTS.md``, the full plan without ``--out``) must
+come from a commit: run_all refuses a work tree with uncommitted changes there (the
+results themselves excepted), since numbers from code no commit holds cannot be
+reproduced or reviewed; ``--allow-dirty`` runs anyway and RESULTS.md then says, at its
+top, that it is not from a committed state. Other runs (``--quick``, ``--out``) only
+say so. Every record names the code it was measured with, so a plan run in parts, or
+a tree that changed during a long run, shows in RESULTS.md.
 Scratch data (scenes, inverses) stays in ``bench-out/``, which git ignores; the full
 plan's scenes are reused by a later run.
 """
@@ -31,7 +39,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
 import report  # noqa: E402
-from _results import NAME_ENV, OUT_ENV, machine  # noqa: E402
+from _results import NAME_ENV, OUT_ENV, code_state, machine  # noqa: E402
 
 #: The full plan (about 70 minutes on 2 cores), in the order of issue #16: the paper's
 #: figures, time against error (pruning included), the alternatives, scaling, kernels,
@@ -110,6 +118,19 @@ def default_paths(quick: bool, out: str | None) -> tuple[Path, Path]:
     return HERE / "results", HERE / "RESULTS.md"
 
 
+def refuse_dirty(results: Path, allow_dirty: bool) -> str | None:
+    """Why this run may not write ``results``, or None. Only the committed RESULTS.md is
+    guarded: a quick run or one into another folder is scratch, and says what it ran."""
+    if allow_dirty or results.resolve() != (HERE / "RESULTS.md").resolve():
+        return None
+    code = code_state(ROOT)
+    if code.clean is not False:
+        return None
+    return (f"run_all: the committed results must come from a commit, and this tree is at "
+            f"{code.words()}. Commit (or stash) first, or pass --allow-dirty to run anyway "
+            "(RESULTS.md will then say it is not from a committed state), or --out DIR.")
+
+
 def run_one(name: str, cmd: list[str], out: Path) -> report.Run:
     """Run one benchmark in a child process, its output shown and kept in ``<name>.txt``."""
     log = f"{name}.txt"
@@ -150,6 +171,9 @@ def main(argv=None) -> int:
                         "benchmarks/results with benchmarks/RESULTS.md, or bench-out "
                         "with --quick")
     p.add_argument("--list", action="store_true", help="print the plan and stop")
+    p.add_argument("--allow-dirty", action="store_true",
+                   help="write benchmarks/RESULTS.md from a tree with uncommitted changes "
+                        "(it is marked as such)")
     args = p.parse_args(argv)
     plan = QUICK if args.quick else FULL
     if args.list:
@@ -158,6 +182,9 @@ def main(argv=None) -> int:
         return 0
     todo = select(plan, args.only)
     out, results = default_paths(args.quick, args.out)
+    refusal = refuse_dirty(results, args.allow_dirty)
+    if refusal:
+        raise SystemExit(refusal)
     out.mkdir(parents=True, exist_ok=True)
     print(f"stamp: {machine().save(out)}", flush=True)  # at the start: it describes the run
     earlier = report.Plan.load(out) if args.only else None

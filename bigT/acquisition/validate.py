@@ -230,13 +230,14 @@ def plot_white_check(check: WhiteCheck, path) -> Path:
         ax0.imshow(np.clip(check.captured / max(check.captured.max(), 1e-300), 0, 1),
                    interpolation="nearest")
     else:
-        ax0.imshow(check.captured, cmap="gray", vmin=0, interpolation="nearest")
+        fig.colorbar(ax0.imshow(check.captured, cmap="gray", vmin=0, interpolation="nearest"),
+                     ax=ax0)
     captured, predicted = grey_view(check.captured), grey_view(check.predicted)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for k, r in enumerate(check.rows):
         ax0.axhline(r, color=colours[k], lw=1)
         ax1.plot(captured[r], color=colours[k], lw=1.3, label=f"row {r}, captured")
-        ax1.plot(predicted[r], color=colours[k], lw=1.1, ls="--", label=f"row {r}, T 1")
+        ax1.plot(predicted[r], color=colours[k], lw=1.1, ls="--", label=f"row {r}, predicted by T")
     ax0.set_title("captured white (camera super-pixels)", fontsize=9)
     ax0.set_xticks([])
     ax0.set_yticks([])
@@ -244,7 +245,7 @@ def plot_white_check(check: WhiteCheck, path) -> Path:
     ax1.set_ylabel("intensity (mean of R, G, B)" if colour else "intensity")
     ax1.grid(alpha=0.3)
     ax1.legend(fontsize=7, ncol=2)
-    fig.suptitle(f"T 1 against the captured white image: relative error "
+    fig.suptitle(f"the white image as T predicts it against as captured: relative error "
                  f"{check.relative_error:.3g}", fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path, dpi=100)

@@ -274,7 +274,7 @@ def _colour_part(out: Path, quiet: list, log: list) -> list:
     desired = direct_view(scene.F, pattern)
     write_image(out / "test_pattern.png", desired, bits=16)  # 16-bit: linear light
     views = {"desired": desired}
-    views["uncompensated (T l)"] = scene.T.matmul(desired.ravel()).reshape(desired.shape)
+    views["uncompensated"] = scene.T.matmul(desired.ravel()).reshape(desired.shape)
     for terms, label in ((0, "per-pixel 3x3 (term 0)"), (DEMO_TERMS, f"{DEMO_TERMS} terms")):
         X = out / f"X{terms}.zarr"
         _step(f"colour: inverse, {label}", ["invert", str(T_path), "-o", str(X), "--terms",
@@ -291,7 +291,7 @@ def _colour_part(out: Path, quiet: list, log: list) -> list:
     figure = colour_views(out / "views.png", views, maps,
                           suptitle="colour Cornell box: the camera's view of a test pattern "
                                    "(top) and its CIEDE2000 difference from the desired image")
-    return [("colour Cornell box: T 1", scene.preview),
+    return [("colour Cornell box: the camera's view of a white projector image", scene.preview),
             ("colour: desired | uncompensated | per-pixel 3x3 only | 4 terms, with dE2000 "
              "maps", figure)]
 

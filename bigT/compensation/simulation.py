@@ -23,7 +23,7 @@ import numpy as np
 from .. import config
 from .. import colour
 from ..errors import ImageError
-from ..figures import scan_lines, side_by_side
+from ..figures import number, scan_lines, side_by_side
 from ..metrics import ColourMetrics, image_metrics
 from ..schedule.stream import (cache_budget, compute_dtype, forget_tiles, scheduler_runner,
                                stream_matmul)
@@ -448,6 +448,10 @@ def simulate(X, images, T, *, clip=(0, 1), batch: int = config.DEFAULT_BATCH,
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 
 
+#: The compensation paths in a figure's words.
+_PATH_WORDS = {"explicit": "with the stored inverse X", "matrix-free": "from T's terms (no X)"}
+
+
 def _shown(image: np.ndarray) -> np.ndarray:
     """An image as the figures show it: grey as it is; colour sRGB-encoded and clipped
     to [0, 1] (what a screen shows of linear light)."""
@@ -485,9 +489,9 @@ def simulation_figures(report: SimulationReport, compare_path, scanline_path, *,
     compare = side_by_side(
         compare_path, [_shown(im) for im in (f.desired, f.uncompensated, f.projector, f.seen)],
         ["desired", "seen without compensation", "projector input", "seen with compensation"],
-        suptitle=f"compensation, {report.path.path} path{tag}; error "
-        f"{relative_error(f.seen, f.desired):.3f} vs "
-        f"{relative_error(f.uncompensated, f.desired):.3f}")
+        suptitle=f"compensation {_PATH_WORDS.get(report.path.path, report.path.path)}{tag}; "
+        f"relative error of what is seen: {number(relative_error(f.seen, f.desired))} with, "
+        f"{number(relative_error(f.uncompensated, f.desired))} without")
     lines = {"without compensation": _line(f.uncompensated),
              "with compensation": _line(f.seen), "projector input": _line(f.projector)}
     desired_line = _line(f.desired)

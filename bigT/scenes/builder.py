@@ -328,7 +328,7 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     if preview:
         H, W = params["image_shape"]
         draw_preview(preview_path(r.path), r.pixel_order.to_images(stats.T1),
-                     f"{params['name']} {H}x{W}: T 1, rho(M) = {format_radius(stats.rho_M.value)}")
+                     f"{params['name']} {H}x{W}, spectral radius rho(M) = {format_radius(stats.rho_M.value)}")
     return scene
 
 

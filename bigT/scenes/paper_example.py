@@ -80,6 +80,6 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     if preview:
-        draw_preview(preview_path(path), T1.reshape(2, 2), "dihedral4 (paper eq. 34): T 1")
+        draw_preview(preview_path(path), T1.reshape(2, 2), "dihedral4 (paper eq. 34)")
     return load(path)
 

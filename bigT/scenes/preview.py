@@ -26,7 +26,7 @@ def draw_preview(path: Path, image: np.ndarray, title: str) -> Path:
         peak = float(image.max()) or 1.0
         ax0.imshow(encode(np.clip(image / peak, 0.0, 1.0), "srgb"), interpolation="nearest")
     else:
-        ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest")
+        fig.colorbar(ax0.imshow(image, cmap="gray", vmin=0, interpolation="nearest"), ax=ax0)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     styles = ("-", "--", ":")
     for k, r in enumerate(rows):
@@ -38,11 +38,12 @@ def draw_preview(path: Path, image: np.ndarray, title: str) -> Path:
         else:
             ax0.axhline(r, color=colours[k], lw=1)
             ax1.plot(image[r], color=colours[k], lw=1.3, label=f"row {r}")
-    ax0.set_title("T 1 (white projector image)" + (", sRGB" if colour else ""), fontsize=9)
+    ax0.set_title("the camera's view of a white projector image"
+                  + (",\nsRGB, its brightest value white" if colour else ""), fontsize=9)
     ax0.set_xticks([])
     ax0.set_yticks([])
-    ax1.set_xlabel("column")
-    ax1.set_ylabel("intensity")
+    ax1.set_xlabel("image column (pixels)")
+    ax1.set_ylabel("intensity (linear light)")
     ax1.set_title("horizontal scan lines", fontsize=9)
     ax1.grid(alpha=0.3)
     ax1.legend(fontsize=8)
