@@ -29,7 +29,9 @@ test-all: $(STAMP)
 
 # every benchmark, about an hour: benchmarks/RESULTS.md and its plots in benchmarks/results/
 # (ARGS passes options on: make bench ARGS="--only paper,scale"); bench-quick: small sizes
-# in under 5 minutes, into bench-out/RESULTS.md (the committed results stay as they are)
+# in under 5 minutes, into bench-out/RESULTS.md (the committed results stay as they are).
+# The full run refuses a tree with uncommitted changes (its results name the commit they
+# come from): commit first, or pass ARGS=--allow-dirty to run anyway, marked as such
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[test,bench]"
 	$(BIN)/python benchmarks/run_all.py $(ARGS)
