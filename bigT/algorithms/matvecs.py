@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..schedule.matvec import matvec, matvec_spec
-from ..schedule.runner import ClusterRunner, ThreadRunner
+from ..schedule.runner import ClusterRunner, ThreadRunner, worker_path
 from ..storage.channel_mixing import mixed_product
 from .run_setup import RunLayout
 
@@ -50,7 +50,7 @@ class MatVecs:
     def apply_X(self, X, V: np.ndarray) -> np.ndarray:
         """X V, shape (n, p), for the term store ``X`` (its tiles read once, not
         cached: the next term replaces it)."""
-        spec = matvec_spec("matvec-X", str(X.path), X.shape[0], X.tile_size, X.dtype,
+        spec = matvec_spec("matvec-X", worker_path(X.path), X.shape[0], X.tile_size, X.dtype,
                            memory=self.layout.policy, cache_tiles=False)
         # a factored colour X (docs/FORMAT.md "Colour") is L S R; its tiles are S
         return mixed_product(getattr(X, "mixing", None),

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..schedule.memory import warn_if_rows_outgrow
 from ..schedule.operators import StoreOperand
-from ..schedule.runner import new_pass_id
+from ..schedule.runner import new_pass_id, worker_path
 from ..schedule.spec import BlockStats, PassSpec, row_blocks
 from ..storage import InverseStore, StoreAttrs, completed_rows
 from ..storage import open as open_store
@@ -131,13 +131,15 @@ class PassRunner:
 
     def _spec(self, p: Pass, k: int, paths: dict) -> PassSpec:
         lay = self.layout
-        inputs = tuple((alias, str(self.store.term_path(term, name)))
+        # worker_path: a store in object storage travels as its ObjectPath, with the
+        # storage options its location was given, not as a bare URL
+        inputs = tuple((alias, worker_path(self.store.term_path(term, name)))
                        for alias, name, term in p.inputs)
         return PassSpec(
             op=p.op, term=k, task=p.task, T=lay.T_path, first_bounce=lay.fb.digest,
             zero_diagonal=lay.fb.zero_diagonal, n=lay.n, block_rows=lay.tile_size,
             dtype=np.dtype(lay.T.dtype).name, memory=lay.policy, inputs=inputs,
-            scaled=p.scaled, outputs=tuple((name, str(path)) for name, path in paths.items()),
+            scaled=p.scaled, outputs=tuple((name, worker_path(path)) for name, path in paths.items()),
             right=p.right, **self.settings.thresholds.spec_fields(),
             kernel_threads=lay.kernel_threads, pass_id=new_pass_id())
 

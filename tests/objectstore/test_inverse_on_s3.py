@@ -89,3 +89,18 @@ def test_compensate_reads_the_inverse_from_the_bucket(T_url, local_X_path, s3_ur
         assert out.returncode == 0, out.stderr
         outputs.append(iio.imread(tmp_path / f"{name}.png"))
     np.testing.assert_array_equal(outputs[0], outputs[1])
+
+
+def test_storage_options_given_in_python_travel_with_the_stores(T_url, local_X, s3, s3_url,
+                                                                monkeypatch):
+    """No AWS_* variable in the environment: the endpoint and credentials are the
+    stores' own options (as_location), and every term store the run opens keeps them."""
+    options = {"endpoint": s3.endpoint, "access_key_id": "testing",
+               "secret_access_key": "testing", "region": "us-east-1"}
+    for key in s3.env:  # (nothing is opened without options: no request leaves loopback)
+        monkeypatch.delenv(key, raising=False)
+    T = as_location(T_url, options)
+    out = as_location(f"{s3_url}/X.zarr", options)
+    bigT.stratified_inverse(T, out, terms=TERMS, progress=False, in_memory=False)
+    assert abs(bigT.open(out).to_scipy() - local_X).max() == 0
+    assert abs(bigT.open(str(out), storage_options=options).to_scipy() - local_X).max() == 0
