@@ -140,3 +140,34 @@ def test_export_to_the_bucket_puts_one_object_scipy_reads(s3_url, tmp_path):
     assert out.returncode == 0, out.stderr
     back = sp.load_npz(io.BytesIO(as_location(f"{s3_url}/T.npz").read_bytes()))
     assert (back != A).nnz == 0
+
+
+def test_a_lock_renewed_by_its_holder_stays_and_an_abandoned_one_is_taken_over(s3_url,
+                                                                                 monkeypatch):
+    """With a 2 s lease: a live holder renews its lock (a second writer is refused after
+    more than one lease), a lock nobody renews (its host unknown here) is taken over
+    once a lease has passed, by one conditional write."""
+    import json
+    import time
+
+    from bigT import config
+    from bigT.storage.locks import WriterLock
+
+    monkeypatch.setattr(config, "OBJECT_LOCK_SECONDS", 2.0)
+    root = as_location(f"{s3_url}/X.zarr")
+    held = WriterLock(root).acquire()
+    try:
+        time.sleep(3.0)  # longer than a lease: only the renewals keep it
+        with pytest.raises(StoreError, match="is being written by"):
+            WriterLock(root).acquire()
+    finally:
+        held.release()
+    lock = root / ".bigT-writer.lock"
+    lock.write_bytes(json.dumps({"command": "bigT invert", "pid": 1,
+                                 "host": "another-machine"}).encode())
+    with pytest.raises(StoreError, match="another-machine"):
+        WriterLock(root).acquire()  # renewed just now, as far as anyone can tell
+    time.sleep(2.5)
+    taker = WriterLock(root).acquire()
+    assert json.loads(lock.read_bytes())["pid"] == os.getpid()
+    taker.release()
