@@ -13,7 +13,11 @@ Python dependencies, the S3, GCS and Azure clients and an in-memory store, the
 standard environment variables (``AWS_ENDPOINT_URL``, ``AWS_ACCESS_KEY_ID``,
 ``AWS_REGION``, ...), and conditional writes (``If-None-Match: *``) that make a
 second writer of one object lose cleanly. It is what zarr-python's own
-``ObjectStore`` is built on. Measured against s3fs in ``benchmarks/bench_objects.py``.
+``ObjectStore`` is built on. ``benchmarks/bench_object_io.py`` measured it against s3fs
+(fsspec) on moto over loopback, 50 objects: a 64 KiB get 4.7 ms against 46.9 ms, a
+1 MiB get 18.6 ms against 46.5 ms, a 64 KiB put 8.7 ms against 28.4 ms, one request at
+a time; 8 in flight, 1 MiB gets at 100 MB/s against 35 MB/s. s3fs would also bring
+aiobotocore and its pinned botocore.
 
 Keys are never followed anywhere: a key is a name, there are no links in a bucket,
 so "no link followed out of a store" holds by construction; a redirect is a key
