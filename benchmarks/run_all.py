@@ -80,6 +80,8 @@ FULL = [
     # on its own with --baseline, an older checkout)
     ("layout", ["bench_layout.py", "--workdir", "bench-out/layout"]),
     ("startup", ["bench_startup.py"]),  # whole bigT processes: every help, a warm 4x4
+    # issue #31: local directory against S3 (moto) on loopback, threads and 2 workers
+    ("objects", ["bench_objects.py", "--workdir", "bench-out/objects"]),
     ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
     ("stability", ["bench_stability.py", "--quick"]),
     ("reliability", ["bench_reliability.py", "--quick"]),
