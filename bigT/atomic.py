@@ -292,9 +292,20 @@ def _resolved(path) -> "Path | PurePosixPath":
     """A local path resolved (links, ``..``); a URL of object storage (a string with
     ``://``, or a store location that is not os.PathLike) as its key path, which has
     no links to resolve."""
-    if isinstance(path, (str, os.PathLike)) and "://" not in os.fspath(path):
-        return Path(os.path.realpath(path))
-    return PurePosixPath(str(path).replace("://", "/", 1))
+    text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else str(path)
+    if "://" not in text:
+        return Path(os.path.realpath(text))
+    scheme, rest = text.split("://", 1)
+    scheme = scheme.lower()
+    if scheme == "file":
+        return Path(os.path.realpath(rest))
+    # one bucket under any of its spellings (S3:// and s3a:// are s3://)
+    scheme = _SCHEME_ALIASES.get(scheme, scheme)
+    return PurePosixPath("/" + scheme, *[p for p in rest.split("/") if p not in ("", ".")])
+
+
+#: URL schemes that name the same object storage as another (what bigT.storage maps).
+_SCHEME_ALIASES = {"s3a": "s3", "gcs": "gs", "azure": "az"}
 
 
 def _same_file(a: Path, b: Path) -> bool:

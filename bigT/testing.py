@@ -188,9 +188,11 @@ class S3Server:
         except BaseException:
             self.stop()
             raise
+        # NO_PROXY: a proxy in the environment never carries the requests elsewhere
         self.env = {"AWS_ENDPOINT_URL": self.endpoint, "AWS_ACCESS_KEY_ID": "testing",
                     "AWS_SECRET_ACCESS_KEY": "testing", "AWS_REGION": "us-east-1",
-                    "AWS_DEFAULT_REGION": "us-east-1"}
+                    "AWS_DEFAULT_REGION": "us-east-1", "NO_PROXY": "127.0.0.1,localhost",
+                    "no_proxy": "127.0.0.1,localhost"}
 
     def _wait(self, port: int, timeout: float = 60) -> None:
         import socket
@@ -209,8 +211,9 @@ class S3Server:
     def create_bucket(self, name: str) -> None:
         import urllib.request
 
-        urllib.request.urlopen(urllib.request.Request(f"{self.endpoint}/{name}", method="PUT"),
-                               timeout=30).close()
+        opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # no proxy
+        opener.open(urllib.request.Request(f"{self.endpoint}/{name}", method="PUT"),
+                    timeout=30).close()
 
     def url(self, key: str) -> str:
         """``s3://BUCKET/key``."""

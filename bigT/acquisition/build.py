@@ -48,7 +48,7 @@ from ..compensation.rig import (ACQUISITION_KEY, CORRESPONDENCE,
                                 load_correspondence)  # noqa: F401 (acquisition's API)
 from ..errors import AcquisitionError, MemoryLimitWarning, StoreError
 from ..progress import progress_bar
-from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, move_into_place,
+from ..storage import (BlockCSRWriter, PixelOrder, check_replaceable, is_url, move_into_place,
                        read_store_attrs, temporary_sibling)
 from ..storage import open as open_store
 from ..calibration import CameraResponse, ProjectorResponse, parse_camera_response
@@ -252,6 +252,10 @@ def build_transport(patterns, captures, output, *, black=None, floor: float | No
     over.
     """
     t0 = time.perf_counter()
+    if is_url(output):  # refused before anything is read, never a local "s3:" folder
+        raise AcquisitionError("a measured T is built on the machine that holds the "
+                               "captures: give a directory, then put the store in the "
+                               "bucket (bigT.storage.upload_tree)", str(output))
     refuse_overwriting_inputs([output], [patterns, captures, black])
     manifest = read_manifest(patterns)
     mixing = _checked_mixing(mixing, manifest)

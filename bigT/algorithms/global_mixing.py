@@ -39,13 +39,13 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import scipy.sparse as sp
 
-from ..storage import (InverseStore, StoreAttrs, create_store, finalize_store,
+from ..storage import (InverseStore, ObjectPath, StoreAttrs, create_store, finalize_store,
                        temporary_sibling, write_tile_row)
 from ..storage import open as open_store
 from ..storage.channel_mixing import ChannelMixing
 from ..storage.inverse_store import jsonable
 from ..storage.locks import READER_LEASE, WRITER_LOCK
-from ..storage.replace import write_root_attrs
+from ..storage.replace import remove_tree, write_root_attrs
 from ..storage.writer import BlockCSRWriter
 from .first_bounce import FirstBounce
 from .fingerprint import inverse_fingerprint
@@ -131,7 +131,7 @@ def global_mixing_inverse(T, out, choice: ColourPathChoice, options: Mapping[str
         publish(store, T, X, grey_record, params, mixing)
         t_publish = time.perf_counter() - t0
         store.clean(keep={grey_record.dir})
-        shutil.rmtree(work, ignore_errors=True)
+        remove_tree(work)
     finally:
         store.close()
     return with_colour_path(grey, choice, path=str(store.path), nnz_T=int(T.nnz),
@@ -202,6 +202,15 @@ def factored_inverse(Xu, T, mixing: ColourMixing, store: InverseStore, k: int):
         mixing=ChannelMixing(mixing.projector_inverse, mixing.camera_inverse),
         metadata={"inverse": {"term": k, "complete": False, "colour_path": "global"}})
     path = store.term_path(k, "X")
+    if isinstance(path, ObjectPath):  # no rename, no link: copied in the server, in place
+        if path.exists():
+            path.remove_tree()
+        if Xu.tile_size % 3 == 0:
+            Xu.path.copy_tree_to(path)
+            write_root_attrs(path, attrs)
+        else:
+            _retiled(Xu, attrs.replace(tile_size=T.tile_size, complete=False, nnz=None), path)
+        return finalize_store(path)
     aside = temporary_sibling(path)
     if Xu.tile_size % 3 == 0:
         shutil.copytree(Xu.path, aside, copy_function=_link_or_copy,

@@ -13,7 +13,6 @@ encoding's values (:func:`bigT.colour.decode` turns sRGB-encoded values into lig
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 
@@ -29,7 +28,8 @@ from ..schedule.stream import (
     scheduler_runner,
     stream_matmul,
 )
-from ..storage import as_store
+from ..schedule.runner import worker_path
+from ..storage import as_store, store_identity
 from ..storage.frames import (as_frames, matrix_to_frames, pixel_order_of,
                               to_frames, to_vectors)
 
@@ -57,8 +57,7 @@ def first_bounce_diag(T) -> np.ndarray:
     from ..algorithms.first_bounce import resolve_first_bounce  # the algorithms package
     # imports the engine and dask (~0.5 s): only the matrix-free path needs F here
 
-    st = os.stat(os.path.join(T.path, "zarr.json"))
-    key = (os.path.abspath(T.path), st.st_ino, st.st_mtime_ns)
+    key = (str(worker_path(T.path)), *store_identity(T.path))
     if key not in _FINV:
         _FINV.clear()  # one store at a time: a vector of n per store is enough
         _FINV[key] = resolve_first_bounce(T, "diag").finv

@@ -247,9 +247,30 @@ def projector_encoder(response, *, bits: int | None = None, dither: str = "none"
         loaded, source = response, "given"
     else:
         path = found if isinstance(response, str) and response == "auto" else Path(response)
-        loaded = load_projector_response(path)
+        loaded = _load_response(path)
         source = f"{path}, stored with T," if response == "auto" else str(path)
     return ProjectorEncoder(loaded, 8 if bits is None else bits, dither, seed, source)
+
+
+def _load_response(path) -> ProjectorResponse:
+    """:func:`load_projector_response` of a file, or of an object of the store in
+    object storage (copied to a temporary file first: the calibration layer reads
+    files)."""
+    from ..storage import ObjectPath
+
+    if not isinstance(path, ObjectPath):
+        return load_projector_response(path)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="bigT-response-") as tmp:
+        local = Path(tmp) / path.name
+        local.write_bytes(path.read_bytes(RESPONSE_MAX_BYTES))
+        return load_projector_response(local)
+
+
+#: The largest projector response read from object storage (a 4096-level ramp of 3
+#: channels is ~300 KB of JSON).
+RESPONSE_MAX_BYTES = 16 << 20
 
 
 __all__ = ["ProjectorEncoder", "ResponseClipping", "projector_encoder", "PROJECTOR_BITS"]

@@ -25,7 +25,6 @@ acquisition).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -33,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ImageError, StoreError
+from ..storage import as_location
 
 #: T's metadata key of the acquisition's settings (``projector``, ``superpixel``, ``camera``).
 ACQUISITION_KEY = "acquisition"
@@ -44,9 +44,9 @@ PROJECTOR_RESPONSE_KEY = "projector_response"
 PROJECTOR_RESPONSE_FILE = "projector_response.json"
 
 
-def correspondence_path(store) -> Path:
-    """``STORE/acquisition/correspondence.npy``."""
-    return Path(store) / ACQUISITION_KEY / CORRESPONDENCE
+def correspondence_path(store):
+    """``STORE/acquisition/correspondence.npy`` (a Path, or an ObjectPath in a bucket)."""
+    return as_location(store) / ACQUISITION_KEY / CORRESPONDENCE
 
 
 def load_correspondence(store) -> np.ndarray:
@@ -61,8 +61,18 @@ def load_correspondence(store) -> np.ndarray:
     path = correspondence_path(store)
     if not path.is_file():
         raise StoreError("holds no correspondence map (not built by bigT acquire build)",
-                         Path(store))
+                         as_location(store))
+    if not isinstance(path, Path):  # an object: read whole (a camera frame of int32)
+        import io
+
+        return np.load(io.BytesIO(path.read_bytes(CORRESPONDENCE_MAX_BYTES)),
+                       allow_pickle=False)
     return np.load(path, allow_pickle=False)
+
+
+#: The largest correspondence map read from object storage: an int32 per camera pixel
+#: of a 65536^2 camera would be 16 GiB; 1 GiB is a 16k x 16k camera.
+CORRESPONDENCE_MAX_BYTES = 1 << 30
 
 
 def _size(text) -> str:
@@ -230,7 +240,7 @@ def stored_response_path(T) -> Path | None:
     candidates = [name] if isinstance(name, str) else []
     candidates.append(PROJECTOR_RESPONSE_FILE)
     for candidate in candidates:
-        path = Path(T.path) / candidate
+        path = as_location(T.path) / candidate
         if path.is_file():
             return path
     return None
@@ -251,9 +261,14 @@ def recorded_transport(X) -> Path | None:
         return None
     params = {} if record is None else record.params
     path = (params.get("T") or {}).get("path") if isinstance(params.get("T"), dict) else None
-    if not isinstance(path, str) or not os.path.isdir(path):
+    if not isinstance(path, str):
         return None
-    return Path(path)
+    try:
+        location = as_location(path)
+        found = (location / "zarr.json").is_file()
+    except (StoreError, OSError, ValueError):
+        return None
+    return location if found else None
 
 
 def check_camera_or_grid(found: tuple[int, ...], geometry: RigGeometry, path) -> str:

@@ -3,21 +3,21 @@ F = 1.75 I."""
 
 from __future__ import annotations
 
-import os
 import shutil
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
 from .. import config
 from ..errors import BigTError, ShapeMismatchError
-from ..storage import PixelOrder, check_replaceable, from_scipy, temporary_sibling
+from ..storage import (ObjectPath, PixelOrder, as_location, check_replaceable, from_scipy,
+                       temporary_sibling)
 from . import radiosity
 from .ground_truth import commit, write_A
 from .preview import draw_preview, preview_path
 from .scene import Scene, load
+from .stored import publish_remote, scratch_path
 
 #: The 4x4 transport of the paper's dihedral (eq. 34), true first bounce 1.75 I.
 DIHEDRAL4_T = np.array([
@@ -46,7 +46,13 @@ def dihedral4(size=None, path=None, *, overwrite=False, dtype=None, preview=True
     t0 = time.perf_counter()
     if path is None:
         raise BigTError("path is required: the directory of the scene's T store")
-    path = Path(os.fspath(path))
+    path = as_location(path)
+    if isinstance(path, ObjectPath):  # built on this machine's disk, then put whole
+        check_replaceable(path, overwrite)
+        local = dihedral4(path=scratch_path(path), dtype=dtype, overwrite=True,
+                          preview=preview)
+        return publish_remote(local.path, path, preview_path(local.path) if preview else None,
+                              preview_path(path))
     check_replaceable(path, overwrite)
     dtype = dtype or "float64"
     T = DIHEDRAL4_T

@@ -13,7 +13,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import os
 import shutil
+import stat
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,7 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..errors import DiskFullError
+from ..errors import DiskFullError, StoreError
 from ..progress import progress_bar
 from ..schedule.cache import TileCache
 from ..schedule.memory import MemoryPlan
@@ -187,7 +189,14 @@ def scratch_path(remote) -> Path:
     import tempfile
 
     digest = hashlib.sha256(str(remote).encode()).hexdigest()[:16]
-    return Path(tempfile.gettempdir()) / f"bigT-scene-{digest}" / remote.name
+    # a directory of this user's own (0700), never one another user could have made
+    mine = Path(tempfile.gettempdir()) / f"bigT-scenes-{os.getuid()}"
+    mine.mkdir(mode=0o700, exist_ok=True)
+    st = os.lstat(mine)
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+        raise StoreError("is not a private directory of this user: bigT builds a scene for "
+                         "object storage there; remove it", mine)
+    return mine / digest / remote.name
 
 
 def publish_remote(local: Path, remote, preview: Path | None, remote_preview) -> "Scene":

@@ -17,7 +17,7 @@ import numpy as np
 from .. import config
 from ..atomic import atomic_write_json
 from ..errors import CorruptStoreError, StoreError
-from .objects import ObjectPath
+from .objects import ObjectPath, RequestError
 
 FORMAT_NAME = "bigT-block-csr"
 #: The layout this bigT writes: 2, one group of three arrays per tile row. Version 1
@@ -556,6 +556,8 @@ def row_marker(path: Path, i: int) -> dict | None:
         try:
             meta = parse_json((path / rel / "zarr.json").read_bytes(METADATA_MAX_BYTES),
                               "zarr.json", path)
+        except RequestError:  # no answer is not "no row": a complete row stays
+            raise
         except (OSError, ValueError):
             return None
         return _complete_row(meta)

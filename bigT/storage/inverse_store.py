@@ -366,6 +366,7 @@ class InverseStore:
         """Make term ``record.dir`` the one readers see: X records its own term first
         (so :meth:`reconcile` can repair a crash after the flip), then the redirect
         flips to it, then the record is replaced."""
+        self.lock.check_held()  # a writer that lost its lock publishes nothing
         X.update_metadata(inverse=jsonable(term_metadata))
         create_reader_lease(X.path)
         set_redirect(self.path, f"{term_dir(record.dir)}/X")

@@ -140,6 +140,12 @@ class WriterLock(_HeldFile):
             self._object.release()
         super().release()
 
+    def check_held(self) -> None:
+        """StoreError when a lock in object storage was lost to another writer (a
+        file's flock cannot be lost while its descriptor is open)."""
+        if self._object is not None:
+            self._object.check_held()
+
     def __enter__(self) -> "WriterLock":
         return self.acquire()
 
@@ -175,6 +181,12 @@ class ReplaceLock(_HeldFile):
     def acquire(self) -> "ReplaceLock":
         if self._object is not None:
             self._object.acquire()
+            try:  # an inverse being extended there is not replaced under its writer
+                if (self.path / WRITER_LOCK).is_file():
+                    self._inner.acquire()
+            except BaseException:
+                self.release()
+                raise
             return self
         if fcntl is None or self._fd is not None:
             return self

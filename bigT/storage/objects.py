@@ -60,7 +60,9 @@ def url_scheme(text) -> str | None:
 def _frozen_options(options: Mapping | None) -> tuple:
     """Storage options as a hashable, picklable tuple (nested dicts frozen too)."""
     def freeze(v):
-        return tuple(sorted((str(k), freeze(x)) for k, x in v.items())) if isinstance(v, Mapping) else v
+        if isinstance(v, Mapping):
+            return tuple(sorted((str(k), freeze(x)) for k, x in v.items()))
+        return tuple(freeze(x) for x in v) if isinstance(v, list) else v
     return freeze(dict(options or {}))
 
 
@@ -106,7 +108,8 @@ def _bucket_store(base: str, options: tuple):
     # account (AWS_ENDPOINT_URL changed) gets a store of its own
     env = tuple(sorted((k, v) for k, v in os.environ.items()
                        if k.startswith(("AWS_", "GOOGLE_", "AZURE_"))))
-    key = (base, options, env)
+    # the in-process store is one namespace, whatever the options and environment
+    key = (base,) if base.startswith("memory") else (base, options, env)
     with _STORES_LOCK:
         store = _STORES.get(key)
         if store is None:
@@ -135,6 +138,11 @@ def _new_store(base: str, options: dict):
                          f"{str(exc).splitlines()[0][:160]})", base) from None
 
 
+class RequestError(StoreError):
+    """A request to object storage failed (refused, unreachable, no such bucket): not
+    an answer about what the bucket holds."""
+
+
 def request_error(exc: Exception, url) -> StoreError:
     """obstore's error (a multi-line dump of the HTTP exchange) as one line naming
     ``url``: the server's error code where it sent one (NoSuchBucket, AccessDenied),
@@ -149,7 +157,7 @@ def request_error(exc: Exception, url) -> StoreError:
         what = "cannot reach the server (check AWS_ENDPOINT_URL or the endpoint option)"
     else:
         what = text.strip().splitlines()[0][:160] if text.strip() else type(exc).__name__
-    return StoreError(f"object storage request failed: {what}", url)
+    return RequestError(f"object storage request failed: {what}", url)
 
 
 def _requests(method):
@@ -375,7 +383,13 @@ class ObjectPath:
         """Delete every object below this prefix (and the object at it)."""
         import obstore
 
+        # the store's root zarr.json first: a deletion cut short leaves no store that
+        # still says it is complete over missing rows
+        root = f"{self.key}/zarr.json" if self.key else "zarr.json"
         keys = [k for k, _ in self.walk_objects()]
+        if root in keys:
+            obstore.delete(self.store, root)
+            keys.remove(root)
         for start in range(0, len(keys), 1000):  # S3's DeleteObjects takes 1000 a call
             obstore.delete(self.store, keys[start:start + 1000])
         if self.key:
@@ -453,11 +467,11 @@ def as_location(path, storage_options: Mapping | None = None):
     """
     from pathlib import Path
 
+    if isinstance(path, ObjectPath):  # its own options stand unless others are given
+        return path if storage_options is None else ObjectPath(
+            path.base, path.key, _frozen_options(storage_options))
     if storage_options is None:
         storage_options = default_storage_options()
-    if isinstance(path, ObjectPath):
-        return path if not storage_options else ObjectPath(
-            path.base, path.key, _frozen_options(storage_options))
     if isinstance(path, str):
         scheme = url_scheme(path)
         if scheme == "file":
@@ -475,6 +489,8 @@ def as_location(path, storage_options: Mapping | None = None):
             parts = [p for p in key.split("/") if p not in ("", ".")]
             if ".." in parts:
                 raise StoreError("'..' in a URL's key", path)
+            # one spelling per bucket: S3:// and s3a:// are s3://, gcs:// is gs://
+            scheme = {"s3a": "s3", "gcs": "gs", "azure": "az"}.get(scheme, scheme)
             return ObjectPath(f"{scheme}://{bucket}", "/".join(parts),
                               _frozen_options(storage_options))
     return Path(os.fspath(path))
@@ -494,7 +510,9 @@ def upload_tree(local, dest: ObjectPath) -> int:
             if os.path.islink(os.path.join(dirpath, name)):
                 raise StoreError(f"{name} is a symbolic link: a store holds none",
                                  os.path.join(dirpath, name))
-        files += [Path(dirpath, name) for name in filenames]
+        # bigT's hidden files (a reader lease, a build record) stay here
+        dirnames[:] = [d for d in dirnames if not d.startswith(".")]
+        files += [Path(dirpath, name) for name in filenames if not name.startswith(".")]
     root_meta = local / "zarr.json"
     body = [f for f in files if f != root_meta]
 
@@ -516,7 +534,12 @@ def store_identity(path) -> tuple:
     if isinstance(path, ObjectPath):
         import obstore
 
-        meta = obstore.head(path.store, (path / "zarr.json").key)
+        try:
+            meta = obstore.head(path.store, (path / "zarr.json").key)
+        except FileNotFoundError:
+            raise FileNotFoundError(str(path / "zarr.json")) from None
+        except Exception as exc:
+            raise request_error(exc, path) from None
         return meta["e_tag"], str(meta["last_modified"])
     st = os.stat(os.path.join(path, "zarr.json"))
     return st.st_ino, st.st_mtime_ns

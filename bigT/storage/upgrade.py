@@ -5,6 +5,7 @@ bigT reads but does not add rows to."""
 from __future__ import annotations
 
 
+from ..atomic import refuse_overwriting_inputs
 from ..progress import progress_bar
 from .objects import as_location
 from .block_csr import BlockCSR
@@ -35,6 +36,7 @@ def upgrade_store(source, path, *, overwrite: bool = False,
     """
     old = open_store(source)
     path = as_location(path)
+    refuse_overwriting_inputs([path], [source, old.path, old.redirected_from])
     check_replaceable(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     with built_aside(path) as tmp:

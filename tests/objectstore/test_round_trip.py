@@ -56,6 +56,8 @@ def test_a_damaged_object_is_found_by_verify(s3_url):
 
 
 def test_a_second_writer_of_an_inverse_is_refused_by_the_lock_object(s3_url):
+    import json
+
     from bigT.storage.locks import WriterLock
 
     first = WriterLock(as_location(f"{s3_url}/X.zarr")).acquire()
@@ -65,23 +67,30 @@ def test_a_second_writer_of_an_inverse_is_refused_by_the_lock_object(s3_url):
     finally:
         first.release()
     WriterLock(as_location(f"{s3_url}/X.zarr")).acquire().release()  # free again
+    lock = as_location(f"{s3_url}/X.zarr") / ".bigT-writer.lock"
+    assert json.loads(lock.read_bytes())["released"] is True  # released, not deleted
 
 
 def test_a_lock_of_a_dead_process_of_this_machine_is_taken_over(s3_url):
     import json
-    import socket
+
+    from bigT.storage.object_lock import _machine
 
     lock = as_location(f"{s3_url}/X.zarr") / ".bigT-writer.lock"
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    lock.write_bytes(json.dumps({"command": "bigT invert", "pid": dead.pid,
-                                 "host": socket.gethostname()}).encode())
+    record = {"command": "bigT invert", "pid": dead.pid, **_machine()}
+    lock.write_bytes(json.dumps(record).encode())
     from bigT.storage.locks import WriterLock
 
     held = WriterLock(lock.parent).acquire()
     assert json.loads(lock.read_bytes())["pid"] == os.getpid()
     held.release()
-    assert not lock.is_file()
+    # the same dead PID in another PID namespace (a container sharing the host name)
+    # is no proof of death: refused until the lease runs out
+    lock.write_bytes(json.dumps({**record, "pidns": -1}).encode())
+    with pytest.raises(StoreError, match="is being written by"):
+        WriterLock(lock.parent).acquire()
 
 
 @pytest.mark.parametrize("url, problem", [
@@ -94,18 +103,22 @@ def test_a_bad_url_is_refused_in_one_line(url, problem):
         bigT.open(url)
 
 
-def _cli(*args, env=None):
+def _cli(*args, env=None, cwd=None):
     return subprocess.run([sys.executable, "-m", "bigT.cli", *map(str, args)],
                           capture_output=True, text=True, env={**os.environ, **(env or {})},
-                          timeout=300)
+                          timeout=300, cwd=cwd)
 
 
 def test_convert_to_a_url_writes_the_bucket_and_no_local_directory(s3_url, tmp_path):
     A = _matrix(400)
     sp.save_npz(tmp_path / "T.npz", A)
-    out = _cli("convert", tmp_path / "T.npz", "-o", f"{s3_url}/run/T.zarr", env={"PWD": str(tmp_path)})
+    out = _cli("convert", tmp_path / "T.npz", "-o", f"{s3_url}/run/T.zarr", cwd=tmp_path)
     assert out.returncode == 0, out.stderr
-    assert not (tmp_path / "s3:").exists() and not os.path.exists("s3:")
+    assert not (tmp_path / "s3:").exists()
+    scene = _cli("scene", "dihedral4", "-o", f"{s3_url}/run/D.zarr", "-q", cwd=tmp_path)
+    assert scene.returncode == 0, scene.stderr
+    assert list(tmp_path.iterdir()) == [tmp_path / "T.npz"]  # nothing local was written
+    assert bigT.scenes.load(f"{s3_url}/run/D.zarr").T.shape == (4, 4)
     assert (bigT.open(f"{s3_url}/run/T.zarr").to_scipy() != A).nnz == 0
     info = _cli("info", f"{s3_url}/run/T.zarr")
     assert info.returncode == 0 and "400" in info.stdout, info.stderr
@@ -125,7 +138,8 @@ def test_a_scene_built_into_the_bucket_opens_and_inverts_from_the_command_line(s
     scene = bigT.scenes.load(f"{s3_url}/scene/T.zarr")
     assert scene.T.shape == (768, 768) and scene.A.nnz > 0
     assert (as_location(f"{s3_url}/scene") / "T-preview.png").is_file()
-    assert not list(tmp_path.glob("bigT-scene-*")), "the local build is deleted"
+    scratch = tmp_path / f"bigT-scenes-{os.getuid()}"
+    assert not any(scratch.iterdir()), "the local build is deleted"
     inv = _cli("invert", f"{s3_url}/scene/T.zarr", "-o", f"{s3_url}/scene/X.zarr", "--terms",
                "2", "-q")
     assert inv.returncode == 0, inv.stderr
@@ -171,3 +185,47 @@ def test_a_lock_renewed_by_its_holder_stays_and_an_abandoned_one_is_taken_over(s
     taker = WriterLock(root).acquire()
     assert json.loads(lock.read_bytes())["pid"] == os.getpid()
     taker.release()
+
+
+def test_convert_over_its_own_input_under_another_spelling_is_refused(s3_url):
+    A = _matrix(200)
+    from_scipy(A, f"{s3_url}/T.zarr", tile_size=128)
+    other = f"{s3_url.replace('s3://', 'S3A://', 1)}/T.zarr"
+    out = _cli("convert", f"{s3_url}/T.zarr", "-o", other, "--overwrite")
+    assert out.returncode == 2 and "input" in out.stderr, out.stderr
+    assert (bigT.open(f"{s3_url}/T.zarr").to_scipy() != A).nnz == 0  # untouched
+
+
+def test_a_store_being_inverted_is_not_replaced_under_its_writer(s3_url):
+    from bigT.storage.locks import ReplaceLock, WriterLock
+
+    from_scipy(_matrix(200), f"{s3_url}/X.zarr", tile_size=128)
+    writer = WriterLock(as_location(f"{s3_url}/X.zarr")).acquire()
+    try:
+        with pytest.raises(StoreError, match="is being written by"):
+            ReplaceLock(f"{s3_url}/X.zarr", "bigT convert").acquire()
+    finally:
+        writer.release()
+
+
+def test_a_writer_that_lost_its_lock_publishes_nothing(s3_url, monkeypatch):
+    import time
+
+    from bigT import config
+    from bigT.storage.locks import WriterLock
+
+    # 2 s: S3's Last-Modified has whole seconds, a shorter lease would be noise
+    monkeypatch.setattr(config, "OBJECT_LOCK_SECONDS", 2.0)
+    root = as_location(f"{s3_url}/X.zarr")
+    first = WriterLock(root).acquire()
+    first._object._stop.set()  # frozen: it renews no more
+    time.sleep(3.1)
+    second = WriterLock(root).acquire()  # abandoned: taken over
+    first._object._stop.clear()
+    first._object._renew()  # wakes: its renewal is refused, it knows it lost
+    with pytest.raises(StoreError, match="lost its writer lock"):
+        first.check_held()
+    first.release()  # never releases the other writer's lock
+    with pytest.raises(StoreError, match="is being written by"):
+        WriterLock(root).acquire()
+    second.release()
