@@ -31,6 +31,7 @@ from .. import config
 from ..storage import disk_bytes
 from ..storage.frames import frames_to_matrix, matrix_to_frames, pixel_order_of
 from .core import CompensationReport, PathChoice, compensate_frames
+from .codes import gather_codes, scatter_codes
 from .resident import (ResidentMatrix, default_memory_limit, load_bytes_needed,
                        load_resident, resident_bytes_needed)
 
@@ -115,6 +116,7 @@ class Compensator:
         self.threads = max(1, int(config.KERNEL_THREADS or os.cpu_count() or 1))
         store = X if choice.path == "explicit" else T
         self.order = None
+        self._perm: np.ndarray | None = None  # int32 pixel order of the codes path
         limit = default_memory_limit() if memory_limit is None else int(memory_limit)
         self.residency = self._place(store, limit, precision, resident)
         if self.residency.resident:
@@ -152,6 +154,31 @@ class Compensator:
         Y = self.matrix.matmul(B, n_threads=threads)
         out, below, above = matrix_to_frames(Y, self.order, self.clip, dtype=np.float32,
                                              n_threads=threads)
+        self.report.add_clipped(Y, self.clip, self.order.channels, below, above, out.size)
+        return out
+
+    @property
+    def takes_codes(self) -> bool:
+        """True when :meth:`compensate_codes` runs: X held in memory."""
+        return self.matrix is not None
+
+    def compensate_codes(self, codes: np.ndarray, dtype) -> np.ndarray:
+        """(K, *frame_shape) integer codes of linear light (a video's uint8 or uint16)
+        -> the projector's codes of ``dtype``, clipped and quantised: the frames
+        :meth:`__call__` gives for ``codes / top``, quantised as the video sink does,
+        in two passes over the frames instead of some eight
+        (:mod:`bigT.compensation.codes`). X must be held in memory."""
+        if self.matrix is None:
+            raise RuntimeError("compensate_codes needs X held in memory (takes_codes)")
+        if self._perm is None:
+            self.order = self.order or pixel_order_of(self.X, codes.shape[1:])
+            # int32 indices: half the bytes of the int64 permutation read each pass
+            self._perm = self.order.permutation.astype(np.int32)
+        threads = self.threads
+        B = gather_codes(codes, self._perm, threads)
+        Y = self.matrix.matmul(B, n_threads=threads)
+        out, below, above = scatter_codes(Y, self._perm, self.clip, self.order.frame_shape,
+                                          dtype, threads)
         self.report.add_clipped(Y, self.clip, self.order.channels, below, above, out.size)
         return out
 
