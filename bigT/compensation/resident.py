@@ -372,7 +372,7 @@ def _small_csr(R):
 def _run_kernel(R, V, out, threads):
     from ._resident_kernels import kernel_for  # numba: ~0.5 s, only past the scipy twin
 
-    kernel = kernel_for(V.shape[1] == 1)
+    kernel = kernel_for(V.shape[1])
     empty = np.ones(0, np.float32)
     scale = empty if R.row_scale is None else R.row_scale
     lut = F16_TABLE if R.precision == "float16" else empty

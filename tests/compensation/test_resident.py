@@ -53,7 +53,7 @@ def test_layout_counts_and_bytes(wide):
     assert diff.nnz == 0 or abs(diff).max() == 0  # the same matrix
 
 
-@pytest.mark.parametrize("k", [1, 5])
+@pytest.mark.parametrize("k", [1, 5, 8])  # 8: the unrolled kernel
 @pytest.mark.parametrize("threads", [1, 2])
 def test_float32_products_match_scipy(wide, k, threads):
     store, A = wide
@@ -66,7 +66,7 @@ def test_float32_products_match_scipy(wide, k, threads):
     assert np.all(np.abs(got - ref) <= bound)
 
 
-@pytest.mark.parametrize("k", [1, 4])
+@pytest.mark.parametrize("k", [1, 4, 8])
 def test_float16_error_within_its_precision(wide, k):
     """|y16 - y32| <= (2^-11 + float32 rounding) (|X| |v|) + 2^-40 s_i nnz_i: binary16's
     relative rounding in the normal range the row scale guarantees, and the absolute
@@ -115,7 +115,7 @@ def test_memory_limit_and_shapes(wide):
 
 
 @pytest.mark.parametrize("precision", ["float32", "float16"])
-@pytest.mark.parametrize("k", [1, 3])
+@pytest.mark.parametrize("k", [1, 3, 8])
 def test_segments_skip_empty_panels_and_rows(tmp_path, precision, k):
     """Rows that reach the first and third panels and not the second, rows in one panel,
     and empty rows: only the segments held are kept, and both kernels agree with
