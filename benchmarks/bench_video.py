@@ -381,36 +381,46 @@ def _timed(what: str, run, frames: int, **extra) -> Measured:
                     1e3 * (c1[1] - c0[1]) / frames, load=f"{load0} -> {_load()}", **extra)
 
 
-def video_for(out: Path, shape, frames: int) -> Path:
-    """The moving pattern of :func:`make_video` at ``shape`` (cached under ``out``)."""
-    path = out / f"pattern_{shape[0]}x{shape[1]}_{frames}.mp4"
-    if not path.exists():
-        tmp = path.with_suffix(".part.mp4")
+def video_for(out: Path, shape, frames: int, lossy: bool = False) -> Path:
+    """The moving pattern of :func:`make_video` at ``shape`` (cached under ``out``):
+    lossless H.264, or (``lossy``) re-encoded as a camera or an editor would give it
+    (H.264 at CRF 18, yuv420p)."""
+    path = out / f"pattern_{shape[0]}x{shape[1]}_{frames}{'_crf18' if lossy else ''}.mp4"
+    if path.exists():
+        return path
+    tmp = path.with_suffix(".part.mp4")
+    if lossy:
+        import subprocess
+
+        import imageio_ffmpeg
+
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-i",
+                        str(video_for(out, shape, frames)), "-c:v", "libx264", "-crf", "18",
+                        "-pix_fmt", "yuv420p", str(tmp)], check=True)
+    else:
         make_video(tmp, shape, frames, fps=30.0)
-        tmp.rename(path)
+    tmp.rename(path)
     return path
 
 
-def codec_bounds(video: Path, shape, frames: int) -> list[Measured]:
-    """ffmpeg alone: decoding the video to codes, and encoding codes to lossless H.264
-    (.mp4, as ``compensate`` writes it), with no product between."""
-    source = VideoSource(video, shape)
-    count = [0]
-
-    def decode():
-        for _ in source.codes():
-            count[0] += 1
-
-    rows = [_timed("decode alone (ffmpeg H.264 -> codes)", decode, frames)]
-    first = np.ascontiguousarray(next(source.codes()))
-    codes = np.stack([np.roll(first, 8 * t, axis=1) for t in range(8)])  # a moving picture
+def codec_bounds(videos: dict, output: Path, shape, frames: int) -> list[Measured]:
+    """ffmpeg alone: decoding each of ``videos`` ({label: path}) to codes, and encoding
+    the frames of ``output`` (a compensation's projector frames, decoded first) to
+    lossless H.264 (.mp4, as ``compensate`` writes it), with no product between."""
+    rows = []
+    for label, video in videos.items():
+        source = VideoSource(video, shape)
+        rows.append(_timed(f"decode alone ({label} H.264 -> codes)",
+                           lambda: sum(1 for _ in source.codes()), frames))
+    codes = [np.array(c) for c in VideoSource(output, shape).codes()]
     with tempfile.TemporaryDirectory() as tmp:
         def encode():
             with VideoSink(Path(tmp) / "enc.mp4", shape, 30.0, 8) as sink:
-                for t in range(frames):
-                    sink.write_codes(codes[t % 8])
+                for c in codes:
+                    sink.write_codes(c)
 
-        rows.append(_timed("encode alone (codes -> ffmpeg lossless H.264)", encode, frames))
+        rows.append(_timed("encode alone (projector codes -> lossless H.264)", encode,
+                           len(codes)))
     return rows
 
 
@@ -456,10 +466,10 @@ def pixel_bounds(X, batch: int, repeats: int = 5) -> list[Measured]:
 
 
 def compensate_runs(X_path, video: Path, out: Path, batches, precisions, *, repeats: int,
-                    memory_limit=None, max_frames=None) -> list[Measured]:
+                    memory_limit=None, label: str = "") -> list[Measured]:
     """``bigT compensate X in.mp4 -o out.mp4 --batch b --precision p`` as the CLI runs
     it (FileCompensation), X loaded before the clock starts; interleaved repeats, best
-    of each."""
+    of each. The output is ``out/out.mp4``."""
     from bigT.compensation.files import FileCompensation
 
     best: dict = {}
@@ -477,7 +487,7 @@ def compensate_runs(X_path, video: Path, out: Path, batches, precisions, *, repe
                 n = stream.frames
                 lat = stream.latency_ms()
                 per = res.bytes_per_pass / b
-                row = Measured(f"compensate in.mp4 -o out.mp4, X {prec} "
+                row = Measured(f"compensate {label}in.mp4 -o out.mp4, X {prec} "
                                f"{'in memory' if res.resident else 'streamed'}, batch {b}"
                                + ("" if codes else " (float frames)"), n, m.seconds,
                                m.cpu_ms / n, m.ffmpeg_cpu_ms / n, lat["p50"], lat["p95"],
@@ -539,19 +549,22 @@ def realtime_main(args) -> None:
         X = bigT.open(args.X)
         shape = X.pixel_order.image_shape
         frames = args.frames or 240
-        video = video_for(out, shape, frames)
+        video, lossy = video_for(out, shape, frames), video_for(out, shape, frames, lossy=True)
         head = (f"{shape[0]}x{shape[1]} X {args.X}: nnz {X.nnz:,} ({X.nnz / X.shape[0]:.1f} a "
                 f"row), {bigT.storage.disk_bytes(X.path) / 1e6:.0f} MB on disk; {frames} "
                 f"frames; {os.cpu_count()} cores; memory copy {copy_bandwidth():.1f} GB/s "
                 "(read + write)")
         print("# " + head, flush=True)
-        bounds = codec_bounds(video, shape, frames)
+        runs = compensate_runs(args.X, lossy, out, (8,), ("float32", "float16"),
+                               repeats=args.repeats, label="(H.264 CRF 18) ")
+        runs += compensate_runs(args.X, video, out, (1, 4, 8), ("float32", "float16"),
+                                repeats=args.repeats, label="(lossless H.264) ")
+        print_measured("compensate (decode, products and encode together):", runs)
+        bounds = codec_bounds({"lossless": video, "CRF 18": lossy}, out / "out.mp4", shape,
+                              frames)
         bounds += product_bounds(X, ("float32", "float16"), (1, 8))
         bounds += pixel_bounds(X, 8)
         print_measured("Bounds (each alone):", bounds)
-        runs = compensate_runs(args.X, video, out, (1, 4, 8), ("float32", "float16"),
-                               repeats=args.repeats)
-        print_measured("compensate (decode, products and encode together):", runs)
         res.table("bounds", "each stage alone: " + head, MEASURED_COLUMNS,
                   [r.cells() for r in bounds],
                   note="CPU ms/frame: this process's CPU seconds (all threads) and ffmpeg's "

@@ -18,6 +18,7 @@ writing it (queueing included); :class:`StreamReport` keeps them all.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import queue
 import threading
@@ -121,6 +122,9 @@ class Compensator:
         self.residency = self._place(store, limit, precision, resident)
         if self.residency.resident:
             self.matrix = load_resident(X, precision, memory_limit=limit)
+            # the bytes it holds (resident_bytes_needed bounds its segments from above)
+            self.residency = dataclasses.replace(self.residency,
+                                                 bytes_per_pass=self.matrix.nbytes)
 
     def _place(self, store, limit, precision, resident) -> Residency:
         streamed = _streamed_bytes(store) * (self.choice.terms or 1)
