@@ -40,7 +40,8 @@ def _row_ranges(n: int, threads: int, block: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
 
-def gather_codes(codes: np.ndarray, perm: np.ndarray, n_threads: int = 1) -> np.ndarray:
+def gather_codes(codes: np.ndarray, perm: np.ndarray, n_threads: int = 1,
+                 out: np.ndarray | None = None) -> np.ndarray:
     """(K, *frame_shape) integer codes -> the (n, K) float32 batch in matrix order.
 
     Parameters
@@ -49,13 +50,15 @@ def gather_codes(codes: np.ndarray, perm: np.ndarray, n_threads: int = 1) -> np.
     perm : ndarray, shape (n,), the store's pixel order (row i holds value perm[i] of
         a flattened frame)
     n_threads : int, threads over row ranges of the batch
+    out : ndarray, shape (n, K), float32, C-contiguous, optional: filled and returned
     """
     from . import _code_kernels as kernels  # numba: ~0.5 s, only for a video's codes
 
     K = codes.shape[0]
     src = np.ascontiguousarray(codes.reshape(K, -1))
     table = code_values(src.dtype)
-    out = np.empty((perm.size, K), np.float32)
+    if out is None:
+        out = np.empty((perm.size, K), np.float32)
     threads = max(1, int(n_threads))
     run_on_threads(lambda a, b: kernels.gather(src, perm[a:b], table, out[a:b]),
                    _row_ranges(perm.size, threads, kernels.BLOCK), threads)
