@@ -589,10 +589,15 @@ def realtime_main(args) -> None:
                   MEASURED_COLUMNS, [r.cells() for r in runs],
                   note="interleaved repeats, best of each; X loaded before the clock starts")
     if args.uhd_X:
+        import resource
+
         rows = uhd_runs(args.uhd_X, out, args.uhd_frames, repeats=args.repeats)
-        print_measured("4K: one frame streamed, a video with X in memory:", rows)
-        res.table("uhd", f"compensation with X {args.uhd_X}", MEASURED_COLUMNS,
-                  [r.cells() for r in rows])
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
+        h, w = bigT.open(args.uhd_X).pixel_order.image_shape
+        print_measured(f"{h}x{w}: one frame streamed, a video with X in memory (peak RSS "
+                       f"of this process {peak:.2f} GiB):", rows)
+        res.table("uhd", f"compensation with X {args.uhd_X} (peak RSS of the process "
+                  f"{peak:.2f} GiB)", MEASURED_COLUMNS, [r.cells() for r in rows])
     res.save()
 
 
