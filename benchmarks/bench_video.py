@@ -361,6 +361,7 @@ class Measured:
     ffmpeg_cpu_ms: float
     p50: float = float("nan")
     p95: float = float("nan")
+    own50: float = float("nan")
     mb_per_frame: float = float("nan")
     gbps: float = float("nan")
     load: str = ""
@@ -378,12 +379,13 @@ class Measured:
 
     def cells(self) -> list:
         return [self.what, self.frames, self.fps, self.cpu_ms, self.ffmpeg_cpu_ms,
-                self.cores_fps, self.p50, self.p95, self.mb_per_frame, self.gbps, self.load]
+                self.cores_fps, self.p50, self.p95, self.own50, self.mb_per_frame, self.gbps,
+                self.load]
 
 
 MEASURED_COLUMNS = ["run", "frames", "frames/s", "CPU ms/frame (bigT)",
                     "CPU ms/frame (ffmpeg)", "frames/s the cores allow", "latency p50 ms",
-                    "latency p95 ms", "MB of X per frame", "GB/s of X", "load 1/5/15 min"]
+                    "latency p95 ms", "without queueing p50 ms", "MB of X per frame", "GB/s of X", "load 1/5/15 min"]
 
 
 def _timed(what: str, run, frames: int, **extra) -> Measured:
@@ -504,7 +506,7 @@ def compensate_runs(X_path, video: Path, out: Path, batches, precisions, *, repe
                                f"{'in memory' if res.resident else 'streamed'}, batch {b}"
                                + ("" if codes else " (float frames)"), n, m.seconds,
                                m.cpu_ms / n, m.ffmpeg_cpu_ms / n, lat["p50"], lat["p95"],
-                               per / 1e6, per * n / m.seconds / 1e9, m.load)
+                               stream.latency_ms("service")["p50"], per / 1e6, per * n / m.seconds / 1e9, m.load)
                 key = (prec, b)
                 if key not in best or row.fps > best[key].fps:
                     best[key] = row
