@@ -574,7 +574,8 @@ def realtime_main(args) -> None:
         print("# " + head, flush=True)
         runs = compensate_runs(args.X, lossy, out, (8,), ("float32", "float16"),
                                repeats=args.repeats, label="(H.264 CRF 18) ")
-        runs += compensate_runs(args.X, video, out, (1, 4, 8), ("float32", "float16"),
+        batches = tuple(int(b) for b in args.batches.split(","))
+        runs += compensate_runs(args.X, video, out, batches, ("float32", "float16"),
                                 repeats=args.repeats, label="(lossless H.264) ")
         print_measured("compensate (decode, products and encode together):", runs)
         bounds = codec_bounds({"lossless": video, "CRF 18": lossy}, out / "out.mp4", shape,
@@ -626,6 +627,8 @@ def main():
                          "the pixel passes, a memory copy): issue #32 item 3")
     ap.add_argument("--uhd-X", help="an X store (4K) to measure one frame streamed from disk "
                     "and a video with X in memory at batch 1 and 8: issue #32 item 2")
+    ap.add_argument("--batches", default="1,4,8",
+                    help="batch sizes of the --realtime runs of the lossless video")
     ap.add_argument("--uhd-frames", type=int, default=32, help="frames of the --uhd-X video")
     ap.add_argument("--repeats", type=int, default=2,
                     help="interleaved repeats of the --realtime and --uhd-X runs (best of)")
