@@ -23,14 +23,27 @@ time (``--serial``), beside a plain loop a user would write: read each frame (im
 and OpenCV's decoder for the quicker loop), multiply with scipy, write it (the same
 library). Interleaved repeats, best of each; X loaded before the clock starts in all.
 
+Issue #32 items 3 and 2 (``--realtime``, ``--uhd-X``): at full HD, ``bigT compensate
+X.zarr in.mp4 -o out.mp4`` (a lossless and a CRF 18 H.264 input) at batch 1, 4 and 8
+with X in memory in float32 and float16, beside each bound measured alone in the same
+run: ffmpeg's decoding, its lossless encoding of the projector frames, the products
+(bytes of X per frame, GB/s, against a memory copy) and the pixel passes, each with the
+CPU it takes per frame (this process's and ffmpeg's), so the rate the cores allow is
+read whatever the load of a shared machine. For a 4K X: one frame with X streamed from
+disk, and a video with X in memory within 4 GiB (float16, and float32 if it fits) at
+batch 1 and 8.
+
 Run:  .venv/bin/python benchmarks/bench_video.py --T /tmp/bench/dense384.zarr \\
           --X /tmp/bench/X384.zarr            # the dense 384x512 corner's 4-term X
       .venv/bin/python benchmarks/bench_video.py --quick   # builds a 96x128 corner
+      .venv/bin/python benchmarks/bench_video.py --realtime --X X_fullhd.zarr
+      .venv/bin/python benchmarks/bench_video.py --uhd-X X_4k.zarr
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import shutil
 import sys
@@ -322,6 +335,275 @@ def _record_video(res, rows, products, X, frames) -> None:
                "load"], [list(p) for p in products])
 
 
+# --- real time at full HD, and the 4K measurement (issue #32 items 2 and 3) -------------
+
+#: The memory a 4K X may hold in memory (issue #32: every process under 4 GiB).
+UHD_MEMORY_LIMIT = 4 << 30
+
+
+def _cpu() -> tuple[float, float]:
+    """(this process's CPU seconds, its waited children's: the ffmpeg decoders and
+    encoders, counted once each has ended)."""
+    import resource
+
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, kids.ru_utime + kids.ru_stime
+
+
+@dataclass(frozen=True)
+class Measured:
+    """One timed run: what it did, its rate and the CPU it took per frame."""
+
+    what: str
+    frames: int
+    seconds: float
+    cpu_ms: float
+    ffmpeg_cpu_ms: float
+    p50: float = float("nan")
+    p95: float = float("nan")
+    own50: float = float("nan")
+    mb_per_frame: float = float("nan")
+    gbps: float = float("nan")
+    load: str = ""
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds
+
+    @property
+    def cores_fps(self) -> float:
+        """Frames/s the machine's cores give at this CPU cost per frame (the rate of an
+        unloaded machine, where CPU is what binds)."""
+        total = self.cpu_ms + self.ffmpeg_cpu_ms
+        return (os.cpu_count() or 1) * 1e3 / total if total > 0 else float("inf")
+
+    def cells(self) -> list:
+        return [self.what, self.frames, self.fps, self.cpu_ms, self.ffmpeg_cpu_ms,
+                self.cores_fps, self.p50, self.p95, self.own50, self.mb_per_frame, self.gbps,
+                self.load]
+
+
+MEASURED_COLUMNS = ["run", "frames", "frames/s", "CPU ms/frame (bigT)",
+                    "CPU ms/frame (ffmpeg)", "frames/s the cores allow", "latency p50 ms",
+                    "latency p95 ms", "without queueing p50 ms", "MB of X per frame", "GB/s of X", "load 1/5/15 min"]
+
+
+def _timed(what: str, run, frames: int, **extra) -> Measured:
+    load0, c0, t0 = _load(), _cpu(), time.perf_counter()
+    run()
+    seconds, c1 = time.perf_counter() - t0, _cpu()
+    return Measured(what, frames, seconds, 1e3 * (c1[0] - c0[0]) / frames,
+                    1e3 * (c1[1] - c0[1]) / frames, load=f"{load0} -> {_load()}", **extra)
+
+
+def video_for(out: Path, shape, frames: int, lossy: bool = False) -> Path:
+    """The moving pattern of :func:`make_video` at ``shape`` (cached under ``out``):
+    lossless H.264, or (``lossy``) re-encoded as a camera or an editor would give it
+    (H.264 at CRF 18, yuv420p)."""
+    path = out / f"pattern_{shape[0]}x{shape[1]}_{frames}{'_crf18' if lossy else ''}.mp4"
+    if path.exists():
+        return path
+    tmp = path.with_suffix(".part.mp4")
+    if lossy:
+        import subprocess
+
+        import imageio_ffmpeg
+
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-i",
+                        str(video_for(out, shape, frames)), "-c:v", "libx264", "-crf", "18",
+                        "-pix_fmt", "yuv420p", str(tmp)], check=True)
+    else:
+        make_video(tmp, shape, frames, fps=30.0)
+    tmp.rename(path)
+    return path
+
+
+def codec_bounds(videos: dict, output: Path, shape, frames: int) -> list[Measured]:
+    """ffmpeg alone: decoding each of ``videos`` ({label: path}) to codes, and encoding
+    the frames of ``output`` (a compensation's projector frames, decoded first) to
+    lossless H.264 (.mp4, as ``compensate`` writes it), with no product between."""
+    rows = []
+    for label, video in videos.items():
+        source = VideoSource(video, shape)
+        rows.append(_timed(f"decode alone ({label} H.264 -> codes)",
+                           lambda: sum(1 for _ in source.codes()), frames))
+    codes = [np.array(c) for c in VideoSource(output, shape).codes()]
+    with tempfile.TemporaryDirectory() as tmp:
+        def encode():
+            with VideoSink(Path(tmp) / "enc.mp4", shape, 30.0, 8) as sink:
+                for c in codes:
+                    sink.write_codes(c)
+
+        rows.append(_timed("encode alone (projector codes -> lossless H.264)", encode,
+                           len(codes)))
+    return rows
+
+
+def product_bounds(X, precisions, batches, repeats: int = 5) -> list[Measured]:
+    """The products alone (X in memory, no pixels reordered, no I/O): best of
+    ``repeats``; the bytes of X read per frame and the GB/s they make."""
+    from bigT.compensation.resident import load_resident
+
+    rows = []
+    rng = np.random.default_rng(0)
+    for prec in precisions:
+        R = load_resident(X, prec, memory_limit=UHD_MEMORY_LIMIT * 2)
+        for k in batches:
+            V = rng.uniform(0, 1, (X.shape[1], k)).astype(np.float32)
+            R.matmul(V)  # compiled (or loaded from numba's cache)
+            best = min((_timed("", lambda: R.matmul(V), k) for _ in range(repeats)),
+                       key=lambda m: m.seconds)
+            per = R.nbytes / k
+            rows.append(Measured(f"product alone, X {prec} ({R.nbytes / 1e6:.0f} MB), batch {k}",
+                                 k, best.seconds, best.cpu_ms, 0.0, mb_per_frame=per / 1e6,
+                                 gbps=per * k / best.seconds / 1e9, load=best.load))
+        R = None  # the next precision loads into the memory this one held
+    return rows
+
+
+def pixel_bounds(X, batch: int, repeats: int = 5) -> list[Measured]:
+    """The codes in and out of a batch alone (gather + scatter, no product)."""
+    from bigT.compensation.codes import gather_codes, scatter_codes
+
+    order = X.pixel_order
+    perm = order.permutation.astype(np.int32)
+    codes = np.random.default_rng(1).integers(0, 256, (batch, *order.frame_shape), np.uint8)
+    B = gather_codes(codes, perm, 2)
+
+    def both():
+        gather_codes(codes, perm, 2)
+        scatter_codes(B, perm, (0, 1), order.frame_shape, np.uint8, 2)
+
+    both()
+    best = min((_timed("", both, batch) for _ in range(repeats)), key=lambda m: m.seconds)
+    return [Measured(f"codes -> batch -> codes alone (gather + scatter), batch {batch}", batch,
+                     best.seconds, best.cpu_ms, 0.0, load=best.load)]
+
+
+def compensate_runs(X_path, video: Path, out: Path, batches, precisions, *, repeats: int,
+                    memory_limit=None, label: str = "") -> list[Measured]:
+    """``bigT compensate X in.mp4 -o out.mp4 --batch b --precision p`` as the CLI runs
+    it (FileCompensation), X loaded before the clock starts; interleaved repeats, best
+    of each. The output is ``out/out.mp4``."""
+    from bigT.compensation.files import FileCompensation
+
+    best: dict = {}
+    for _ in range(repeats):
+        for prec in precisions:
+            for b in batches:
+                job = FileCompensation(X_path, video, out / "out.mp4", batch=b, precision=prec,
+                                       memory_limit=memory_limit)
+                with job:
+                    codes = job.takes_codes
+                    res = job.compensator.residency
+                    rep: list = []
+                    m = _timed("", lambda: rep.append(job.run()), 1)
+                stream = rep[0].stream
+                n = stream.frames
+                lat = stream.latency_ms()
+                per = res.bytes_per_pass / b
+                row = Measured(f"compensate {label}in.mp4 -o out.mp4, X {prec} "
+                               f"{'in memory' if res.resident else 'streamed'}, batch {b}"
+                               + ("" if codes else " (float frames)"), n, m.seconds,
+                               m.cpu_ms / n, m.ffmpeg_cpu_ms / n, lat["p50"], lat["p95"],
+                               stream.latency_ms("service")["p50"], per / 1e6, per * n / m.seconds / 1e9, m.load)
+                key = (prec, b)
+                if key not in best or row.fps > best[key].fps:
+                    best[key] = row
+                print(f"  {row.what}: {row.fps:.1f} frames/s", file=sys.stderr, flush=True)
+    return list(best.values())
+
+
+def uhd_runs(X_path, out: Path, frames: int, *, repeats: int = 1) -> list[Measured]:
+    """Issue #32 item 2 on the X at ``X_path`` (4K: 3840x2160): one frame with X
+    streamed from disk (the first read, then again with the tiles in the page cache),
+    and a video with X held in memory (float16, and float32 when it fits
+    :data:`UHD_MEMORY_LIMIT`) at batch 1 and 8."""
+    from bigT.compensation.resident import load_bytes_needed
+
+    X = bigT.open(X_path)
+    shape = X.pixel_order.image_shape
+    choice = choose_path(X, None, None, "explicit")
+    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
+    frame = (0.3 + 0.15 * np.sin(2 * np.pi * (x / 64 + y / 96)))[None]
+    rows = []
+    for label in ("first call: kernels loaded, page cache as found", "again: page cache warm"):
+        comp = Compensator(X, None, choice, (0, 1), resident=False, cache_bytes=0)
+        row = _timed(f"one frame, X streamed from disk ({label})", lambda: comp(frame), 1)
+        rows.append(dataclasses.replace(row, mb_per_frame=comp.residency.bytes_per_pass / 1e6,
+                                        gbps=comp.residency.bytes_per_pass / row.seconds / 1e9))
+    video = video_for(out, shape, frames)
+    precisions = [p for p in ("float16", "float32")
+                  if load_bytes_needed(X, p) <= UHD_MEMORY_LIMIT]
+    print(f"# {X_path}: {shape[0]}x{shape[1]}, nnz {X.nnz:,}; held in memory within "
+          f"{UHD_MEMORY_LIMIT >> 30} GiB: {precisions or 'neither precision'}", flush=True)
+    if precisions:
+        rows += compensate_runs(X_path, video, out, (1, 8), precisions, repeats=repeats,
+                                memory_limit=UHD_MEMORY_LIMIT)
+    return rows
+
+
+def print_measured(title: str, rows: list[Measured]) -> None:
+    print()
+    print(title)
+    print()
+    print("| " + " | ".join(MEASURED_COLUMNS) + " |")
+    print("|" + "---|" * len(MEASURED_COLUMNS))
+    for r in rows:
+        cells = [c if isinstance(c, str) else f"{c:.1f}" if isinstance(c, float) else str(c)
+                 for c in r.cells()]
+        print("| " + " | ".join(cells) + " |")
+    print(flush=True)
+
+
+def realtime_main(args) -> None:
+    """``--realtime`` and ``--uhd-X``: the tables of issue #32 items 3 and 2."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    res = Results(run_name("video_realtime"), "Real-time compensation: full HD and 4K",
+                  "python benchmarks/bench_video.py " + " ".join(sys.argv[1:]))
+    if args.realtime:
+        X = bigT.open(args.X)
+        shape = X.pixel_order.image_shape
+        frames = args.frames or 240
+        video, lossy = video_for(out, shape, frames), video_for(out, shape, frames, lossy=True)
+        head = (f"{shape[0]}x{shape[1]} X {args.X}: nnz {X.nnz:,} ({X.nnz / X.shape[0]:.1f} a "
+                f"row), {bigT.storage.disk_bytes(X.path) / 1e6:.0f} MB on disk; {frames} "
+                f"frames; {os.cpu_count()} cores; memory copy {copy_bandwidth():.1f} GB/s "
+                "(read + write)")
+        print("# " + head, flush=True)
+        runs = compensate_runs(args.X, lossy, out, (8,), ("float32", "float16"),
+                               repeats=args.repeats, label="(H.264 CRF 18) ")
+        batches = tuple(int(b) for b in args.batches.split(","))
+        runs += compensate_runs(args.X, video, out, batches, ("float32", "float16"),
+                                repeats=args.repeats, label="(lossless H.264) ")
+        print_measured("compensate (decode, products and encode together):", runs)
+        bounds = codec_bounds({"lossless": video, "CRF 18": lossy}, out / "out.mp4", shape,
+                              frames)
+        bounds += product_bounds(X, ("float32", "float16"), (1, 8))
+        bounds += pixel_bounds(X, 8)
+        print_measured("Bounds (each alone):", bounds)
+        res.table("bounds", "each stage alone: " + head, MEASURED_COLUMNS,
+                  [r.cells() for r in bounds],
+                  note="CPU ms/frame: this process's CPU seconds (all threads) and ffmpeg's "
+                       "(the decoder's or encoder's process) per frame; frames/s the cores "
+                       "allow: cores x 1000 / the two together, the rate where CPU binds")
+        res.table("compensate", "`bigT compensate X.zarr in.mp4 -o out.mp4`: " + head,
+                  MEASURED_COLUMNS, [r.cells() for r in runs],
+                  note="interleaved repeats, best of each; X loaded before the clock starts")
+    if args.uhd_X:
+        import resource
+
+        rows = uhd_runs(args.uhd_X, out, args.uhd_frames, repeats=args.repeats)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
+        h, w = bigT.open(args.uhd_X).pixel_order.image_shape
+        print_measured(f"{h}x{w}: one frame streamed, a video with X in memory (peak RSS "
+                       f"of this process {peak:.2f} GiB):", rows)
+        res.table("uhd", f"compensation with X {args.uhd_X} (peak RSS of the process "
+                  f"{peak:.2f} GiB)", MEASURED_COLUMNS, [r.cells() for r in rows])
+    res.save()
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--T", help="X's transport store (named in the header, its shape checked; "
@@ -339,7 +621,23 @@ def main():
                     help="interleaved repeats of the folder rows (best of)")
     ap.add_argument("--folder-only", action="store_true",
                     help="only the folder rows (no video, no products)")
+    ap.add_argument("--realtime", action="store_true",
+                    help="with --X: `compensate in.mp4 -o out.mp4` at batch 1, 4, 8 in float32 "
+                         "and float16, and each bound alone (decode, encode, the products, "
+                         "the pixel passes, a memory copy): issue #32 item 3")
+    ap.add_argument("--uhd-X", help="an X store (4K) to measure one frame streamed from disk "
+                    "and a video with X in memory at batch 1 and 8: issue #32 item 2")
+    ap.add_argument("--batches", default="1,4,8",
+                    help="batch sizes of the --realtime runs of the lossless video")
+    ap.add_argument("--uhd-frames", type=int, default=32, help="frames of the --uhd-X video")
+    ap.add_argument("--repeats", type=int, default=2,
+                    help="interleaved repeats of the --realtime and --uhd-X runs (best of)")
     args = ap.parse_args()
+    if args.realtime or args.uhd_X:
+        if args.realtime and not args.X:
+            sys.exit("bench_video: --realtime needs --X")
+        realtime_main(args)
+        return
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -272,6 +272,42 @@ class FileCompensation:
         """
         comp = self._entered()
         encoding, projection = self.encoding, self.projection
+        if self.takes_codes:
+            stream = self._run_codes(comp, overlap, on_batch)
+        else:
+            stream = self._run_frames(comp, overlap, on_batch)
+        encoder = projection.encoder
+        return FileCompensationReport(
+            self._sink.path, self.batch, stream, comp.residency, comp.report, self.clip,
+            encoding, None if encoder is None else encoder.clipping,
+            None if encoder is None else encoder.bits)
+
+    @property
+    def takes_codes(self) -> bool:
+        """True when the video's integer codes go through the products as they are
+        (:meth:`Compensator.compensate_codes`): a video in and out, X in memory, linear
+        light, no projector response nor rig geometry around the products."""
+        comp = self._entered()
+        projection = self.projection
+        return (self.video_in and self._sink.video is not None and comp.takes_codes
+                and self.encoding.linear and projection.geometry is None
+                and projection.encoder is None)
+
+    def _run_codes(self, comp: Compensator, overlap: bool, on_batch) -> StreamReport:
+        """Codes decoded by ffmpeg -> the products -> codes encoded by ffmpeg (the
+        decoder and encoder in their own processes, beside the products)."""
+        video = self._sink.video
+        with self._sink:
+            dtype = video.code_dtype
+            return run_stream(self.source.code_batches(self.batch),
+                              lambda codes: comp.compensate_codes(codes, dtype),
+                              lambda names, codes: video.write_codes(codes),
+                              batch=self.batch, overlap=overlap, on_batch=on_batch)
+
+    def _run_frames(self, comp: Compensator, overlap: bool, on_batch) -> StreamReport:
+        """Frames of light -> the products -> frames of light, with the encodings and
+        the projector's maps around them."""
+        encoding, projection = self.encoding, self.projection
         t0 = time.perf_counter()
         with contextlib.ExitStack() as stack:
             # image files decoded and encoded on a pool of threads with overlap (a
@@ -293,11 +329,7 @@ class FileCompensation:
                 batch=self.batch, overlap=overlap, on_batch=on_batch)
             if behind is not None:
                 stream = with_encoding_times(stream, behind.finish(), time.perf_counter() - t0)
-        encoder = projection.encoder
-        return FileCompensationReport(
-            self._sink.path, self.batch, stream, comp.residency, comp.report, self.clip,
-            encoding, None if encoder is None else encoder.clipping,
-            None if encoder is None else encoder.bits)
+        return stream
 
     def _entered(self) -> Compensator:
         if self.compensator is None:
@@ -645,6 +677,11 @@ class _Sink:
     def images(self) -> bool:
         """True when frames are written as image files (each on its own)."""
         return self._video is None
+
+    @property
+    def video(self) -> VideoSink | None:
+        """The video written, or None for images."""
+        return self._video
 
     def __enter__(self):
         if self._video is not None:

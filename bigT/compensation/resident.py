@@ -8,8 +8,12 @@ each entry is read once per batch, so the bytes per entry set the frame rate.
 
 Layout (:class:`ResidentMatrix`): the columns are cut into panels of 65536, so a column
 index inside its panel fits 16 bits (``uint16``); within each row the entries are
-sorted by column, so one panel's entries are contiguous, and ``row_ptr[i, p]`` is where
-row i's entries of panel p start. The values are
+sorted by column, so one panel's entries are contiguous: a *segment*. Only the segments
+that hold entries are kept (``seg_panel``, ``seg_start``, and ``row_seg`` where each
+row's segments start): a row of a local transport touches a few panels of the 32 of
+full HD (127 at 4K), and a pointer per row and panel would cost 132 bytes a row at full
+HD (more than a row's entries in float16 at 4K) and a loop over every panel. The
+values are
 
 * ``float32`` (6 bytes per entry with the 16-bit indices, against 8 for float32 values
   with int32 indices), the same numbers as the store: the products agree with the
@@ -55,8 +59,12 @@ class ResidentMatrix:
     Attributes
     ----------
     shape : (n_rows, n_cols)
-    row_ptr : ndarray, shape (n_rows, n_panels + 1), int32 or int64
-        Row i's entries of panel p are ``row_ptr[i, p]:row_ptr[i, p + 1]``.
+    row_seg : ndarray, shape (n_rows + 1,), int32 or int64
+        Row i's segments are ``row_seg[i]:row_seg[i + 1]``.
+    seg_panel : ndarray, shape (n_segments,), uint16
+        The panel of each segment (its columns are 65536 * panel + indices).
+    seg_start : ndarray, shape (n_segments + 1,), int32 or int64
+        Segment s's entries are ``seg_start[s]:seg_start[s + 1]``.
     indices : ndarray, shape (nnz,), uint16; column - 65536 * panel.
     values : ndarray, shape (nnz,); float32, or uint16 (binary16 bits) for float16.
     row_scale : ndarray, shape (n_rows,), float32 or None
@@ -70,7 +78,9 @@ class ResidentMatrix:
     """
 
     shape: tuple
-    row_ptr: np.ndarray
+    row_seg: np.ndarray
+    seg_panel: np.ndarray
+    seg_start: np.ndarray
     indices: np.ndarray
     values: np.ndarray
     row_scale: np.ndarray | None
@@ -85,13 +95,25 @@ class ResidentMatrix:
 
     @property
     def n_panels(self) -> int:
-        return self.row_ptr.shape[1] - 1
+        """Panels of 65536 columns the columns are cut into."""
+        return _panel_count(self.shape[1])
+
+    @property
+    def n_segments(self) -> int:
+        """Runs of a row's entries in one panel (at most nnz)."""
+        return int(self.seg_panel.size)
+
+    @property
+    def row_start(self) -> np.ndarray:
+        """(n_rows + 1,) int64: where each row's entries start (a CSR indptr)."""
+        return np.asarray(self.seg_start, np.int64)[np.asarray(self.row_seg, np.int64)]
 
     @property
     def nbytes(self) -> int:
         """Bytes held, which are also the bytes read by one product (one pass)."""
         scale = 0 if self.row_scale is None else self.row_scale.nbytes
-        return self.row_ptr.nbytes + self.indices.nbytes + self.values.nbytes + scale
+        return (self.row_seg.nbytes + self.seg_panel.nbytes + self.seg_start.nbytes
+                + self.indices.nbytes + self.values.nbytes + scale)
 
     @property
     def dtype(self) -> np.dtype:
@@ -132,15 +154,40 @@ class ResidentMatrix:
 
 # --- building -----------------------------------------------------------------------
 
+def _panel_count(n_cols: int) -> int:
+    return max(1, -(-int(n_cols) >> PANEL_BITS))
+
+
 def resident_bytes_needed(X, precision: str = "float32") -> int:
-    """Bytes a :class:`ResidentMatrix` of the store ``X`` will hold (without loading)."""
+    """Bytes a :class:`ResidentMatrix` of the store ``X`` will hold at most (without
+    loading): the entries exactly, the segments bounded from the tile index (per tile
+    row, its rows times the panels its stored tiles reach, and at most its entries)."""
     _check_precision(precision)
-    n_rows, n_cols = X.shape
-    panels = max(1, -(-n_cols >> PANEL_BITS) if n_cols else 1)
-    ptr_item = 4 if X.nnz < 2**31 else 8
+    n_rows = X.shape[0]
     per_entry = 2 + (4 if precision == "float32" else 2)
     scale = 4 * n_rows if precision == "float16" else 0
-    return X.nnz * per_entry + n_rows * (panels + 1) * ptr_item + scale
+    segments = _segment_bound(X)
+    seg_item = 2 + (4 if X.nnz < 2**31 else 8)  # uint16 panel + its start
+    row_item = 4 if segments < 2**31 else 8
+    return X.nnz * per_entry + segments * seg_item + (n_rows + 1) * row_item + scale
+
+
+def _segment_bound(X) -> int:
+    """At most how many segments (runs of a row's entries in one panel) ``X`` has."""
+    total = 0
+    for i in range(X.grid[0]):
+        lo, hi = int(X.tile_indptr[i]), int(X.tile_indptr[i + 1])
+        full = X.tile_nnz[lo:hi] > 0
+        if not full.any():
+            continue
+        first = np.asarray(X.tile_indices[lo:hi][full], np.int64) * X.tile_size
+        last = np.minimum(first + X.tile_size, X.shape[1]) - 1
+        panels = np.zeros(_panel_count(X.shape[1]), bool)
+        for a, b in zip(first >> PANEL_BITS, last >> PANEL_BITS):
+            panels[a:b + 1] = True
+        r0, r1 = X.tile_row_range(i)
+        total += min(int(X.tile_nnz[lo:hi].sum()), (r1 - r0) * int(panels.sum()))
+    return total
 
 
 def load_bytes_needed(X, precision: str = "float32") -> int:
@@ -187,12 +234,12 @@ def load_resident(X, precision: str = "float32", *, memory_limit: int | None = N
         raise MemoryLimitError(f"holding X in memory needs {need / 2**20:.0f} MiB, over the "
                                f"limit of {limit / 2**20:.0f} MiB", getattr(X, "path", None))
     n_rows, n_cols = X.shape
-    panels = max(1, -(-n_cols >> PANEL_BITS))
-    ptr_dtype = np.int32 if X.nnz < 2**31 else np.int64
-    row_ptr = np.empty((n_rows, panels + 1), ptr_dtype)
     indices = np.empty(X.nnz, np.uint16)
     values = np.empty(X.nnz, np.float32 if precision == "float32" else np.uint16)
     row_scale = np.empty(n_rows, np.float32) if precision == "float16" else None
+    seg_counts = np.zeros(n_rows, np.int64)
+    panels: list[np.ndarray] = []
+    starts: list[np.ndarray] = []
     fill = 0
     for i in range(X.grid[0]):
         r0, _ = X.tile_row_range(i)
@@ -202,24 +249,35 @@ def load_resident(X, precision: str = "float32", *, memory_limit: int | None = N
         k = rows.nnz
         indices[fill:fill + k] = rows.indices & ((1 << PANEL_BITS) - 1)
         values[fill:fill + k] = rows.data
-        row_ptr[r0:r0 + rows.shape[0]] = fill + _panel_pointers(rows, panels)
+        panel, start, per_row = _segments(rows)
+        panels.append(panel)
+        starts.append(start + fill)
+        seg_counts[r0:r0 + rows.shape[0]] = per_row
         fill += k
-    return ResidentMatrix((n_rows, n_cols), row_ptr, indices, values, row_scale,
-                          precision, getattr(X, "pixel_order", None),
+    entry_dtype = np.int32 if X.nnz < 2**31 else np.int64
+    seg_start = np.concatenate([*starts, [X.nnz]]).astype(entry_dtype)
+    seg_dtype = np.int32 if seg_start.size <= 2**31 else np.int64
+    row_seg = np.zeros(n_rows + 1, seg_dtype)
+    np.cumsum(seg_counts, out=row_seg[1:])
+    seg_panel = np.concatenate(panels).astype(np.uint16) if panels else np.zeros(0, np.uint16)
+    return ResidentMatrix((n_rows, n_cols), row_seg, seg_panel, seg_start, indices, values,
+                          row_scale, precision, getattr(X, "pixel_order", None),
                           str(getattr(X, "path", "")), getattr(X, "mixing", None))
 
 
-def _panel_pointers(rows: sp.csr_array, panels: int) -> np.ndarray:
-    """(m, panels + 1) offsets into ``rows``' entries: where each row's panel p starts
-    (columns are sorted within rows, so a panel's entries are contiguous)."""
+def _segments(rows: sp.csr_array) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The segments of ``rows`` (columns sorted within rows, so a row's entries of one
+    panel are contiguous): (panel of each, its first entry, segments per row)."""
     m = rows.shape[0]
+    if rows.nnz == 0:
+        return np.zeros(0, np.uint16), np.zeros(0, np.int64), np.zeros(m, np.int64)
     row_of = np.repeat(np.arange(m, dtype=np.int64), np.diff(rows.indptr))
-    key = row_of * panels + (rows.indices.astype(np.int64) >> PANEL_BITS)
-    counts = np.bincount(key, minlength=m * panels).reshape(m, panels)
-    ptr = np.zeros((m, panels + 1), np.int64)
-    np.cumsum(counts, axis=1, out=ptr[:, 1:])
-    ptr += np.asarray(rows.indptr[:-1], np.int64)[:, None]
-    return ptr
+    panel = rows.indices.astype(np.int64) >> PANEL_BITS
+    new = np.empty(rows.nnz, bool)
+    new[0] = True
+    new[1:] = (row_of[1:] != row_of[:-1]) | (panel[1:] != panel[:-1])
+    start = np.flatnonzero(new)
+    return panel[start], start, np.bincount(row_of[start], minlength=m)
 
 
 def _encode_f16(rows: sp.csr_array):
@@ -255,18 +313,11 @@ def decode_values(R: ResidentMatrix) -> np.ndarray:
 
 def _scipy_of(R: ResidentMatrix) -> sp.csr_array:
     n_rows, n_cols = R.shape
-    panel_of = np.zeros(R.nnz, np.int64)
-    for p in range(1, R.n_panels):
-        starts = np.asarray(R.row_ptr[:, p], np.int64)
-        ends = np.asarray(R.row_ptr[:, p + 1], np.int64)
-        lens = ends - starts
-        if lens.sum():
-            idx = np.repeat(starts - np.cumsum(np.r_[0, lens[:-1]]), lens) + np.arange(lens.sum())
-            panel_of[idx] = p
+    seg_start = np.asarray(R.seg_start, np.int64)
+    panel_of = np.repeat(R.seg_panel.astype(np.int64), np.diff(seg_start))
     cols = (panel_of << PANEL_BITS) + R.indices
     data = decode_values(R)
-    indptr = np.r_[np.asarray(R.row_ptr[:, 0], np.int64), np.int64(R.nnz)] if n_rows else \
-        np.zeros(1, np.int64)
+    indptr = R.row_start
     if R.row_scale is not None:
         data = data * np.repeat(R.row_scale, np.diff(indptr))
     out = sp.csr_array((data.astype(np.float32), cols, indptr), shape=(n_rows, n_cols))
@@ -285,7 +336,7 @@ def _ranges(R: ResidentMatrix, parts: int) -> list[tuple[int, int]]:
     n = R.shape[0]
     if parts <= 1 or n < 2 * parts:
         return [(0, n)]
-    starts = np.asarray(R.row_ptr[:, 0], np.int64)
+    starts = R.row_start[:-1]
     cuts = np.searchsorted(starts, np.linspace(0, R.nnz, parts + 1)[1:-1])
     bounds = np.unique(np.r_[0, cuts, n])
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
@@ -321,10 +372,10 @@ def _small_csr(R):
 def _run_kernel(R, V, out, threads):
     from ._resident_kernels import kernel_for  # numba: ~0.5 s, only past the scipy twin
 
-    kernel = kernel_for(V.shape[1] == 1)
+    kernel = kernel_for(V.shape[1])
     empty = np.ones(0, np.float32)
     scale = empty if R.row_scale is None else R.row_scale
     lut = F16_TABLE if R.precision == "float16" else empty
-    args = (R.row_ptr, R.indices, R.values, lut, scale, V, out)
+    args = (R.row_seg, R.seg_panel, R.seg_start, R.indices, R.values, lut, scale, V, out)
     ranges = _ranges(R, threads * config.KERNEL_CHUNKS_PER_THREAD if threads > 1 else 1)
     run_on_threads(lambda a, b: kernel(*args, a, b), ranges, threads)

@@ -264,23 +264,49 @@ class VideoSource:
     def __len__(self) -> int:
         return self.info.frames or 0
 
+    @property
+    def code_dtype(self) -> np.dtype:
+        """uint8, or uint16 for a stream of more than 8 bits: the codes as read."""
+        return np.dtype(np.uint16 if self.info.bits == 16 else np.uint8)
+
     def frames(self) -> Iterator[np.ndarray]:
         """Yield each frame, shape (H, W) (grey) or (H, W, 3) (colour), float32 in
         [0, 1]."""
+        scale = np.float32(1.0 / np.iinfo(self.code_dtype).max)
+        for codes in self.codes():
+            yield codes.astype(np.float32) * scale
+
+    def codes(self) -> Iterator[np.ndarray]:
+        """Yield each frame as ffmpeg decodes it: shape (H, W) or (H, W, 3), of
+        :attr:`code_dtype` (read-only: a view of the pipe's bytes)."""
         import imageio_ffmpeg  # finds its ffmpeg binary on import: only for video
 
-        deep = self.info.bits == 16
-        dtype, top = (np.uint16, 65535.0) if deep else (np.uint8, 255.0)
-        pix_fmt = _RAW_FORMATS[self.channels, 16 if deep else 8]
-        gen = imageio_ffmpeg.read_frames(str(self.path), pix_fmt=pix_fmt,
-                                         bits_per_pixel=self.channels * (16 if deep else 8))
+        dtype = self.code_dtype
+        bits = 8 * dtype.itemsize
+        gen = imageio_ffmpeg.read_frames(str(self.path), pix_fmt=_RAW_FORMATS[self.channels, bits],
+                                         bits_per_pixel=self.channels * bits)
         try:
             next(gen)  # the metadata, read by probe_video
             for raw in _checked(gen, self.path):
-                frame = np.frombuffer(raw, dtype).reshape(self.frame_shape)
-                yield frame.astype(np.float32) * np.float32(1.0 / top)
+                yield np.frombuffer(raw, dtype).reshape(self.frame_shape)
         finally:
             gen.close()
+
+    def code_batches(self, size: int) -> Iterator[tuple[list[int], np.ndarray]]:
+        """(frame numbers, codes) batches of ``size`` frames (the last may be shorter),
+        codes of shape (k, *frame_shape) and :attr:`code_dtype`."""
+        size = max(1, int(size))
+        batch = np.empty((size, *self.frame_shape), self.code_dtype)
+        k = first = 0
+        for i, frame in enumerate(self.codes()):
+            batch[k] = frame
+            k += 1
+            if k == size:
+                yield list(range(first, i + 1)), batch
+                # a new array each batch: the last is still in the queue or the products
+                batch, k, first = np.empty_like(batch), 0, i + 1
+        if k:
+            yield list(range(first, first + k)), batch[:k]
 
 
 #: ffmpeg's raw pixel format of a frame on a pipe, by (channels, bits): native order
@@ -378,15 +404,27 @@ class VideoSink:
     def write(self, frames: np.ndarray) -> None:
         """Append frames, shape (K, H, W) or (H, W) (grey), (K, H, W, 3) or (H, W, 3)
         (colour), values in [0, 1] (clipped and rounded to the sink's bit depth)."""
-        top = 65535 if self.bits == 16 else 255
-        dtype = np.uint16 if self.bits == 16 else np.uint8
+        dtype = self.code_dtype
         # one pass of float32 arithmetic over the batch (float32 keeps 65535 levels)
         scaled = np.clip(np.asarray(frames, np.float32).reshape(-1, *self.frame_shape), 0.0, 1.0)
-        scaled *= np.float32(top)
-        pixels = np.rint(scaled, out=scaled).astype(dtype)
-        for frame in pixels:
+        scaled *= np.float32(np.iinfo(dtype).max)
+        self.write_codes(np.rint(scaled, out=scaled).astype(dtype))
+
+    @property
+    def code_dtype(self) -> np.dtype:
+        """uint8, or uint16 for 16 bits: the codes :meth:`write_codes` takes."""
+        return np.dtype(np.uint16 if self.bits == 16 else np.uint8)
+
+    def write_codes(self, codes: np.ndarray) -> None:
+        """Append frames of integer codes, shape (K, *frame_shape) or one frame, of
+        :attr:`code_dtype` (written as they are: no copy of a C-contiguous batch)."""
+        codes = np.ascontiguousarray(codes).reshape(-1, *self.frame_shape)
+        if codes.dtype != self.code_dtype:
+            raise ImageError(f"codes of {codes.dtype} given to a {self.bits}-bit video",
+                             self.path)
+        for frame in codes:
             try:
-                self._proc.stdin.write(frame.tobytes())
+                self._proc.stdin.write(memoryview(frame).cast("B"))
             except OSError:  # ffmpeg is gone (a full disk, say): its words say why
                 self._proc.wait()
                 raise OutputError(f"cannot write the video ({self._ffmpeg_says()}); nothing "

@@ -334,3 +334,28 @@ def test_large_batches_count_clipped_values_per_channel_as_numpy():
         want_low = [0 if clip[0] is None else int((Y3[:, c] < clip[0]).sum()) for c in range(3)]
         want_high = [0 if clip[1] is None else int((Y3[:, c] > clip[1]).sum()) for c in range(3)]
         assert list(low) == want_low and list(high) == want_high
+
+
+def test_colour_video_codes_path_is_the_float_path_and_numpy(scene, tmp_path):
+    """A 16-bit colour video (linear light by default) with X in memory takes the codes
+    path (FileCompensation.takes_codes): its codes are the float path's bit for bit, and
+    within half a code (float32 sums) of the dense float64 product, per channel."""
+    from bigT.compensation.files import FileCompensation
+
+    d, _, X = scene
+    rng = np.random.default_rng(4)
+    frames = rng.uniform(0.1, 0.7, (5, H, W, 3))
+    with VideoSink(tmp_path / "in.mkv", (H, W), 25, 16, channels=3) as sink:
+        sink.write(frames)
+    with FileCompensation(d / "X.zarr", tmp_path / "in.mkv", tmp_path / "out.mkv",
+                          batch=2) as job:
+        assert job.takes_codes and job.encoding.linear
+        job.run()
+    got = np.stack(list(VideoSource(tmp_path / "out.mkv", channels=3).codes())).astype(float)
+    light = np.stack(list(VideoSource(tmp_path / "in.mkv", channels=3).frames()))
+    with FileCompensation(d / "X.zarr", tmp_path / "in.mkv", tmp_path / "f.mkv") as floats:
+        want = np.rint(np.clip(floats.compensator(light), 0, 1) * np.float32(65535))
+    np.testing.assert_array_equal(got, want)
+    ref = _apply(X, light.astype(np.float64))  # the row-major dense inverse
+    sums = _apply(np.abs(X), light.astype(np.float64)).max()
+    assert np.abs(got - np.clip(ref, 0, 1) * 65535).max() <= 0.5 + N * 2.0 ** -24 * sums * 65535

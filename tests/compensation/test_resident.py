@@ -40,14 +40,20 @@ def test_layout_counts_and_bytes(wide):
     store, A = wide
     R = load_resident(store, "float32")
     assert R.n_panels == 2 and R.nnz == A.nnz and R.indices.dtype == np.uint16
-    assert R.nbytes == resident_bytes_needed(store, "float32")
-    assert R.nbytes == A.nnz * 6 + N * 3 * 4  # 6 bytes an entry, 3 int32 pointers a row
+    rows = np.repeat(np.arange(N), np.diff(A.indptr))
+    segments = np.unique(rows * 2 + (A.indices >> 16)).size  # (row, panel) pairs held
+    assert R.n_segments == segments
+    # 6 bytes an entry, 6 a segment (uint16 panel, int32 start), one int32 a row
+    assert R.nbytes == A.nnz * 6 + segments * 6 + 4 + (N + 1) * 4
+    # the bound from the tile index: every row reaches both panels at most
+    assert R.nbytes <= resident_bytes_needed(store, "float32") <= A.nnz * 6 + 2 * N * 6 + 4 \
+        + (N + 1) * 4
     assert load_bytes_needed(store, "float32") > R.nbytes
     diff = R.to_scipy() - A
     assert diff.nnz == 0 or abs(diff).max() == 0  # the same matrix
 
 
-@pytest.mark.parametrize("k", [1, 5])
+@pytest.mark.parametrize("k", [1, 5, 8])  # 8: the unrolled kernel
 @pytest.mark.parametrize("threads", [1, 2])
 def test_float32_products_match_scipy(wide, k, threads):
     store, A = wide
@@ -60,7 +66,7 @@ def test_float32_products_match_scipy(wide, k, threads):
     assert np.all(np.abs(got - ref) <= bound)
 
 
-@pytest.mark.parametrize("k", [1, 4])
+@pytest.mark.parametrize("k", [1, 4, 8])
 def test_float16_error_within_its_precision(wide, k):
     """|y16 - y32| <= (2^-11 + float32 rounding) (|X| |v|) + 2^-40 s_i nnz_i: binary16's
     relative rounding in the normal range the row scale guarantees, and the absolute
@@ -106,3 +112,30 @@ def test_memory_limit_and_shapes(wide):
     R = load_resident(store)
     with pytest.raises(ShapeMismatchError):
         R.matmul(np.ones(N + 1))
+
+
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+@pytest.mark.parametrize("k", [1, 3, 8])
+def test_segments_skip_empty_panels_and_rows(tmp_path, precision, k):
+    """Rows that reach the first and third panels and not the second, rows in one panel,
+    and empty rows: only the segments held are kept, and both kernels agree with
+    scipy."""
+    n = 3 * 65536 + 100
+    rng = np.random.default_rng(7)
+    rows = np.arange(0, n, 3)  # every third row has entries; the others are empty
+    first = rng.integers(0, 65536, rows.size)
+    third = rng.integers(2 * 65536, 3 * 65536, rows.size)
+    one_panel = rows % 2 == 0  # half of them in the third panel only
+    r = np.concatenate([rows[~one_panel], rows])
+    c = np.concatenate([first[~one_panel], third])
+    A = sp.csr_array((rng.uniform(0.1, 1, r.size).astype(np.float32), (r, c)), shape=(n, n))
+    store = bigT.from_scipy(A, tmp_path / "gaps.zarr", tile_size=65536, dtype="float32")
+    R = load_resident(store, precision)
+    assert R.n_panels == 4 and R.n_segments == A.nnz  # one entry per segment here
+    assert set(np.unique(R.seg_panel)) == {0, 2}
+    V = rng.uniform(0, 1, (n, k)).astype(np.float32)
+    ref = A.astype(np.float64) @ V.astype(np.float64)
+    got = R.matmul(V, n_threads=2)
+    rtol = 1e-6 if precision == "float32" else 2.0 ** -10
+    assert np.all(np.abs(got - ref) <= rtol * np.abs(ref))
+    assert np.all(got[1::3] == 0) and np.all(got[2::3] == 0)  # the empty rows

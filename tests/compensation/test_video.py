@@ -308,3 +308,58 @@ def test_channels_other_than_1_or_3_refused(tmp_path):
         VideoSource(tmp_path / "g.mkv", channels=4)
     with pytest.raises(ImageError, match="1 \\(grey\\) or 3 \\(RGB\\) channels, not 2"):
         VideoSink(tmp_path / "o.mkv", (H, W), 25, channels=2)
+
+
+@pytest.mark.parametrize("bits, suffix", [(8, ".mp4"), (16, ".mkv")])
+@pytest.mark.parametrize("clip", [(0, 1), (0.2, 0.5), (0, None)])
+def test_codes_path_equals_the_float_path_and_scipy(scene, tmp_path, bits, suffix, clip):
+    """A linear video with X in memory goes through the products as integer codes
+    (FileCompensation.takes_codes): the codes written are those of the float path
+    (Compensator on frames of light, quantised as VideoSink.write does), bit for bit,
+    and within half a code (float32 sums) of scipy's float64 product; the clip counts
+    agree."""
+    import scipy.sparse as sp
+
+    from bigT.compensation.files import FileCompensation
+
+    d, X, frames = scene
+    _write_video(tmp_path / f"in{suffix}", frames, bits)
+    job = FileCompensation(d / "X.zarr", tmp_path / f"in{suffix}", tmp_path / f"out{suffix}",
+                           batch=3, clip=clip)
+    with job:
+        assert job.takes_codes
+        report = job.run()
+    top = 65535 if bits == 16 else 255
+    got = np.rint(_read_video(tmp_path / f"out{suffix}") * top)
+    light = np.stack(list(VideoSource(tmp_path / f"in{suffix}").frames()))
+    with FileCompensation(d / "X.zarr", tmp_path / f"in{suffix}", tmp_path / f"f{suffix}",
+                          clip=clip) as floats:
+        projected = floats.compensator(light)
+        counts = floats.compensator.report
+    want = np.rint(np.clip(projected, 0, 1) * np.float32(top))
+    np.testing.assert_array_equal(got, want)
+    assert (report.compensation.clipped_low, report.compensation.clipped_high) == (
+        counts.clipped_low, counts.clipped_high)
+    # X is tile-major, _expected's dense X row-major: scipy against it, in float64
+    ref = sp.csr_array(X) @ light.reshape(K, -1).T.astype(np.float64)
+    lo, hi = clip
+    ref = np.clip(ref.T.reshape(light.shape), lo, hi if hi is not None else np.inf)
+    # half a code of rounding, and float32 sums of H W terms (n u sum |X_ij| l_j)
+    sums = (np.abs(X) @ light.reshape(K, -1).T.astype(np.float64)).max()
+    assert np.abs(got - np.clip(ref, 0, 1) * top).max() <= 0.5 + H * W * 2.0 ** -24 * sums * top
+    assert report.compensation.clipped_low + report.compensation.clipped_high > 0 or clip == (0, None)
+
+
+def test_codes_path_not_taken_for_srgb_or_streamed(scene, tmp_path):
+    """sRGB frames (a curve between codes and light) and X streamed from disk keep the
+    float path."""
+    from bigT.compensation.files import FileCompensation
+
+    d, _, frames = scene
+    _write_video(tmp_path / "in.mkv", frames)
+    with FileCompensation(d / "X.zarr", tmp_path / "in.mkv", tmp_path / "a.mkv",
+                          encoding="srgb") as job:
+        assert not job.takes_codes
+    with FileCompensation(d / "X.zarr", tmp_path / "in.mkv", tmp_path / "b.mkv",
+                          resident=False) as job:
+        assert not job.takes_codes
