@@ -373,11 +373,7 @@ def read_array_files(adir: Path, length: int | None = None, *,
     dfd = open_inside(root, rel)
     try:
         raw = _read_at("zarr.json", dfd, METADATA_MAX_BYTES, root, f"{rel}/zarr.json")
-        meta = parse_json(raw, "zarr.json", adir / "zarr.json")
-        if length is None:
-            length = check_count((meta.get("shape") or [None])[0], "array length",
-                                 adir / "zarr.json", high=MAX_SIDE)
-        chunk, dtype, fill, direct = _array_meta(meta, length, adir / "zarr.json")
+        length, chunk, dtype, fill, direct = _declared(raw, length, adir / "zarr.json")
         if not direct:
             check_tree_has_no_links(root, rel)  # zarr reads it by path
             return None
@@ -404,17 +400,23 @@ def _read_array_objects(adir: ObjectPath, length: int | None) -> np.ndarray | No
         raw = (adir / "zarr.json").read_bytes(METADATA_MAX_BYTES)
     except ValueError as exc:
         raise CorruptStoreError(str(exc), adir / "zarr.json") from None
-    meta = parse_json(raw, "zarr.json", adir / "zarr.json")
-    if length is None:
-        length = check_count((meta.get("shape") or [None])[0], "array length",
-                             adir / "zarr.json", high=MAX_SIDE)
-    chunk, dtype, fill, direct = _array_meta(meta, length, adir / "zarr.json")
+    length, chunk, dtype, fill, direct = _declared(raw, length, adir / "zarr.json")
     if not direct:
         return None
     if not length:
         return np.empty(0, dtype.newbyteorder("="))
     return _decoded_chunks(lambda c, most: (adir / "c" / str(c)).read_bytes(most),
                            length, chunk, dtype, fill, str(adir))
+
+
+def _declared(raw: bytes, length: int | None, where) -> tuple:
+    """(length, chunk, dtype, fill, direct) of an array's zarr.json ``raw``, its length
+    the caller's when known (else the declared one, bounded by :data:`MAX_SIDE`)."""
+    meta = parse_json(raw, "zarr.json", where)
+    if length is None:
+        length = check_count((meta.get("shape") or [None])[0], "array length", where,
+                             high=MAX_SIDE)
+    return (length, *_array_meta(meta, length, where))
 
 
 def _decoded_chunks(read_chunk: Callable[[int, int], bytes], length: int, chunk: int,

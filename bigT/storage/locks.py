@@ -181,13 +181,7 @@ class ReplaceLock(_HeldFile):
     def acquire(self) -> "ReplaceLock":
         if self._object is not None:
             self._object.acquire()
-            try:  # an inverse being extended there is not replaced under its writer
-                if (self.path / WRITER_LOCK).is_file():
-                    self._inner.acquire()
-            except BaseException:
-                self.release()
-                raise
-            return self
+            return self._with_writer_lock()
         if fcntl is None or self._fd is not None:
             return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -203,6 +197,11 @@ class ReplaceLock(_HeldFile):
                 break
             os.close(fd)
         self._fd = fd
+        return self._with_writer_lock()
+
+    def _with_writer_lock(self) -> "ReplaceLock":
+        """The inverse's writer lock too, where the store has one: an inverse being
+        extended is not replaced under its writer."""
         try:
             if (self.path / WRITER_LOCK).is_file():
                 self._inner.acquire()
