@@ -57,7 +57,8 @@ from .probes import ProbedResidual
 #: In memory, a term the run goes past is still published when this many seconds have
 #: passed since the last term published: what a crash may cost again. The others are
 #: not written (their records are kept): at n = 1000..5120 writing and publishing a
-#: term durably (2 stores, ~75 fsyncs) costs more than its product (issue #30).
+#: term durably (2 stores, ~75 fsyncs) costs more than its product (issue #30). 0: every
+#: term written and published as it is computed.
 PUBLISH_INTERVAL_SECONDS = 5.0
 
 
@@ -201,11 +202,11 @@ class InverseEngine:
     def _writes(self, k: int) -> bool:
         """Whether term ``k`` is written and published as soon as it is computed: out
         of core always (its tasks write it); in memory when it is the run's last term
-        by ``terms`` or a caller's ``on_term`` reads each term (else it is published
-        later only when :data:`PUBLISH_INTERVAL_SECONDS` have passed, or the run
-        stops at it: :meth:`_publish_held`)."""
+        by ``terms``, a caller's ``on_term`` reads each term, or
+        :data:`PUBLISH_INTERVAL_SECONDS` is 0 (else it is published later only when
+        that interval has passed, or the run stops at it: :meth:`_publish_held`)."""
         return (not self.path.in_memory or self.settings.on_term is not None
-                or k >= self.settings.terms)
+                or k >= self.settings.terms or PUBLISH_INTERVAL_SECONDS <= 0)
 
     def _publish_held(self) -> None:
         """Write and publish the term held when it was kept in memory only (nothing
