@@ -131,9 +131,11 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         the available memory), else out of core; a run in memory goes on out of core
         before a term predicted not to fit. True: in memory whatever the estimate
         (refused with a cluster scheduler); False: out of core. Either way every term
-        is written into ``out`` and published the same way, so a run on one path
-        resumes on the other; the report's ``engine_path`` and each term's record say
-        which ran.
+        published is written into ``out`` the same way, so a run on one path resumes
+        on the other; in memory, a term the run goes past is published only when
+        ``on_term`` is given or 5 s passed since the last one published
+        (:mod:`bigT.algorithms.engine`), its record kept all the same. The report's
+        ``engine_path`` and each term's record say which path ran.
 
     Returns
     -------
