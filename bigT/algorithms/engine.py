@@ -17,7 +17,8 @@
 * :mod:`.publish`: a finished term published (X's record, redirect, root record) and
   the previous term deleted in the background. In memory, a term is written and
   published only where it matters (:meth:`InverseEngine._writes`): the run's last
-  term, each term a caller's ``on_term`` reads, a term computed
+  term, each term a caller's ``on_term`` reads (every term, unless it has a
+  ``reads_term`` saying which), a term computed
   :data:`PUBLISH_INTERVAL_SECONDS` after the last one published (what a crash may cost
   again), and the term held before the run leaves memory or stops; the others stay in
   memory, their records in the history all the same;
@@ -202,11 +203,21 @@ class InverseEngine:
     def _writes(self, k: int) -> bool:
         """Whether term ``k`` is written and published as soon as it is computed: out
         of core always (its tasks write it); in memory when it is the run's last term
-        by ``terms``, a caller's ``on_term`` reads each term, or
+        by ``terms``, a caller's ``on_term`` reads it (:meth:`_on_term_reads`), or
         :data:`PUBLISH_INTERVAL_SECONDS` is 0 (else it is published later only when
         that interval has passed, or the run stops at it: :meth:`_publish_held`)."""
-        return (not self.path.in_memory or self.settings.on_term is not None
+        return (not self.path.in_memory or self._on_term_reads(k)
                 or k >= self.settings.terms or PUBLISH_INTERVAL_SECONDS <= 0)
+
+    def _on_term_reads(self, k: int) -> bool:
+        """Whether the caller's ``on_term`` reads term ``k`` from the store: every term,
+        unless the callable says otherwise by its ``reads_term(k)`` (the target-error
+        search reads only the terms it measures)."""
+        on_term = self.settings.on_term
+        if on_term is None:
+            return False
+        reads_term = getattr(on_term, "reads_term", None)
+        return True if reads_term is None else bool(reads_term(k))
 
     def _publish_held(self) -> None:
         """Write and publish the term held when it was kept in memory only (nothing

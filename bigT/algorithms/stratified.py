@@ -112,6 +112,11 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         a string returned stops the run there, as its ``stopped`` reason. One run
         with it costs less than a run per term (one set-up, one spectral radius
         read): :func:`bigT.algorithms.target.invert_to_target` measures each term so.
+        A callable with an attribute ``reads_term``, a callable taking a term's index,
+        says before each term whether it reads that term from ``out``; for a term it
+        does not read, a run in memory calls it with the term's record unpublished
+        (the store holding an earlier term), as a run without ``on_term`` goes past
+        a term.
     colour_path : {"auto", "general", "global"}
         For a colour T (channels 3; a grey T ignores it): ``"global"`` inverts three
         grey transports between two 3x3 un-mixings when the rig's colour mixing is one
