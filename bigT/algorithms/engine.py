@@ -227,7 +227,6 @@ class InverseEngine:
         X = self.passes.write_term(self.record.term, self._series_metadata())
         self._publish(X)
 
-
     def _leave_memory_unless_fits(self, held: int) -> None:
         """In memory, go on out of core from the term ``held`` (published: the
         out-of-core passes read it from the store) when the next term's predicted size
