@@ -6,7 +6,9 @@ store format with an older checkout's (``--baseline PATH``: a bigT source tree, 
 ``git worktree add /tmp/bigT-old <commit>``), interleaved, best of ``--repeats``. After
 each published term the child counts the files of the term's directory (X and P) and
 how many of them are new (a hard link carried from the term before is not), their
-bytes, and at the end its peak RSS.
+bytes, and at the end its peak RSS. The callback makes every term published (in memory
+too); ``--whole`` times the run without it, as a user's ``bigT invert`` runs, and counts
+the last term's files only.
 
     python benchmarks/bench_layout.py                       # 384x512, this tree only
     python benchmarks/bench_layout.py --baseline /tmp/bigT-old --size 1080x1920
@@ -33,7 +35,7 @@ import json, os, resource, sys, time
 from pathlib import Path
 import bigT
 
-T, out, terms, prune, feed, operator = sys.argv[1:7]
+T, out, terms, prune, feed, operator, per_term = sys.argv[1:8]
 seen = []
 
 def tree(root):
@@ -57,8 +59,13 @@ t0 = time.perf_counter()
 rep = bigT.stratified_inverse(T, out, terms=int(terms), prune=float(prune),
                               prune_feed=float(feed) or None,
                               prune_operator=float(operator) or None,
-                              overwrite=True, progress=False, on_term=on_term)
+                              overwrite=True, progress=False,
+                              on_term=on_term if per_term == "1" else None)
 total = time.perf_counter() - t0
+if per_term != "1":  # the files of the term held, counted after the clock
+    from types import SimpleNamespace
+    held = bigT.open(out).metadata["inverse"]
+    on_term(SimpleNamespace(dir=held["dir"], term=held["term"]))
 X = bigT.open(out)
 record = json.loads((Path(out) / "zarr.json").read_text())["attributes"]["bigT_inverse"]
 hist = record["history"]
@@ -86,7 +93,7 @@ def run_child(tree: Path, T: Path, out: Path, args) -> dict:
     # sys.path, which must not be a bigT tree other than ``tree``
     proc = subprocess.run([sys.executable, "-c", CHILD, str(T.resolve()), str(out.resolve()),
                            str(args.terms), str(args.prune), str(args.prune_feed or 0),
-                           str(args.prune_operator or 0)],
+                           str(args.prune_operator or 0), "0" if args.whole else "1"],
                           env=env, capture_output=True, text=True, cwd=args.workdir)
     if proc.returncode:
         sys.exit(f"{tree}: the inverse failed:\n{proc.stderr[-3000:]}")
@@ -94,12 +101,18 @@ def run_child(tree: Path, T: Path, out: Path, args) -> dict:
 
 
 def term_rows(label: str, run: dict) -> list[list]:
+    """One row per term of the history: its seconds, and the files of its directory
+    where they were counted (every term with the callback, else the last)."""
+    files_of = {rec["term"]: rec["files"] for rec in run["terms"]}
+    history = run["history"] or [{"term": k, "seconds": None} for k in files_of]
     rows = []
-    for rec, h in zip(run["terms"], run["history"] or [None] * len(run["terms"])):
-        files, new, size, new_size = rec["files"]
-        rows.append([label, rec["term"], None if h is None else round(h["seconds"], 2),
-                     files, new, round(new / max(run["rows"], 1), 1),
-                     round(size / 2**20, 1), round(new_size / 2**20, 1)])
+    for h in history:
+        counted = files_of.get(h["term"])
+        files, new, size, new_size = counted or (None,) * 4
+        rows.append([label, h["term"], None if h["seconds"] is None else round(h["seconds"], 2),
+                     files, new, None if counted is None else round(new / max(run["rows"], 1), 1),
+                     None if counted is None else round(size / 2**20, 1),
+                     None if counted is None else round(new_size / 2**20, 1)])
     return rows
 
 
@@ -113,6 +126,9 @@ def main(argv=None) -> None:
     p.add_argument("--baseline", type=Path, default=None,
                    help="an older bigT source tree to compare with (its bigT/ is imported)")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--whole", action="store_true",
+                   help="no per-term callback: the run a user makes (in memory, the terms "
+                        "it goes past are not written); files counted for the last term")
     p.add_argument("--workdir", type=Path, default=Path("bench-out/layout"))
     args = p.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)

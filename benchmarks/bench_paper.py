@@ -33,7 +33,8 @@ clock on a shared 2-core machine: the load average is recorded with them.
 
 What Fig. 6 times: numpy.linalg.inv of T already dense in memory; a whole fresh
 ``bigT.stratified_inverse`` call to T_7^-1, store to store (its spectral radius estimate,
-products, residual estimates and writes); and the same pruned series in plain scipy in
+products, residual estimates and the writes of the terms it publishes: in memory, T_7^-1
+alone; out of core, every term); and the same pruned series in plain scipy in
 memory; the engine twice, by its automatic choice of path (in memory at this size) and
 out of core (``in_memory=False``). Each the best of two calls (one with --quick),
 interleaved, after the untimed runs have loaded numba's kernels; the stores a timed
@@ -353,8 +354,9 @@ def cornell_curve(scene, T: sp.csr_array, T_inv: np.ndarray, work: Path, key: st
 
 def timed_inverse(T, out: Path, prune: float, in_memory=None) -> tuple[float, object]:
     """(wall seconds, report) of one fresh ``bigT.stratified_inverse`` call to T_7^-1,
-    store to store (spectral radius estimate, seven products, residual estimates,
-    writes); ``out`` is deleted before the clock starts (nothing to resume)."""
+    store to store (spectral radius estimate, seven products, residual estimates, the
+    writes of the terms published); ``out`` is deleted before the clock starts (nothing
+    to resume)."""
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     report = bigT.stratified_inverse(T, out, terms=CORNELL_TERMS, prune=prune,

@@ -15,13 +15,20 @@
   :class:`.resident.ResidentMatVecs`), and each term's residual estimate, the probes'
   X Z carried from term to term;
 * :mod:`.publish`: a finished term published (X's record, redirect, root record) and
-  the previous term deleted in the background;
+  the previous term deleted in the background. In memory, a term is written and
+  published only where it matters (:meth:`InverseEngine._writes`): the run's last
+  term, each term a caller's ``on_term`` reads (every term, unless it has a
+  ``reads_term`` saying which), a term computed
+  :data:`PUBLISH_INTERVAL_SECONDS` after the last one published (what a crash may cost
+  again), and the term held before the run leaves memory or stops; the others stay in
+  memory, their records in the history all the same;
 * :mod:`.outcome`: the :class:`~.report.InverseReport` from how the run ended.
 
-The driver holds what changes during the run: the store's record (the term held) and
-the probes' X Z for it. A term is published only once complete; a crash leaves the
-previous term readable, and the same call resumes at the first incomplete row block
-of the next term. ``force`` skips both refusals of divergence.
+The driver holds what changes during the run: the record (the term held, published or,
+in memory, not yet) and the probes' X Z for it. A term is published only once complete;
+a crash leaves the last term published readable, and the same call resumes at the
+first incomplete row block of the next term. ``force`` skips both refusals of
+divergence.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import time
 
 import numpy as np
 
+from ..errors import DivergenceError
 from ..storage import InverseStore
 from ..storage import open as open_store
 from .divergence import checked_radius, refuse_growing_residual
@@ -38,13 +46,21 @@ from .matvecs import MatVecs
 from .methods import TERM_ZERO, SeriesMethod
 from .passes import PassRunner
 from .resident import ResidentMatrices, ResidentMatVecs, ResidentPasses
-from .publish import let_go_of_term, publish_term, series_metadata, term_record
+from .publish import (let_go_of_term, publish_held, series_metadata, term_record,
+                      with_term)
 from .records import SeriesRecord
 from .report import InverseReport
 from .outcome import RunOutcome, inverse_report
 from .run_setup import open_run
 from .settings import SeriesSettings
 from .probes import ProbedResidual
+
+#: In memory, a term the run goes past is still published when this many seconds have
+#: passed since the last term published: what a crash may cost again. The others are
+#: not written (their records are kept): at n = 1000..5120 writing and publishing a
+#: term durably (2 stores, ~75 fsyncs) costs more than its product (issue #30). 0: every
+#: term written and published as it is computed.
+PUBLISH_INTERVAL_SECONDS = 5.0
 
 
 class InverseEngine:
@@ -88,6 +104,8 @@ class InverseEngine:
         else:
             self.passes = PassRunner(self.layout, store, runner, settings, self.residual.Z)
         self.XZ: np.ndarray | None = None  # X Z for the term held (None: X is read)
+        self._published_at = time.perf_counter()  # the last publication (or the start)
+        self._held_unpublished = False  # in memory: the term held not written yet
 
     def run(self, t_start: float) -> InverseReport:
         """Estimate rho (refusing a diverging series), compute the terms, report."""
@@ -108,6 +126,7 @@ class InverseEngine:
             raise
         try:
             stopped = self._extend(resumed_from)
+            self._publish_held()  # the term the run ends with, when kept in memory
         finally:
             self.passes.close()
             self.store.settle()
@@ -152,28 +171,61 @@ class InverseEngine:
     def _term_zero(self) -> None:
         self.store.clean(keep={0})
         t0 = time.perf_counter()
-        stats = self.passes.run(TERM_ZERO, 0, self._series_metadata())
-        self._finish_term(0, stats, t0, XZ=self.residual.term_zero_XZ())
+        write = self._writes(0)
+        stats = self.passes.run(TERM_ZERO, 0, self._series_metadata(), write=write)
+        self._finish_term(0, stats, t0, XZ=self.residual.term_zero_XZ(), publish=write)
 
     def _next_term(self) -> str | None:
-        """Compute the term after the one held and publish it; a reason when the series
-        turns out exhausted instead."""
+        """Compute the term after the one held and publish it (in memory, unless
+        :meth:`_writes` says otherwise); a reason when the series turns out exhausted
+        instead."""
         held = self.record.term
         k = self.series.next_term(held)
         self._leave_memory_unless_fits(held)
+        if time.perf_counter() - self._published_at >= PUBLISH_INTERVAL_SECONDS:
+            self._publish_held()
         self.passes.warn_row_width(held, k, self.record.history)
-        self.store.clean(keep={held, k})
+        self.store.clean(keep={self.record.dir, k})
         t0 = time.perf_counter()
         stats = []
+        write = self._writes(k)
         for p in self.series.passes(held, k):
             reason = self.passes.exhausted_before(self.series, p, held)
             if reason:
+                self._publish_held()
                 self._save(self.record.replace(term=self.settings.terms, exhausted_at=held))
                 return reason
-            stats += self.passes.run(p, k, self._series_metadata())
-        self._finish_term(k, stats, t0, XZ=self.residual.updated_XZ(self.XZ, stats))
-        let_go_of_term(self.store, self.runner, held)
+            stats += self.passes.run(p, k, self._series_metadata(), write=write)
+        self._finish_term(k, stats, t0, XZ=self.residual.updated_XZ(self.XZ, stats),
+                          publish=write)
         return None
+
+    def _writes(self, k: int) -> bool:
+        """Whether term ``k`` is written and published as soon as it is computed: out
+        of core always (its tasks write it); in memory when it is the run's last term
+        by ``terms``, a caller's ``on_term`` reads it (:meth:`_on_term_reads`), or
+        :data:`PUBLISH_INTERVAL_SECONDS` is 0 (else it is published later only when
+        that interval has passed, or the run stops at it: :meth:`_publish_held`)."""
+        return (not self.path.in_memory or self._on_term_reads(k)
+                or k >= self.settings.terms or PUBLISH_INTERVAL_SECONDS <= 0)
+
+    def _on_term_reads(self, k: int) -> bool:
+        """Whether the caller's ``on_term`` reads term ``k`` from the store: every term,
+        unless the callable says otherwise by its ``reads_term(k)`` (the target-error
+        search reads only the terms it measures)."""
+        on_term = self.settings.on_term
+        if on_term is None:
+            return False
+        reads_term = getattr(on_term, "reads_term", None)
+        return True if reads_term is None else bool(reads_term(k))
+
+    def _publish_held(self) -> None:
+        """Write and publish the term held when it was kept in memory only (nothing
+        to do when it is published); the term published before is let go."""
+        if not self._held_unpublished:
+            return
+        X = self.passes.write_term(self.record.term, self._series_metadata())
+        self._publish(X)
 
     def _leave_memory_unless_fits(self, held: int) -> None:
         """In memory, go on out of core from the term ``held`` (published: the
@@ -188,6 +240,7 @@ class InverseEngine:
             growth = history[-1].nnz_X / history[-2].nnz_X
         if last is None or self.passes.fits(held, last.nnz_X, last.nnz_P, growth):
             return
+        self._publish_held()  # the out-of-core passes read it from the store
         totals = self.passes.totals
         self.passes.close()
         self.path = PathChoice(False, f"{self.path.reason}; out of core from term "
@@ -198,23 +251,46 @@ class InverseEngine:
                                  self.residual.Z)
         self.passes.totals = totals
 
-    def _finish_term(self, k: int, stats, t0: float, XZ: np.ndarray | None = None) -> None:
+    def _finish_term(self, k: int, stats, t0: float, XZ: np.ndarray | None = None,
+                     publish: bool = True) -> None:
         """Estimate term k's residual (``XZ``: X_k Z when known), refuse the term when
-        the residual grew, else publish it. Every published term, term 0 included,
-        passes here (benchmarks/bench_tradeoff.py wraps it to measure each term)."""
+        the residual grew (the term held then published, when it was not), else hold
+        it: published with ``publish``, else (in memory) its record kept and its
+        matrices left unwritten. Every term computed, term 0 included, passes here
+        (benchmarks/bench_tradeoff.py wraps it to measure each term)."""
         X = self.passes.finalized.pop((k, "X"), None)
         if X is None:
-            X = open_store(self.store.term_path(k, "X"))
+            X = (open_store(self.store.term_path(k, "X")) if publish
+                 else self.passes.matrices.term("X", k))
         self.passes.finalized.clear()  # the other stores of the term are not read again
         residual = self.residual.estimate(X, XZ)
-        refuse_growing_residual(self.record, k, residual.relative, self.settings.force,
-                                self.store.path)
-        self.record = publish_term(self.store, self.record, X,
-                                   term_record(k, stats, X, residual, t0,
-                                               IN_MEMORY if self.path.in_memory
-                                               else OUT_OF_CORE, self.runner.costs.since(t0)),
-                                   self._series_metadata())
+        try:
+            refuse_growing_residual(self.record, k, residual.relative, self.settings.force,
+                                    self.store.path)
+        except DivergenceError:
+            self._publish_held()  # the term the message says the inverse keeps
+            raise
+        term = term_record(k, stats, X, residual, t0,
+                           IN_MEMORY if self.path.in_memory else OUT_OF_CORE,
+                           self.runner.costs.since(t0))
+        self.record = with_term(self.record, term)
         self.XZ = residual.XZ
+        if publish:
+            self._publish(X)
+        else:
+            self._held_unpublished = True
+            self.passes.forget_unwritten(before=k)
+
+    def _publish(self, X) -> None:
+        """Publish the term held, whose X is the store ``X``, and let go of the term
+        published before it."""
+        before = self.record.dir
+        self.record = publish_held(self.store, self.record, X, self._series_metadata())
+        self._published_at = time.perf_counter()
+        self._held_unpublished = False
+        self.passes.forget_unwritten(before=self.record.term + 1)
+        if before is not None and before != self.record.term:
+            let_go_of_term(self.store, self.runner, before)
 
     def _save(self, record: SeriesRecord) -> None:
         self.store.save(record.to_stored())

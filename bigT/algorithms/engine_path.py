@@ -28,11 +28,14 @@ ENVIRONMENT = "BIGT_IN_MEMORY"
 #: the system has available (MemAvailable) when the run starts...
 AVAILABLE_SHARE = 0.5
 #: ...and at most this much. What the path saves is fixed costs (dask graphs, store
-#: reads, per-pass set-up), which matter where M is small; measured: the dense 384x512
-#: corner (M ~2.9 GB) ran no faster in memory (15.5-16.8 s) than out of core
-#: (15.2-16.3 s) at twice the peak (2.3 against 1.1 GB), and full HD took 5.7 GB in
-#: memory against 2.9 GB out of core. A ``memory_limit`` given overrides the cap.
-DEFAULT_MAX_BYTES = 2 << 30
+#: reads, per-pass set-up, and the writes of the terms it goes past: :mod:`.engine`),
+#: which matter where M is small. Measured on the dense 384x512 corner (making M
+#: ~2.7 GiB, predicted; 4 terms at 3e-6/1e-4/1e-5, load average ~8): 38 s in memory
+#: against 60 s out of core, peak 2.3 against 1.0 GB (before terms were left unwritten
+#: in memory, no faster: 15.5-16.8 s against 15.2-16.3 s). Full HD took 5.7 GB in
+#: memory against 2.9 GB out of core: a T of more than ~64 M entries (3 GiB / 48 bytes)
+#: stays out of core. A ``memory_limit`` given overrides the cap.
+DEFAULT_MAX_BYTES = 3 << 30
 
 #: Without a ``memory_limit`` and where the available memory cannot be read.
 FALLBACK_BUDGET_BYTES = 2 << 30

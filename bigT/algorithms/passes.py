@@ -80,11 +80,13 @@ class PassRunner:
         #: publication reads X from here rather than opening it again
         self.finalized: dict[tuple[int, str], object] = {}
 
-    def run(self, p: Pass, k: int, metadata: dict) -> list[BlockStats]:
+    def run(self, p: Pass, k: int, metadata: dict, write: bool = True) -> list[BlockStats]:
         """Run pass ``p`` of term ``k``: create (or resume) its output stores, recording
         ``metadata`` (the series', :func:`.publish.series_metadata`), run a task per
         row block not yet complete in all of them, finalize them from their row
-        markers. Returns the stats of the tasks run (none when resumed complete)."""
+        markers. Returns the stats of the tasks run (none when resumed complete).
+        ``write`` is the in-memory path's (:class:`~.resident.ResidentPasses`): the
+        tasks write every term."""
         n_blocks = self.layout.n_blocks
         paths = {name: self.store.prepare_term_store(k, name,
                                                      term_store_attrs(self.layout, k, metadata))
@@ -98,6 +100,9 @@ class PassRunner:
 
     def close(self) -> None:
         """Nothing held between passes (the runner's caches are let go by the caller)."""
+
+    def forget_unwritten(self, before: int) -> None:
+        """Nothing unwritten: every term's tasks write it."""
 
     def exhausted_before(self, series: SeriesMethod, p: Pass, held: int) -> str | None:
         """:func:`exhausted_before` on this run's store."""

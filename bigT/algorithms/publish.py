@@ -1,7 +1,8 @@
 """Publishing a finished term in the inverse store, and letting go of the one before.
 
 A term is published only once complete: its stores are written under ``tKKKK`` by the
-tasks of its passes and its residual estimated; then :meth:`InverseStore.publish`
+tasks of its passes (in memory, by :class:`~.resident.ResidentPasses`, possibly after
+later terms were computed) and its residual estimated; then :meth:`InverseStore.publish`
 records the term in X's metadata, flips the root's redirect to it and writes the root
 record, in that order. Only then is the previous term deleted (in the background). A
 crash leaves the previous term readable; the order of these writes is what the crash
@@ -48,13 +49,19 @@ def term_record(k: int, stats: list[BlockStats], X, residual: TermResidual,
         tasks=tuple(tasks))
 
 
-def publish_term(store: InverseStore, record: SeriesRecord, X, term: TermRecord,
-                 metadata: dict) -> SeriesRecord:
-    """Publish ``term`` (its X the store ``X``) after ``record``'s terms: X's metadata
-    (the series' ``metadata`` and the term's), the redirect, the root record. Returns
-    the record now stored."""
+def with_term(record: SeriesRecord, term: TermRecord) -> SeriesRecord:
+    """``record`` holding ``term`` after its terms, not yet published (its ``dir``, the
+    term readers see, unchanged)."""
+    return record.replace(term=term.term, history=record.history + (term,))
+
+
+def publish_held(store: InverseStore, record: SeriesRecord, X, metadata: dict) -> SeriesRecord:
+    """Publish the term ``record`` holds (the last of its history; its X the store
+    ``X``): X's metadata (the series' ``metadata`` and the term's), the redirect, the
+    root record. Returns the record now stored."""
+    term = record.history[-1]
     k = term.term
-    published = record.replace(term=k, dir=k, history=record.history + (term,))
+    published = record.replace(dir=k)
     meta = {**metadata, "term": k, "dir": k, "residual": term.residual,
             "residual_abs": term.residual_abs, "record": term.to_dict()}
     store.publish(published.to_stored(), X, meta)

@@ -13,10 +13,14 @@ all rows at once, and the sums the tasks' :func:`bigT.kernels.add_diag_scaled` a
 term's X equals the out-of-core path's (its pruning decisions are the same; only the
 order of the residual estimate's sums may differ).
 
-What stays the same: every term is written into the versioned inverse store (each of
-its pass's output stores, a tile row at a time through
+What stays the same: every term published is written into the versioned inverse store
+(each of its pass's output stores, a tile row at a time through
 :func:`bigT.storage.write_tile_row`, then finalized) and published by the engine with
-the same record, so a run may stop anywhere and resume on either path. The path is
+the same record, so a run may stop anywhere and resume on either path. What the engine
+does not publish (a term it goes past within ``PUBLISH_INTERVAL_SECONDS`` of the last
+one published, :mod:`.engine`) is computed the same and never written; its outputs are
+kept until the term after it is accepted, or written when the engine asks
+(:meth:`ResidentPasses.write_term`). The path is
 chosen by :func:`choose_path` (``stratified_inverse(..., in_memory=None)``) and
 recorded per term (``engine_path`` of the history, docs/FORMAT.md); before each term
 the engine asks :meth:`ResidentPasses.fits` and goes on out of core when the next
@@ -142,7 +146,10 @@ class ResidentMatVecs:
         return bool(self.matrices.M.data.max(initial=0.0) <= 0.0)
 
     def apply_X(self, X, V: np.ndarray) -> np.ndarray:
-        """X V, shape (n, p), for the term store ``X`` (held, else read)."""
+        """X V, shape (n, p), for the term store ``X`` (held, else read), or for X held
+        (a csr_array: a term not written yet)."""
+        if sp.issparse(X):
+            return self._product(X, V)
         held = {str(self.matrices.store.term_path(k, name)): A
                 for (name, k), A in self.matrices.held.items() if name == "X"}
         A = held.get(str(X.path))
@@ -216,6 +223,8 @@ class ResidentPasses:
         self._f = self.layout.fb.f.astype(matrices.dtype)
         self._pool: ThreadPoolExecutor | None = None  # made for the first term ahead
         self._next: tuple[str, int, Future] | None = None
+        # the outputs of the passes of terms computed and not written, by term
+        self._unwritten: dict[int, list[tuple[Pass, dict]]] = {}
         # the writes' threads, started once per run (a pool per pass costs ~3 ms a thread)
         self._writers = ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write")
 
@@ -256,11 +265,11 @@ class ResidentPasses:
 
     # --- a pass -----------------------------------------------------------------------
 
-    def run(self, p: Pass, k: int, metadata: dict) -> list[BlockStats]:
+    def run(self, p: Pass, k: int, metadata: dict, write: bool = True) -> list[BlockStats]:
         """Compute pass ``p`` of term ``k`` in memory, write its outputs into the term's
-        stores (:meth:`_write`) and keep them; returns one BlockStats per row block (as
-        the out-of-core tasks report, so the engine's probes and records read them the
-        same way)."""
+        stores (:meth:`_write`; without ``write``, later by :meth:`write_term`, or
+        never) and keep them; returns one BlockStats per row block (as the out-of-core
+        tasks report, so the engine's probes and records read them the same way)."""
         t0 = time.perf_counter()
         ahead, self._next = self._next, None
         if ahead is not None and ahead[:2] == (p.op, k):
@@ -273,10 +282,26 @@ class ResidentPasses:
         for name in p.outputs:
             self.matrices.keep(name, k, result.outputs[name])
         self._ahead(p, k)
-        self._write(k, p, result.outputs, metadata)
+        if write:
+            self._write(k, p, result.outputs, metadata)
+        else:
+            self._unwritten.setdefault(k, []).append((p, result.outputs))
         stats = self._stats(p, result, tally, time.perf_counter() - t0)
         self.totals = self.totals.plus(time.perf_counter() - t0, stats, 1)
         return stats
+
+    def write_term(self, k: int, metadata: dict):
+        """Write the outputs of term ``k``'s passes that :meth:`run` left unwritten
+        into the term's stores; returns its X store, finalized."""
+        for p, outputs in self._unwritten.pop(k, []):
+            self._write(k, p, outputs, metadata)
+        return self.finalized.pop((k, "X"))
+
+    def forget_unwritten(self, before: int) -> None:
+        """Let go of the unwritten outputs of the terms before ``before`` (a later term
+        was accepted: they are never published)."""
+        for k in [k for k in self._unwritten if k < before]:
+            del self._unwritten[k]
 
     def _inputs(self, p: Pass) -> dict:
         return {alias: self._input(alias, name, term, p) for alias, name, term in p.inputs}

@@ -112,6 +112,11 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         a string returned stops the run there, as its ``stopped`` reason. One run
         with it costs less than a run per term (one set-up, one spectral radius
         read): :func:`bigT.algorithms.target.invert_to_target` measures each term so.
+        A callable with an attribute ``reads_term``, a callable taking a term's index,
+        says before each term whether it reads that term from ``out``; for a term it
+        does not read, a run in memory calls it with the term's record unpublished
+        (the store holding an earlier term), as a run without ``on_term`` goes past
+        a term.
     colour_path : {"auto", "general", "global"}
         For a colour T (channels 3; a grey T ignores it): ``"global"`` inverts three
         grey transports between two 3x3 un-mixings when the rig's colour mixing is one
@@ -131,9 +136,11 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         the available memory), else out of core; a run in memory goes on out of core
         before a term predicted not to fit. True: in memory whatever the estimate
         (refused with a cluster scheduler); False: out of core. Either way every term
-        is written into ``out`` and published the same way, so a run on one path
-        resumes on the other; the report's ``engine_path`` and each term's record say
-        which ran.
+        published is written into ``out`` the same way, so a run on one path resumes
+        on the other; in memory, a term the run goes past is published only when
+        ``on_term`` is given or 5 s passed since the last one published
+        (:mod:`bigT.algorithms.engine`), its record kept all the same. The report's
+        ``engine_path`` and each term's record say which path ran.
 
     Returns
     -------

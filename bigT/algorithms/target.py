@@ -446,11 +446,21 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
                                      _power(products, powers, held, cache=not during_run),
                                      held, time.perf_counter() - t0))
 
+    worth: dict[int, bool] = {}  # by term: asked before the term, then after it
+
+    def reads_term(k: int) -> bool:
+        if k not in worth:
+            worth[k] = _worth_measuring(method, k, products, powers, D, target)
+        return worth[k]
+
     def on_term(record) -> str | None:
-        if not _worth_measuring(method, record.term, products, powers, D, target):
+        if not reads_term(record.term):
             return None
         measure(record.term)
         return _verdict(measured[-1], target)[0] or None
+
+    # the engine writes only the terms measured (in memory; out of core, every term)
+    on_term.reads_term = reads_term
 
     # term 0 (F^-1, nothing pruned) is never handed over (its error ||M d|| / ||d|| is
     # known); it is measured only as the held term of a cap of 0

@@ -9,9 +9,9 @@ import pytest
 from inverse_helpers import dense, dense_stratified, random_dominant
 
 import bigT
-from bigT.algorithms import resident
+from bigT.algorithms import engine, resident
 from bigT.algorithms.engine_path import ENVIRONMENT
-from bigT.errors import BigTError
+from bigT.errors import BigTError, DivergenceError
 
 METHOD_OPTIONS = {
     "power": dict(prune=1e-6, prune_feed=1e-4, prune_operator=1e-4),
@@ -94,6 +94,7 @@ def test_interrupted_in_memory_resumes_on_either_path(tmp_path, make_store, monk
     T = make_store(A, tile_size=16)
     options = dict(prune=1e-6, progress=False)
     bigT.stratified_inverse(T, tmp_path / "ref.zarr", terms=4, in_memory=False, **options)
+    monkeypatch.setattr(engine, "PUBLISH_INTERVAL_SECONDS", 0.0)  # every term published
     # the stores the in-memory run writes take T's tile size (16 here): 6 tile rows
     out = tmp_path / "X.zarr"
     writes = {"n": 0}
@@ -115,6 +116,105 @@ def test_interrupted_in_memory_resumes_on_either_path(tmp_path, make_store, monk
     rep = bigT.stratified_inverse(T, out, terms=4, in_memory=resume_in_memory, **options)
     assert rep.resumed_from == 2 and rep.terms == 4
     np.testing.assert_allclose(dense(out), dense(tmp_path / "ref.zarr"), rtol=1e-6, atol=1e-9)
+
+
+def written_terms(monkeypatch) -> list[str]:
+    """The term directories (``tKKKK``) of each tile row the in-memory path writes from
+    now on, in order."""
+    written = []
+    real_write = resident._write_row
+
+    def recording_write(attrs, path, block, A):
+        written.append(path.parent.name)
+        return real_write(attrs, path, block, A)
+
+    monkeypatch.setattr(resident, "_write_row", recording_write)
+    return written
+
+
+def test_terms_gone_past_are_not_written(tmp_path, make_store, monkeypatch):
+    A = random_dominant(96, seed=7, density=0.2)
+    T = make_store(A, tile_size=16)
+    options = dict(terms=4, prune=1e-6, progress=False)
+    ref = bigT.stratified_inverse(T, tmp_path / "ref.zarr", in_memory=False, **options)
+    written = written_terms(monkeypatch)
+    rep = bigT.stratified_inverse(T, tmp_path / "X.zarr", in_memory=True, **options)
+    assert written == ["t0004"] * 12  # X and P, 6 tile rows each: the last term only
+    # every term computed keeps its record, as out of core
+    assert [(h.term, h.nnz_P, h.nnz_X) for h in rep.history] == [
+        (h.term, h.nnz_P, h.nnz_X) for h in ref.history]
+    assert [h.residual for h in rep.history] == pytest.approx(
+        [h.residual for h in ref.history], rel=1e-4)
+    stored = bigT.storage.InverseStore(tmp_path / "X.zarr").read_record()
+    assert [h.term for h in stored.history] == [0, 1, 2, 3, 4]
+    np.testing.assert_allclose(dense(tmp_path / "X.zarr"), dense(tmp_path / "ref.zarr"),
+                               rtol=1e-6, atol=1e-9)
+    # a caller reading each term gets each term published
+    written.clear()
+    seen = []
+    bigT.stratified_inverse(T, tmp_path / "Y.zarr", in_memory=True,
+                            on_term=lambda record: seen.append(
+                                bigT.open(tmp_path / "Y.zarr").metadata["inverse"]["term"]),
+                            **options)
+    assert seen == [1, 2, 3, 4] and sorted(set(written)) == [
+        "t0000", "t0001", "t0002", "t0003", "t0004"]
+
+
+def test_a_term_is_published_once_the_interval_has_passed(tmp_path, make_store, monkeypatch):
+    T = make_store(random_dominant(96, seed=9, density=0.2), tile_size=16)
+    clock = {"now": 0.0}
+    monkeypatch.setattr(engine.time, "perf_counter", lambda: clock["now"])
+    real_finish = engine.InverseEngine._finish_term
+
+    def finish_a_second_later(self, k, *args, **kwargs):
+        clock["now"] += 2.0  # each term takes 2 s
+        return real_finish(self, k, *args, **kwargs)
+
+    monkeypatch.setattr(engine.InverseEngine, "_finish_term", finish_a_second_later)
+    written = written_terms(monkeypatch)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=6, prune=1e-6, in_memory=True,
+                            progress=False)
+    # 5 s (the interval) passed before term 3 (at 6 s) and again before term 6 (at 12
+    # s): terms 2 and 5 published then; term 6 is the last
+    assert sorted(set(written)) == ["t0002", "t0005", "t0006"]
+
+
+def test_crash_before_the_last_term_is_written_resumes(tmp_path, make_store, monkeypatch):
+    A = random_dominant(96, seed=5, density=0.2)
+    T = make_store(A, tile_size=16)
+    options = dict(terms=4, prune=1e-6, progress=False)
+    bigT.stratified_inverse(T, tmp_path / "ref.zarr", in_memory=False, **options)
+    out = tmp_path / "X.zarr"
+
+    def crash(*args):
+        raise Crash("injected")
+
+    monkeypatch.setattr(resident, "_write_row", crash)
+    with pytest.raises(Crash):
+        bigT.stratified_inverse(T, out, in_memory=True, **options)
+    monkeypatch.undo()
+    rep = bigT.stratified_inverse(T, out, in_memory=True, **options)
+    assert rep.terms == 4 and [h.term for h in rep.history] == [0, 1, 2, 3, 4]
+    np.testing.assert_allclose(dense(out), dense(tmp_path / "ref.zarr"), rtol=1e-6, atol=1e-9)
+
+
+def test_refused_term_leaves_the_term_before_published(tmp_path, make_store, monkeypatch):
+    A = random_dominant(96, seed=5, density=0.2)
+    T = make_store(A, tile_size=16)
+    real_refuse = engine.refuse_growing_residual
+
+    def refuse_term_3(record, k, residual, force, store_path):
+        if k == 3:
+            raise DivergenceError("grew (injected)", store_path)
+        return real_refuse(record, k, residual, force, store_path)
+
+    monkeypatch.setattr(engine, "refuse_growing_residual", refuse_term_3)
+    with pytest.raises(DivergenceError):
+        bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=4, prune=1e-6, in_memory=True,
+                                progress=False)
+    held = bigT.open(tmp_path / "X.zarr")
+    assert held.metadata["inverse"]["term"] == 2
+    np.testing.assert_allclose(held.to_scipy().toarray(), dense_stratified(A, 2), atol=1e-5)
 
 
 def test_goes_out_of_core_when_the_next_term_does_not_fit(tmp_path, make_store, monkeypatch):

@@ -138,3 +138,32 @@ def test_cli_target_error_summary_json_and_bad_values(scenes, tmp_path, capsys):
         lines = [line for line in err.splitlines() if line.strip()]
         assert message in err and len(lines) == 1, err
         assert not (tmp_path / "Y.zarr").exists()
+
+
+def test_in_memory_search_writes_only_the_terms_it_measures(scenes, tmp_path, monkeypatch):
+    from bigT.algorithms import resident
+    from bigT.algorithms.engine_path import ENVIRONMENT
+
+    T = scenes[0.5].T  # the power form: terms the search goes past
+    monkeypatch.setenv(ENVIRONMENT, "0")
+    ooc = invert_to_target(T, tmp_path / "ooc.zarr", TARGET)
+    written, real_write = set(), resident._write_row
+
+    def recording_write(attrs, path, block, A):
+        written.add(int(path.parent.name[1:]))
+        return real_write(attrs, path, block, A)
+
+    monkeypatch.setattr(resident, "_write_row", recording_write)
+    monkeypatch.setenv(ENVIRONMENT, "1")
+    mem = invert_to_target(T, tmp_path / "mem.zarr", TARGET)
+    # the same search, measured terms and inverse
+    assert (mem.method, mem.prune, mem.terms) == (ooc.method, ooc.prune, ooc.terms)
+    assert [[m.term for m in a.terms] for a in mem.attempts] == [
+        [m.term for m in a.terms] for a in ooc.attempts]
+    assert mem.error == pytest.approx(ooc.error, rel=1e-4)
+    np.testing.assert_allclose(bigT.open(tmp_path / "mem.zarr").to_scipy().toarray(),
+                               bigT.open(tmp_path / "ooc.zarr").to_scipy().toarray(),
+                               rtol=1e-5, atol=1e-9)
+    measured = {m.term for a in mem.attempts for m in a.terms}
+    # term 0 is never handed over: the engine asks whether it is read, like any term
+    assert written - {0} == measured and len(written - {0}) < mem.terms
