@@ -24,7 +24,7 @@ from inverse_helpers import random_dominant  # noqa: E402
 
 CHILD = Path(__file__).with_name("crash_child.py")
 #: Every SAMPLE-th kind of crash point by default; all kinds with -m slow.
-SAMPLE = 8
+SAMPLE = 22
 
 
 def _run(k: int, argv: list[str], tmp: Path) -> tuple[int, list[str]]:
