@@ -93,7 +93,7 @@ class InverseEngine:
                                             first_bounce, memory_limit, in_memory)
         self.path: PathChoice = self.layout.path
         if self.path.in_memory:
-            matrices = ResidentMatrices(self.layout, store)
+            matrices = ResidentMatrices(self.layout, store, runner.threads)
             self.matvecs = ResidentMatVecs(matrices, runner.threads)
         else:
             self.matvecs = MatVecs(runner, self.layout)

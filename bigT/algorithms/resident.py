@@ -37,6 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
+from ..kernels.row_ranges import map_row_ranges, tile_pairs
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -61,6 +62,8 @@ class ResidentMatrices:
     layout : RunLayout
     store : InverseStore
         Where a term not held (a resumed store's) is read from.
+    threads : int
+        Threads of the element-wise kernels (:meth:`prune`).
 
     Attributes
     ----------
@@ -68,8 +71,8 @@ class ResidentMatrices:
         D - T F^-1 in T's dtype, as the tasks make it (:func:`bigT.schedule.blocks.m_rows`).
     """
 
-    def __init__(self, layout, store: InverseStore):
-        self.layout, self.store = layout, store
+    def __init__(self, layout, store: InverseStore, threads: int = 1):
+        self.layout, self.store, self.threads = layout, store, max(1, int(threads))
         lay = layout
         self.dtype = np.dtype(lay.T.dtype)
         T_rows = sp.csr_array(lay.T.get_rows(0, lay.n))
@@ -90,8 +93,13 @@ class ResidentMatrices:
         if threshold is None:
             return self.M
         if self._operator is None or self._operator[0] != threshold:
-            self._operator = (threshold, prune(self.M, threshold=threshold))
+            self._operator = (threshold, self.prune(self.M, threshold))
         return self._operator[1]
+
+    def prune(self, A: sp.csr_array, threshold: float) -> sp.csr_array:
+        """:func:`bigT.kernels.prune` of A, shape (n, n), on the threads' row ranges."""
+        return map_row_ranges(lambda rows: prune(rows, threshold=threshold), [A],
+                              self.threads)
 
     def term(self, name: str, k: int) -> sp.csr_array:
         """Store ``name`` of term ``k``, held, or read whole from the store (a resumed
@@ -375,14 +383,14 @@ class ResidentPasses:
             left, right = mats.M_pruned(th.operator), inputs["P"]
             Q = self._product(left, right, th.prune, tally)
         else:
-            Q = prune(mats.M, threshold=th.prune)
+            Q = mats.prune(mats.M, th.prune)
         feed = th.prune if th.feed is None else th.feed
-        P = prune(Q, threshold=feed) if feed > th.prune and Q.nnz else Q
+        P = mats.prune(Q, feed) if feed > th.prune and Q.nnz else Q
         X_prev = inputs["X"]
         if not Q.nnz:
             X = X_prev
         elif self._inverse.b == 1:
-            X = blocks.add_scaled(X_prev, self.layout.fb.finv, Q)
+            X = blocks.add_scaled(X_prev, self.layout.fb.finv, Q, self.threads)
         else:
             X = sp.csr_array(X_prev + self._inverse.scale_rows(Q, 0, mats.dtype))
             X.eliminate_zeros()
@@ -443,8 +451,8 @@ class ResidentPasses:
         lay = self.layout
         first = result.outputs.get("P", result.outputs.get("R", result.outputs.get("_new")))
         X = result.outputs.get("X")
-        computed, skipped = _tile_pairs(result.left, result.right, lay.tile_size,
-                                        lay.n_blocks)
+        computed, skipped = _tile_pairs(result.left, result.right, lay.n_blocks,
+                                        lay.tile_size)
         stats = []
         for b in row_blocks(lay.n, lay.tile_size):
             y = None if result.y is None or not p.probed else result.y[b.start:b.stop]
@@ -468,19 +476,12 @@ def _rows_nnz(A: sp.csr_array | None, block) -> int:
     return int(A.indptr[block.stop] - A.indptr[block.start])
 
 
-def _tile_pairs(left: sp.csr_array | None, right: sp.csr_array | None, ts: int,
-                n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per row block of ``left``: the tile rows of ``right`` its product reads (a left
-    tile holding entries over a nonempty right tile row) and the pairs skipped (the
-    right tile row empty), shapes (n_blocks,) (what :func:`needed_rows` counts per
-    task)."""
+def _tile_pairs(left: sp.csr_array | None, right: sp.csr_array | None, n_blocks: int,
+                tile_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row block of ``left``: the tile rows of ``right`` its product reads and the
+    pairs skipped (:func:`bigT.kernels.row_ranges.tile_pairs`, what
+    :func:`needed_rows` counts per task), shapes (n_blocks,); zeros without a
+    product."""
     if left is None or right is None or not left.nnz:
         return np.zeros(n_blocks, np.int64), np.zeros(n_blocks, np.int64)
-    grid = -(-right.shape[0] // ts)
-    counts = np.diff(left.indptr)
-    row_block = np.repeat(np.arange(left.shape[0]) // ts, counts)
-    pair = row_block * grid + np.asarray(left.indices[:left.indptr[-1]]) // ts
-    hit = np.bincount(pair, minlength=n_blocks * grid).reshape(n_blocks, grid) > 0
-    nonempty = np.add.reduceat(np.diff(right.indptr), np.arange(0, right.shape[0], ts)) > 0
-    computed = (hit & nonempty).sum(axis=1)
-    return computed, hit.sum(axis=1) - computed
+    return tile_pairs(left, right, tile_size, n_blocks)

@@ -196,7 +196,10 @@ def _empty_like_csr(indptr, indices, data):
 def prune_internal(indptr, indices, data, threshold):
     """Drop |v| < threshold and exact zeros.
 
-    Returns ``(indptr, indices, data)`` of the result, new arrays of the input dtypes.
+    Returns ``(indptr, indices, data)`` of the result, new arrays of the input dtypes;
+    ``indices`` and ``data`` are the buffers written, as long as the input's: their
+    first ``indptr[-1]`` entries hold the result (the wrapper copies them out only
+    when most of the buffer went unused, see ``csr._used``).
     """
     n_rows = indptr.shape[0] - 1
     out_p, out_j, out_v = _empty_like_csr(indptr, indices, data)
@@ -209,7 +212,7 @@ def prune_internal(indptr, indices, data, threshold):
                 out_v[pos] = v
                 pos += 1
         out_p[i + 1] = pos
-    return out_p, out_j[:pos].copy(), out_v[:pos].copy()
+    return out_p, out_j, out_v
 
 
 @njit(nogil=True, cache=True)
@@ -301,7 +304,8 @@ def add_diag_scaled_internal(
 
     Returns
     -------
-    indptr, indices, data of C
+    indptr, indices, data of C; ``indices`` and ``data`` are the buffers written (as
+    ``prune_internal``'s), their first ``indptr[-1]`` entries C's
     """
     n_rows = a_indptr.shape[0] - 1
     cap = a_indices.shape[0] + b_indices.shape[0]
@@ -346,7 +350,7 @@ def add_diag_scaled_internal(
             if out_v[pos] != 0:
                 pos += 1
         out_p[i + 1] = pos
-    return out_p, out_j[:pos].copy(), out_v[:pos].copy()
+    return out_p, out_j, out_v
 
 
 @njit(nogil=True, cache=True)

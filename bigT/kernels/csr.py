@@ -131,6 +131,10 @@ def row_work(a_indptr, a_indices, b_indptr) -> np.ndarray:
     -------
     (n_rows,) int64
     """
+    if not _small_enough(len(a_indices)):
+        from ._row_kernels import row_work_internal  # numba: as _numba()
+
+        return row_work_internal(a_indptr, a_indices, b_indptr)
     b_len = np.diff(b_indptr).astype(np.int64)
     cum = np.zeros(len(a_indices) + 1, np.int64)
     np.cumsum(b_len[a_indices], out=cum[1:])
@@ -265,6 +269,18 @@ def _as_csr(A, name, *, dtype=None, index_dtype=None, canonical=True, check=True
         indices = np.ascontiguousarray(C.indices, dtype=idt)
         data = np.ascontiguousarray(C.data, dtype=fdt)
     return _CSR((n_rows, n_cols), indptr, indices, data)
+
+
+def _used(indptr, indices, data):
+    """A kernel's result whose ``indices`` and ``data`` are its whole output buffers:
+    their first ``indptr[-1]`` entries, copied out only when the buffers are much
+    longer (a view keeps the whole buffer alive; a copy of a result that filled most of
+    it would cost a pass over every entry for little memory)."""
+    used = int(indptr[-1])
+    indices, data = indices[:used], data[:used]
+    if indices.base is not None and indices.base.shape[0] > 1.25 * used + 1024:
+        indices, data = indices.copy(), data.copy()
+    return indptr, indices, data
 
 
 def _vector(d, n, name, what):
@@ -590,10 +606,10 @@ def add_diag_scaled(A, d, B):
     if _small_enough(a.nnz + b.nnz):
         indptr, indices, data = _small.add_diag_scaled(a, d, b, fdt)
     else:
-        indptr, indices, data = _numba().add_diag_scaled_internal(
+        indptr, indices, data = _used(*_numba().add_diag_scaled_internal(
             a.indptr, a.indices, a.data, np.ascontiguousarray(d, np.float64),
             b.indptr, b.indices, b.data, np.zeros(0, fdt),
-        )
+        ))
     return _csr_result(a.shape, indptr, indices, data)
 
 
@@ -682,7 +698,8 @@ def prune(A, threshold=0.0, top_k=None):
             indptr, indices, data = _small.top_k(indptr, indices, data, top_k)
     else:
         K = _numba()
-        indptr, indices, data = K.prune_internal(a.indptr, a.indices, a.data, threshold)
+        indptr, indices, data = _used(*K.prune_internal(a.indptr, a.indices, a.data,
+                                                        threshold))
         if top_k >= 0:
             indptr, indices, data = K.top_k_internal(indptr, indices, data, top_k)
     return _csr_result(a.shape, indptr, indices, data)

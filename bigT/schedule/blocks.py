@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._backend import (BlockDiagonal, add_diag_scaled, prune, scale_cols_off_diagonal,
-                       spgemm)
+from ._backend import (BlockDiagonal, add_diag_scaled, map_row_ranges, multiply_adds,
+                       prune, scale_cols_off_diagonal, spgemm)
 
 
 @dataclass
@@ -49,10 +49,9 @@ class KernelTally:
                      checked=not _trusted(right))
         # None: the kernel's default, one thread per core
         self.seconds += (time.perf_counter() - t0) * (n_threads or os.cpu_count() or 1)
-        # sum over left's entries (i, k) of len(right row k): a gather and a sum (the
-        # kernel's own per-row count, row_work, also takes a cumsum: 8 % of a task)
-        row_len = np.diff(right.indptr)
-        self.multiply_adds += int(row_len[left.indices[:left.indptr[-1]]].sum(dtype=np.int64))
+        # sum over left's entries (i, k) of len(right row k): one pass over left's
+        # indices (as the kernel's own per-row count, row_work)
+        self.multiply_adds += multiply_adds(left, right)
         return out
 
 
@@ -272,6 +271,10 @@ def row_product_batched(left_row: sp.csr_array, batches, threshold: float,
     return out
 
 
-def add_scaled(A: sp.csr_array, d: np.ndarray, B: sp.csr_array) -> sp.csr_array:
-    """A + diag(d) @ B (rows of a term added to rows of the sum)."""
-    return add_diag_scaled(A, np.asarray(d, dtype=A.dtype), B)
+def add_scaled(A: sp.csr_array, d: np.ndarray, B: sp.csr_array,
+               n_threads: int = 1) -> sp.csr_array:
+    """A + diag(d) @ B (rows of a term added to rows of the sum), shapes (r, n) and
+    d (r,); on ``n_threads`` row ranges at once (the whole matrices of the in-memory
+    path; a task's tile row runs on its one thread)."""
+    return map_row_ranges(lambda A_rows, B_rows, d_rows: add_diag_scaled(A_rows, d_rows, B_rows),
+                          [A, B], n_threads, rows=[np.asarray(d, dtype=A.dtype)])

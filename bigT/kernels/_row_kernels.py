@@ -1,0 +1,54 @@
+"""Unchecked numba kernels that count over a CSR matrix's rows or cut them into row
+ranges (the wrappers are in :mod:`bigT.kernels.row_ranges` and :mod:`bigT.kernels.csr`).
+
+Each is one pass over ``indices`` without a temporary as long as it: the numpy forms
+they replace (a gather, a cumsum, a repeat and a bincount over every entry) allocate one
+or two arrays of nnz int64 each, which at 3*10^7 entries cost more than the pass.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(nogil=True, cache=True)
+def row_work_internal(a_indptr, a_indices, b_indptr):
+    """Per row i of A: sum over its entries (i, k) of len(row k of B), shape (n_rows,)
+    int64 (the multiply-adds of row i of A @ B)."""
+    n_rows = a_indptr.shape[0] - 1
+    out = np.empty(n_rows, np.int64)
+    for i in range(n_rows):
+        s = 0
+        for p in range(a_indptr[i], a_indptr[i + 1]):
+            k = a_indices[p]
+            s += b_indptr[k + 1] - b_indptr[k]
+        out[i] = s
+    return out
+
+
+@njit(nogil=True, cache=True)
+def tile_pairs_internal(indptr, indices, tile_size, n_blocks, nonempty):
+    """Per row block of ``tile_size`` rows: how many distinct column tiles its entries
+    fall in whose ``nonempty[tile]`` is set (``computed``) and not set (``skipped``),
+    each shape (n_blocks,) int64. Rows need not be sorted."""
+    n_rows = indptr.shape[0] - 1
+    computed = np.zeros(n_blocks, np.int64)
+    skipped = np.zeros(n_blocks, np.int64)
+    seen = np.full(nonempty.shape[0], -1, np.int64)  # the block that last counted it
+    for b in range(n_blocks):
+        lo, hi = -1, -1  # the columns of the tile last counted: most entries fall in it
+        for i in range(b * tile_size, min(n_rows, (b + 1) * tile_size)):
+            for p in range(indptr[i], indptr[i + 1]):
+                j = indices[p]
+                if lo <= j < hi:
+                    continue
+                t = j // tile_size
+                lo, hi = t * tile_size, (t + 1) * tile_size
+                if seen[t] != b:
+                    seen[t] = b
+                    if nonempty[t]:
+                        computed[b] += 1
+                    else:
+                        skipped[b] += 1
+    return computed, skipped

@@ -1,0 +1,139 @@
+"""Whole-matrix helpers of the in-memory series: counts over a product's factors, and
+an element-wise kernel run over row ranges on several threads.
+
+The CSR wrappers of :mod:`bigT.kernels.csr` (``add_diag_scaled``, ``prune``) run on one
+thread: the out-of-core path calls them per tile row from dask's threads, which already
+keep the cores busy. In memory the same wrappers see the whole matrix (3*10^7 entries
+at 384x512) once per term; :func:`map_row_ranges` cuts it into row ranges of equal
+entries, runs the wrapper on each range's rows (views, no copy) on the shared thread
+pool, and joins the results. Every kernel it serves decides each row from that row
+alone, so the result is the one-thread result, bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from .csr import _small_enough, row_work
+from .threads import run_on_threads
+
+
+def multiply_adds(left: sp.csr_array, right: sp.csr_array) -> int:
+    """Multiply-adds of ``left @ right``: the sum over left's entries (i, k) of the
+    length of right's row k (one pass, no temporary of nnz(left))."""
+    return int(row_work(left.indptr, left.indices[:left.indptr[-1]], right.indptr).sum())
+
+
+def tile_pairs(left: sp.csr_array, right: sp.csr_array, tile_size: int,
+               n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row block of ``tile_size`` rows of ``left``: the tile rows of ``right`` its
+    product reads (a column tile of the block holding entries, over a nonempty tile
+    row of ``right``) and those skipped (that tile row empty).
+
+    Parameters
+    ----------
+    left : csr_array, shape (m, n), m <= n_blocks * tile_size
+    right : csr_array, shape (n, p)
+
+    Returns
+    -------
+    computed, skipped : (n_blocks,) int64
+    """
+    starts = np.arange(0, right.shape[0], tile_size)
+    nonempty = np.add.reduceat(np.diff(right.indptr), starts) > 0 if len(starts) else \
+        np.zeros(0, bool)
+    if _small_enough(left.nnz):
+        return _tile_pairs_numpy(left, nonempty, tile_size, n_blocks)
+    from ._row_kernels import tile_pairs_internal  # numba: only for a big left factor
+
+    return tile_pairs_internal(left.indptr, left.indices, np.int64(tile_size),
+                               np.int64(n_blocks), nonempty)
+
+
+def _tile_pairs_numpy(left, nonempty, ts, n_blocks):
+    grid = len(nonempty)
+    counts = np.diff(left.indptr)
+    row_block = np.repeat(np.arange(left.shape[0]) // ts, counts)
+    pair = row_block * grid + np.asarray(left.indices[:left.indptr[-1]]) // ts
+    hit = np.bincount(pair, minlength=n_blocks * grid).reshape(n_blocks, grid) > 0
+    computed = (hit & nonempty).sum(axis=1)
+    return computed, hit.sum(axis=1) - computed
+
+
+def row_bounds(indptr: np.ndarray, n_parts: int) -> np.ndarray:
+    """Row boundaries cutting the rows of ``indptr`` (shape (m + 1,)) into at most
+    ``n_parts`` ranges of about equal entries, shape (k + 1,) int64, from 0 to m."""
+    n_rows = len(indptr) - 1
+    targets = indptr[-1] * np.arange(1, n_parts) / n_parts
+    cuts = np.searchsorted(indptr, targets, side="left")
+    return np.unique(np.concatenate(([0], np.clip(cuts, 0, n_rows), [n_rows]))).astype(
+        np.int64)
+
+
+def row_view(A: sp.csr_array, r0: int, r1: int) -> sp.csr_array:
+    """Rows ``r0:r1`` of A sharing A's indices and values (scipy's slice copies them)."""
+    start, stop = int(A.indptr[r0]), int(A.indptr[r1])
+    view = sp.csr_array((A.data[start:stop], A.indices[start:stop],
+                         A.indptr[r0:r1 + 1] - A.indptr[r0]), shape=(r1 - r0, A.shape[1]),
+                        copy=False)
+    view.has_sorted_indices = A.has_sorted_indices
+    return view
+
+
+def stack_rows(pieces: list[sp.csr_array]) -> sp.csr_array:
+    """Row blocks of one width stacked in order (one copy of their entries), sorted
+    when they all are."""
+    if len(pieces) == 1:
+        return pieces[0]
+    nnz = sum(int(P.indptr[-1]) for P in pieces)
+    n_rows = sum(P.shape[0] for P in pieces)
+    idt = np.result_type(*(P.indices.dtype for P in pieces), *(P.indptr.dtype for P in pieces))
+    if nnz >= np.iinfo(idt).max:
+        idt = np.dtype(np.int64)
+    indptr = np.empty(n_rows + 1, idt)
+    indptr[0] = 0
+    indices = np.empty(nnz, idt)
+    data = np.empty(nnz, np.result_type(*(P.dtype for P in pieces)))
+    row = pos = 0
+    for P in pieces:
+        k, r = int(P.indptr[-1]), P.shape[0]
+        indices[pos:pos + k] = P.indices[:k]
+        data[pos:pos + k] = P.data[:k]
+        indptr[row + 1:row + r + 1] = P.indptr[1:] + pos
+        row, pos = row + r, pos + k
+    out = sp.csr_array((data, indices, indptr), shape=(n_rows, pieces[0].shape[1]),
+                       copy=False)
+    out.has_sorted_indices = all(bool(P.has_sorted_indices) for P in pieces)
+    return out
+
+
+def map_row_ranges(func: Callable[..., sp.csr_array], matrices: list[sp.csr_array],
+                   n_threads: int, rows: list[np.ndarray] | None = None) -> sp.csr_array:
+    """``func(*views)`` on row ranges of ``matrices`` (one shape, (m, n)), ``n_threads``
+    ranges at once, the results stacked: ``func(*matrices)`` for a ``func`` that
+    computes each row of its result from the same row of its operands alone.
+
+    Parameters
+    ----------
+    func : callable
+        ``func(A_rows, B_rows, ...)`` -> csr_array of the ranges' rows.
+    matrices : list of csr_array, shape (m, n)
+        The ranges cut their entries evenly (summed over the operands).
+    n_threads : int
+    rows : list of (r,) ndarray, optional
+        Per-row vectors (a row scaling) cut along with the matrices, passed after them.
+    """
+    rows = rows or []
+    if n_threads <= 1:
+        return func(*matrices, *rows)
+    # the ranges cut the operands' entries together
+    bounds = row_bounds(sum(A.indptr.astype(np.int64) for A in matrices), n_threads)
+    ranges = [(int(bounds[t]), int(bounds[t + 1])) for t in range(len(bounds) - 1)]
+    pieces = run_on_threads(
+        lambda r0, r1: func(*(row_view(A, r0, r1) for A in matrices),
+                            *(v[r0:r1] for v in rows)),
+        ranges, n_threads)
+    return stack_rows(pieces)

@@ -1,0 +1,109 @@
+"""bigT.kernels.row_ranges against numpy/scipy references: the counts over a
+product's factors and the element-wise kernels run over row ranges on threads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from bigT.kernels import add_diag_scaled, prune
+from bigT.kernels.csr import row_work
+from bigT.kernels.row_ranges import (map_row_ranges, multiply_adds, row_bounds, row_view,
+                                     stack_rows, tile_pairs)
+
+
+def _random(m, n, density, seed, dtype=np.float64, empty_rows=()):
+    A = sp.random_array((m, n), density=density, format="csr", dtype=dtype,
+                        rng=np.random.default_rng(seed))
+    A.data -= 0.5
+    A = A.tolil()
+    for r in empty_rows:
+        A[r, :] = 0
+    return sp.csr_array(A)
+
+
+def _tile_pairs_dense(left, right, ts, n_blocks):
+    """Reference: every (row block, column tile) pair holding an entry of left, split by
+    whether right's tile row holds any entry."""
+    L = left.toarray() != 0
+    R_rows = np.diff(right.indptr) > 0
+    computed, skipped = np.zeros(n_blocks, int), np.zeros(n_blocks, int)
+    for b in range(n_blocks):
+        for t in range(-(-right.shape[0] // ts)):
+            if L[b * ts:(b + 1) * ts, t * ts:(t + 1) * ts].any():
+                if R_rows[t * ts:(t + 1) * ts].any():
+                    computed[b] += 1
+                else:
+                    skipped[b] += 1
+    return computed, skipped
+
+
+@pytest.mark.parametrize("ts", [1, 7, 16, 100])
+def test_tile_pairs_match_dense_reference(ts):
+    left = _random(90, 90, 0.05, 1)
+    right = _random(90, 90, 0.05, 2, empty_rows=range(14, 40))
+    n_blocks = -(-90 // ts)
+    got = tile_pairs(left, right, ts, n_blocks)
+    want = _tile_pairs_dense(left, right, ts, n_blocks)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_tile_pairs_unsorted_rows():
+    left = _random(40, 40, 0.2, 3)
+    shuffled = left.copy()
+    rng = np.random.default_rng(0)
+    for i in range(40):  # each row's entries in a random order: same pairs
+        s, e = shuffled.indptr[i], shuffled.indptr[i + 1]
+        order = rng.permutation(e - s)
+        shuffled.indices[s:e] = shuffled.indices[s:e][order]
+        shuffled.data[s:e] = shuffled.data[s:e][order]
+    shuffled.has_sorted_indices = False
+    right = _random(40, 40, 0.1, 4, empty_rows=range(0, 10))
+    for a, b in zip(tile_pairs(shuffled, right, 8, 5), _tile_pairs_dense(left, right, 8, 5)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_row_work_and_multiply_adds_match_the_definition():
+    left, right = _random(60, 50, 0.1, 5), _random(50, 70, 0.1, 6)
+    lengths = np.diff(right.indptr)
+    want = np.array([lengths[left.indices[left.indptr[i]:left.indptr[i + 1]]].sum()
+                     for i in range(60)])
+    np.testing.assert_array_equal(row_work(left.indptr, left.indices, right.indptr), want)
+    assert multiply_adds(left, right) == want.sum()
+
+
+def test_row_bounds_cut_entries_evenly():
+    A = _random(1000, 50, 0.1, 7)
+    bounds = row_bounds(A.indptr, 4)
+    assert bounds[0] == 0 and bounds[-1] == 1000 and np.all(np.diff(bounds) > 0)
+    per_range = np.diff(A.indptr[bounds])
+    assert per_range.max() - per_range.min() <= 2 * np.diff(A.indptr).max()
+
+
+def test_row_view_and_stack_rows_give_back_the_matrix():
+    A = _random(50, 30, 0.2, 8, dtype=np.float32)
+    pieces = [row_view(A, a, b) for a, b in [(0, 13), (13, 13), (13, 50)]]
+    assert np.shares_memory(pieces[2].data, A.data)  # a view, not a copy
+    B = stack_rows(pieces)
+    assert B.dtype == np.float32 and B.has_sorted_indices
+    np.testing.assert_array_equal(B.toarray(), A.toarray())
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_map_row_ranges_is_the_one_thread_result(threads):
+    A = _random(400, 400, 0.05, 9, dtype=np.float32, empty_rows=range(100, 150))
+    B = _random(400, 400, 0.05, 10, dtype=np.float32)
+    d = np.random.default_rng(11).standard_normal(400).astype(np.float32)
+    got = map_row_ranges(lambda a, b, d_rows: add_diag_scaled(a, d_rows, b), [A, B],
+                         threads, rows=[d])
+    want = add_diag_scaled(A, d, B)
+    assert got.dtype == want.dtype
+    for name in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    ref = (A + sp.diags_array(d) @ B).toarray()
+    np.testing.assert_allclose(got.toarray(), ref, rtol=1e-6, atol=1e-7)
+    pruned = map_row_ranges(lambda a: prune(a, threshold=0.2), [A], threads)
+    np.testing.assert_array_equal(pruned.toarray(),
+                                  np.where(np.abs(A.toarray()) >= 0.2, A.toarray(), 0))
