@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
-from ..kernels.row_ranges import map_row_ranges, tile_pairs
+from ..kernels.row_ranges import map_row_ranges, stack_rows, tile_pairs
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -73,19 +73,33 @@ class ResidentMatrices:
 
     def __init__(self, layout, store: InverseStore, threads: int = 1):
         self.layout, self.store, self.threads = layout, store, max(1, int(threads))
-        lay = layout
-        self.dtype = np.dtype(lay.T.dtype)
-        T_rows = sp.csr_array(lay.T.get_rows(0, lay.n))
-        self.M = blocks.m_rows(T_rows=T_rows, start=0, finv=lay.fb.finv.astype(self.dtype),
-                               active_rows=lay.fb.active, zero_diagonal=lay.fb.zero_diagonal)
-        del T_rows
-        self.M.has_sorted_indices = True
+        self.dtype = np.dtype(layout.T.dtype)
+        self.M = self._make_M()
         self._operator: tuple[float, sp.csr_array] | None = None
         self.held: dict[tuple[str, int], sp.csr_array] = {}
 
     @property
     def n(self) -> int:
         return self.layout.n
+
+    def _make_M(self) -> sp.csr_array:
+        """M, shape (n, n), sorted: each tile row of T read and made into M's rows as a
+        task makes them (:func:`bigT.schedule.blocks.m_rows`), ``threads`` tile rows
+        at once (a read decodes, checks and joins the row's tiles, mostly in numpy and
+        numba, which let go of the interpreter), then the rows stacked (one copy)."""
+        lay = self.layout
+        finv = lay.fb.finv.astype(self.dtype)
+
+        def m_block(i: int) -> sp.csr_array:  # T's tile row i (its tiling, not X's)
+            start, stop = lay.T.tile_row_range(i)
+            return blocks.m_rows(T_rows=lay.T.get_tile_row(i), start=start, finv=finv,
+                                 active_rows=lay.fb.active[start:stop],
+                                 zero_diagonal=lay.fb.zero_diagonal)
+
+        with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-M") as pool:
+            M = stack_rows(list(pool.map(m_block, range(lay.T.grid[0]))))
+        M.has_sorted_indices = True
+        return M
 
     def M_pruned(self, threshold: float | None) -> sp.csr_array:
         """M with its entries below ``threshold`` left out (the power form's operator
