@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
-from ..kernels.row_ranges import map_row_ranges, stack_rows, tile_pairs
+from ..kernels.row_ranges import prune_rows, stack_rows, tile_pairs
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -112,8 +112,7 @@ class ResidentMatrices:
 
     def prune(self, A: sp.csr_array, threshold: float) -> sp.csr_array:
         """:func:`bigT.kernels.prune` of A, shape (n, n), on the threads' row ranges."""
-        return map_row_ranges(lambda rows: prune(rows, threshold=threshold), [A],
-                              self.threads)
+        return prune_rows(A, threshold, self.threads)
 
     def term(self, name: str, k: int) -> sp.csr_array:
         """Store ``name`` of term ``k``, held, or read whole from the store (a resumed

@@ -52,3 +52,30 @@ def tile_pairs_internal(indptr, indices, tile_size, n_blocks, nonempty):
                     else:
                         skipped[b] += 1
     return computed, skipped
+
+
+@njit(nogil=True, cache=True)
+def kept_per_row_internal(indptr, data, threshold, r0, r1, out):
+    """out[i] = the entries of row i that ``prune_internal`` keeps (|v| >= threshold
+    and v != 0), for rows ``r0:r1``."""
+    for i in range(r0, r1):
+        kept = 0
+        for p in range(indptr[i], indptr[i + 1]):
+            v = data[p]
+            if v != 0 and abs(v) >= threshold:
+                kept += 1
+        out[i] = kept
+
+
+@njit(nogil=True, cache=True)
+def prune_into_internal(indptr, indices, data, threshold, r0, r1, out_p, out_j, out_v):
+    """Rows ``r0:r1`` of ``prune_internal``'s result written at their place in the
+    result's arrays, whose row pointer ``out_p`` is already known."""
+    for i in range(r0, r1):
+        pos = out_p[i]
+        for p in range(indptr[i], indptr[i + 1]):
+            v = data[p]
+            if v != 0 and abs(v) >= threshold:
+                out_j[pos] = indices[p]
+                out_v[pos] = v
+                pos += 1

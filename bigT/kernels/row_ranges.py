@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from .csr import _small_enough, row_work
+from .csr import _small_enough, prune, row_work
 from .threads import run_on_threads
 
 
@@ -130,10 +130,45 @@ def map_row_ranges(func: Callable[..., sp.csr_array], matrices: list[sp.csr_arra
     if n_threads <= 1:
         return func(*matrices, *rows)
     # the ranges cut the operands' entries together
-    bounds = row_bounds(sum(A.indptr.astype(np.int64) for A in matrices), n_threads)
-    ranges = [(int(bounds[t]), int(bounds[t + 1])) for t in range(len(bounds) - 1)]
+    ranges = _ranges(sum(A.indptr.astype(np.int64) for A in matrices), n_threads)
     pieces = run_on_threads(
         lambda r0, r1: func(*(row_view(A, r0, r1) for A in matrices),
                             *(v[r0:r1] for v in rows)),
         ranges, n_threads)
     return stack_rows(pieces)
+
+
+def prune_rows(A: sp.csr_array, threshold: float, n_threads: int) -> sp.csr_array:
+    """:func:`bigT.kernels.prune` of A (no ``top_k``), shape (m, n), on ``n_threads``
+    row ranges at once, written straight into arrays of the result's size: one pass
+    counts each row's kept entries, one writes them (no buffer as long as A, no
+    copy). Trusts A to be valid CSR with finite values (the in-memory path's
+    matrices, made by the kernels from stores whose writers checked them); one not
+    known to be canonical is left to :func:`~bigT.kernels.prune`, which makes it so."""
+    threshold = float(threshold)
+    if n_threads <= 1 or _small_enough(A.nnz) or not A.has_canonical_format:
+        return prune(A, threshold=threshold)
+    from ._row_kernels import kept_per_row_internal, prune_into_internal  # numba
+
+    m = A.shape[0]
+    ranges = _ranges(A.indptr, n_threads)
+    kept = np.zeros(m + 1, np.int64)
+    run_on_threads(lambda r0, r1: kept_per_row_internal(A.indptr, A.data, threshold, r0,
+                                                        r1, kept[1:]), ranges, n_threads)
+    indptr = np.cumsum(kept)
+    nnz = int(indptr[-1])
+    idt = np.int32 if max(nnz, *A.shape) < 2**31 else np.int64
+    indptr = indptr.astype(idt)
+    indices, data = np.empty(nnz, idt), np.empty(nnz, A.data.dtype)
+    run_on_threads(lambda r0, r1: prune_into_internal(A.indptr, A.indices, A.data,
+                                                      threshold, r0, r1, indptr, indices,
+                                                      data), ranges, n_threads)
+    out = sp.csr_array((data, indices, indptr), shape=A.shape, copy=False)
+    out.has_sorted_indices = True
+    out.has_canonical_format = True
+    return out
+
+
+def _ranges(indptr: np.ndarray, n_parts: int) -> list[tuple[int, int]]:
+    bounds = row_bounds(indptr, n_parts)
+    return [(int(bounds[t]), int(bounds[t + 1])) for t in range(len(bounds) - 1)]

@@ -9,8 +9,8 @@ import scipy.sparse as sp
 
 from bigT.kernels import add_diag_scaled, prune
 from bigT.kernels.csr import row_work
-from bigT.kernels.row_ranges import (map_row_ranges, multiply_adds, row_bounds, row_view,
-                                     stack_rows, tile_pairs)
+from bigT.kernels.row_ranges import (map_row_ranges, multiply_adds, prune_rows, row_bounds,
+                                     row_view, stack_rows, tile_pairs)
 
 
 def _random(m, n, density, seed, dtype=np.float64, empty_rows=()):
@@ -107,3 +107,17 @@ def test_map_row_ranges_is_the_one_thread_result(threads):
     pruned = map_row_ranges(lambda a: prune(a, threshold=0.2), [A], threads)
     np.testing.assert_array_equal(pruned.toarray(),
                                   np.where(np.abs(A.toarray()) >= 0.2, A.toarray(), 0))
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_prune_rows_is_prune(threads, dtype):
+    A = _random(300, 200, 0.1, 12, dtype=dtype, empty_rows=range(50, 120))
+    A.data[::7] = 0.0  # explicit zeros: dropped as prune drops them
+    A.has_canonical_format = True
+    got, want = prune_rows(A, 0.25, threads), prune(A, threshold=0.25)
+    assert got.dtype == want.dtype and got.has_canonical_format
+    for name in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    dense = A.toarray()
+    np.testing.assert_array_equal(got.toarray(), np.where(np.abs(dense) >= 0.25, dense, 0))
