@@ -77,7 +77,7 @@ class ProbedResidual:
 
     def estimate(self, X, XZ: np.ndarray | None) -> TermResidual:
         """The residual of the term whose X is the store ``X``; ``XZ`` is X Z when known
-        (else X is read to compute it)."""
+        (else X is read to compute it; with it, ``X`` is not used and may be None)."""
         started = time.perf_counter()
 
         def apply_X(Z: np.ndarray) -> np.ndarray:

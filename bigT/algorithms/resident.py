@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
-from ..kernels.row_ranges import prune_rows, stack_rows, tile_pairs
+from ..kernels.row_ranges import prune_rows, row_view, stack_rows, tile_pairs
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -223,7 +223,10 @@ class ResidentPasses:
     series : SeriesMethod, optional
         Given, the next term of a one-pass method is computed ahead (:meth:`_ahead`).
 
-    While a term's stores are written (mostly waiting on the disk's syncs), the next
+    A pass's outputs are written on a thread of their own (:meth:`run`): the engine
+    estimates the term's residual meanwhile (from the probes' X Z carried, without
+    reading X), and :attr:`finalized` waits for the writes before it hands the stores
+    over. While a term's stores are written (mostly waiting on the disk's syncs), the next
     term's products are computed on another thread: the engine publishes the term
     written, then takes the next one's result. Only where nothing may stop the run
     between two terms but ``terms`` itself (no ``on_term``), so that no product is
@@ -239,7 +242,7 @@ class ResidentPasses:
         self.probes, self.threads, self.budget = probes, max(1, int(threads)), budget
         self.series = series
         self.totals = PassTotals()
-        self.finalized: dict[tuple[int, str], object] = {}  # as PassRunner's
+        self._finalized: dict[tuple[int, str], object] = {}  # :attr:`finalized`
         self._inverse = BlockDiagonal(self.layout.fb.finv)
         self._f = self.layout.fb.f.astype(matrices.dtype)
         self._pool: ThreadPoolExecutor | None = None  # made for the first term ahead
@@ -248,11 +251,27 @@ class ResidentPasses:
         self._unwritten: dict[int, list[tuple[Pass, dict]]] = {}
         # the writes' threads, started once per run (a pool per pass costs ~3 ms a thread)
         self._writers = ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write")
+        # the passes' writes in flight, one after the other on the thread that drives them
+        self._writing: list[Future] = []
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="bigT-write-pass")
+
+    @property
+    def finalized(self) -> dict[tuple[int, str], object]:
+        """The stores the passes wrote and finalized, opened, by (term, name), as
+        :class:`~.passes.PassRunner`'s: the writes in flight waited for first (a write
+        that failed raises its error here)."""
+        writing, self._writing = self._writing, []
+        for future in writing:
+            future.result()
+        return self._finalized
 
     def close(self) -> None:
         """Wait for a term computed ahead (its result is dropped) and the writes."""
         self._next = None
-        for pool in (self._pool, self._writers):
+        for future in self._writing:  # their errors, if any, are the engine's to raise
+            future.exception()
+        self._writing = []
+        for pool in (self._pool, self._writer, self._writers):
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
         self._pool = None
@@ -304,7 +323,8 @@ class ResidentPasses:
             self.matrices.keep(name, k, result.outputs[name])
         self._ahead(p, k)
         if write:
-            self._write(k, p, result.outputs, metadata)
+            self._writing.append(self._writer.submit(self._write, k, p, result.outputs,
+                                                     metadata))
         else:
             self._unwritten.setdefault(k, []).append((p, result.outputs))
         stats = self._stats(p, result, tally, time.perf_counter() - t0)
@@ -314,9 +334,10 @@ class ResidentPasses:
     def write_term(self, k: int, metadata: dict):
         """Write the outputs of term ``k``'s passes that :meth:`run` left unwritten
         into the term's stores; returns its X store, finalized."""
+        finalized = self.finalized  # the writes in flight done first: they share its pool
         for p, outputs in self._unwritten.pop(k, []):
             self._write(k, p, outputs, metadata)
-        return self.finalized.pop((k, "X"))
+        return finalized.pop((k, "X"))
 
     def forget_unwritten(self, before: int) -> None:
         """Let go of the unwritten outputs of the terms before ``before`` (a later term
@@ -455,7 +476,7 @@ class ResidentPasses:
                      if b.index not in done]
         list(pool.map(lambda job: _write_row(attrs, *job), rows))
         stores = pool.map(lambda name: self.store.finalize_term_store(k, name), names)
-        self.finalized.update({(k, name): X for name, X in zip(names, stores)})
+        self._finalized.update({(k, name): X for name, X in zip(names, stores)})
 
     def _stats(self, p: Pass, result: _Result, tally, seconds: float) -> list[BlockStats]:
         """One BlockStats per row block, as its task would report it: the new term's
@@ -480,7 +501,9 @@ class ResidentPasses:
 
 
 def _write_row(attrs: StoreAttrs, path, block, A: sp.csr_array) -> None:
-    write_tile_row(path, attrs, block.index, A[block.start:block.stop])
+    # a view of the rows: the writer checks and copies them itself (a slice would copy
+    # every entry of the term once more)
+    write_tile_row(path, attrs, block.index, row_view(A, block.start, block.stop))
 
 
 def _rows_nnz(A: sp.csr_array | None, block) -> int:
