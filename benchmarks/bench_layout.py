@@ -70,6 +70,7 @@ X = bigT.open(out)
 record = json.loads((Path(out) / "zarr.json").read_text())["attributes"]["bigT_inverse"]
 hist = record["history"]
 print(json.dumps({"seconds": total, "terms": seen, "history": hist,
+                  "residual": record.get("residual"),
                   "rows": X.grid[0], "version": X.attrs.version,
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
@@ -141,16 +142,17 @@ def main(argv=None) -> None:
         for label, tree in trees:  # interleaved: drift hits both alike
             run = run_child(tree, scenes[label], args.workdir / f"X-{label.replace(' ', '-')}.zarr", args)
             print(f"{label}: {run['seconds']:.2f} s, format {run['version']}, "
-                  f"peak {run['peak_rss_mb']:.0f} MB", flush=True)
+                  f"peak {run['peak_rss_mb']:.0f} MB, residual {run.get('residual')}, "
+                  f"terms {[round(h['seconds'], 2) for h in run['history']]}", flush=True)
             if label not in best or run["seconds"] < best[label]["seconds"]:
                 best[label] = run
     res = Results(run_name("layout"), f"Store layout: a {args.terms}-term inverse of the "
                   f"dense {args.size} corner",
                   " ".join(["python benchmarks/bench_layout.py"] + (argv or sys.argv[1:])))
     res.table("runs", "Whole run (best of the repeats)",
-              ["code", "store format", "seconds", "peak RSS MB"],
-              [[k, v["version"], round(v["seconds"], 2), round(v["peak_rss_mb"])]
-               for k, v in best.items()])
+              ["code", "store format", "seconds", "peak RSS MB", "residual"],
+              [[k, v["version"], round(v["seconds"], 2), round(v["peak_rss_mb"]),
+                v.get("residual")] for k, v in best.items()])
     rows = [r for label, run in best.items() for r in term_rows(label, run)]
     res.table("terms", "Per term: seconds, files of the term's directory (X and P) and "
               "those written by it (not hard-linked from the term before), per tile row, "
