@@ -79,3 +79,76 @@ def prune_into_internal(indptr, indices, data, threshold, r0, r1, out_p, out_j, 
                 out_j[pos] = indices[p]
                 out_v[pos] = v
                 pos += 1
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _kept(v, scratch):
+    """Whether ``v`` is nonzero once rounded to the result's dtype (``scratch``, one
+    element of it): what ``add_diag_scaled_internal`` keeps."""
+    scratch[0] = v
+    return scratch[0] != 0
+
+
+@njit(nogil=True, cache=True)
+def merged_per_row_internal(a_indptr, a_indices, a_data, d, b_indptr, b_indices, b_data,
+                            r0, r1, out, scratch):
+    """out[i] = the entries of row i of ``add_diag_scaled_internal``'s A + diag(d) B
+    (the union of the rows' columns, less the sums that round to exactly 0), for rows
+    ``r0:r1``; ``scratch`` is one element of the result's dtype."""
+    for i in range(r0, r1):
+        di = np.float64(d[i])
+        p, pe, q, qe = a_indptr[i], a_indptr[i + 1], b_indptr[i], b_indptr[i + 1]
+        kept = 0
+        while p < pe and q < qe:
+            ja, jb = a_indices[p], b_indices[q]
+            if ja < jb:
+                v = np.float64(a_data[p])
+                p += 1
+            elif jb < ja:
+                v = di * b_data[q]
+                q += 1
+            else:
+                v = np.float64(a_data[p]) + di * b_data[q]
+                p += 1
+                q += 1
+            if _kept(v, scratch):
+                kept += 1
+        while p < pe:
+            if _kept(np.float64(a_data[p]), scratch):
+                kept += 1
+            p += 1
+        while q < qe:
+            if _kept(di * b_data[q], scratch):
+                kept += 1
+            q += 1
+        out[i] = kept
+
+
+@njit(nogil=True, cache=True)
+def add_diag_scaled_into_internal(a_indptr, a_indices, a_data, d, b_indptr, b_indices,
+                                  b_data, r0, r1, out_p, out_j, out_v):
+    """Rows ``r0:r1`` of ``add_diag_scaled_internal``'s A + diag(d) B written at their
+    place in the result's arrays, whose row pointer ``out_p`` is already known
+    (:func:`merged_per_row_internal`). Each value is rounded to the result's dtype
+    before it is tested, and written only when kept: a row never writes past its end
+    (the next row's, maybe another thread's)."""
+    scratch = np.empty(1, out_v.dtype)
+    for i in range(r0, r1):
+        di = np.float64(d[i])
+        p, pe, q, qe = a_indptr[i], a_indptr[i + 1], b_indptr[i], b_indptr[i + 1]
+        pos = out_p[i]
+        while p < pe or q < qe:
+            if q >= qe or (p < pe and a_indices[p] < b_indices[q]):
+                j, v = a_indices[p], np.float64(a_data[p])
+                p += 1
+            elif p >= pe or b_indices[q] < a_indices[p]:
+                j, v = b_indices[q], di * b_data[q]
+                q += 1
+            else:
+                j, v = a_indices[p], np.float64(a_data[p]) + di * b_data[q]
+                p += 1
+                q += 1
+            if _kept(v, scratch):
+                out_j[pos] = j
+                out_v[pos] = scratch[0]
+                pos += 1

@@ -1,23 +1,22 @@
 """Whole-matrix helpers of the in-memory series: counts over a product's factors, and
-an element-wise kernel run over row ranges on several threads.
+element-wise kernels run over row ranges on several threads.
 
 The CSR wrappers of :mod:`bigT.kernels.csr` (``add_diag_scaled``, ``prune``) run on one
 thread: the out-of-core path calls them per tile row from dask's threads, which already
-keep the cores busy. In memory the same wrappers see the whole matrix (3*10^7 entries
-at 384x512) once per term; :func:`map_row_ranges` cuts it into row ranges of equal
-entries, runs the wrapper on each range's rows (views, no copy) on the shared thread
-pool, and joins the results. Every kernel it serves decides each row from that row
-alone, so the result is the one-thread result, bit for bit.
+keep the cores busy. In memory the same operations see the whole matrix (6*10^7 entries
+at 384x512) once per term: :func:`prune_rows` and :func:`add_diag_scaled_rows` cut it
+into row ranges of equal entries and run each range on the shared thread pool, in two
+passes (each row's entries counted, then written at their place in arrays of the
+result's size), so that no buffer as long as the operands is filled and copied out.
+Every row of their results is the one-thread wrapper's row, bit for bit.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 import scipy.sparse as sp
 
-from .csr import _small_enough, prune, row_work
+from .csr import _small_enough, add_diag_scaled, prune, row_work
 from .threads import run_on_threads
 
 
@@ -110,34 +109,6 @@ def stack_rows(pieces: list[sp.csr_array]) -> sp.csr_array:
     return out
 
 
-def map_row_ranges(func: Callable[..., sp.csr_array], matrices: list[sp.csr_array],
-                   n_threads: int, rows: list[np.ndarray] | None = None) -> sp.csr_array:
-    """``func(*views)`` on row ranges of ``matrices`` (one shape, (m, n)), ``n_threads``
-    ranges at once, the results stacked: ``func(*matrices)`` for a ``func`` that
-    computes each row of its result from the same row of its operands alone.
-
-    Parameters
-    ----------
-    func : callable
-        ``func(A_rows, B_rows, ...)`` -> csr_array of the ranges' rows.
-    matrices : list of csr_array, shape (m, n)
-        The ranges cut their entries evenly (summed over the operands).
-    n_threads : int
-    rows : list of (r,) ndarray, optional
-        Per-row vectors (a row scaling) cut along with the matrices, passed after them.
-    """
-    rows = rows or []
-    if n_threads <= 1:
-        return func(*matrices, *rows)
-    # the ranges cut the operands' entries together
-    ranges = _ranges(sum(A.indptr.astype(np.int64) for A in matrices), n_threads)
-    pieces = run_on_threads(
-        lambda r0, r1: func(*(row_view(A, r0, r1) for A in matrices),
-                            *(v[r0:r1] for v in rows)),
-        ranges, n_threads)
-    return stack_rows(pieces)
-
-
 def prune_rows(A: sp.csr_array, threshold: float, n_threads: int) -> sp.csr_array:
     """:func:`bigT.kernels.prune` of A (no ``top_k``), shape (m, n), on ``n_threads``
     row ranges at once, written straight into arrays of the result's size: one pass
@@ -163,6 +134,41 @@ def prune_rows(A: sp.csr_array, threshold: float, n_threads: int) -> sp.csr_arra
     run_on_threads(lambda r0, r1: prune_into_internal(A.indptr, A.indices, A.data,
                                                       threshold, r0, r1, indptr, indices,
                                                       data), ranges, n_threads)
+    out = sp.csr_array((data, indices, indptr), shape=A.shape, copy=False)
+    out.has_sorted_indices = True
+    out.has_canonical_format = True
+    return out
+
+
+def add_diag_scaled_rows(A: sp.csr_array, d: np.ndarray, B: sp.csr_array,
+                        n_threads: int) -> sp.csr_array:
+    """:func:`bigT.kernels.add_diag_scaled` (A + diag(d) B, shapes (m, n), d (m,)) on
+    ``n_threads`` row ranges at once, written straight into arrays of the result's
+    size: one pass counts each row's entries, one writes them (no buffer as long as
+    both operands, no copy). Trusts A and B as :func:`prune_rows` does; operands not
+    known canonical, or of different dtypes, are left to ``add_diag_scaled``."""
+    d = np.asarray(d)
+    if (n_threads <= 1 or _small_enough(A.nnz + B.nnz) or A.shape != B.shape
+            or d.shape != (A.shape[0],) or not A.dtype == B.dtype == d.dtype
+            or A.dtype.kind != "f" or not A.has_canonical_format
+            or not B.has_canonical_format or not np.isfinite(d).all()):
+        return add_diag_scaled(A, d, B)
+    from ._row_kernels import add_diag_scaled_into_internal, merged_per_row_internal
+
+    m = A.shape[0]
+    d64 = d.astype(np.float64)
+    ranges = _ranges(A.indptr.astype(np.int64) + B.indptr, n_threads)
+    counts = np.zeros(m + 1, np.int64)
+    operands = (A.indptr, A.indices, A.data, d64, B.indptr, B.indices, B.data)
+    run_on_threads(lambda r0, r1: merged_per_row_internal(
+        *operands, r0, r1, counts[1:], np.empty(1, A.dtype)), ranges, n_threads)
+    indptr = np.cumsum(counts)
+    nnz = int(indptr[-1])
+    idt = np.int32 if max(nnz, *A.shape) < 2**31 else np.int64
+    indptr = indptr.astype(idt)
+    indices, data = np.empty(nnz, idt), np.empty(nnz, A.dtype)
+    run_on_threads(lambda r0, r1: add_diag_scaled_into_internal(
+        *operands, r0, r1, indptr, indices, data), ranges, n_threads)
     out = sp.csr_array((data, indices, indptr), shape=A.shape, copy=False)
     out.has_sorted_indices = True
     out.has_canonical_format = True

@@ -9,13 +9,13 @@ from bigT.kernels import (SPGEMM_GROUP, BlockDiagonal, add_diag_scaled, diagonal
                           off_block_diagonal, prune, release_workspaces, scale_cols,
                           scale_cols_off_diagonal, scale_rows, spgemm, spmm_dense,
                           workspace_bytes)
-from bigT.kernels.row_ranges import map_row_ranges, multiply_adds
+from bigT.kernels.row_ranges import add_diag_scaled_rows, multiply_adds
 from bigT.storage import (BlockCSR, KeptTiles, ObjectPath, as_location, from_scipy, is_url,
                           read_store_attrs, row_marker, store_identity, write_tile_row)
 from bigT.storage import open as open_store
 
 __all__ = [
-    "SPGEMM_GROUP", "BlockCSR", "map_row_ranges", "multiply_adds", "BlockDiagonal", "KeptTiles", "ObjectPath", "add_diag_scaled",
+    "SPGEMM_GROUP", "BlockCSR", "add_diag_scaled_rows", "multiply_adds", "BlockDiagonal", "KeptTiles", "ObjectPath", "add_diag_scaled",
     "as_location", "is_url", "store_identity",
     "diagonal_blocks", "from_scipy", "off_block_diagonal", "open_store", "prune",
     "read_store_attrs", "release_workspaces", "row_marker", "scale_cols",

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._backend import (BlockDiagonal, add_diag_scaled, map_row_ranges, multiply_adds,
-                       prune, scale_cols_off_diagonal, spgemm)
+from ._backend import (BlockDiagonal, add_diag_scaled_rows, multiply_adds, prune,
+                       scale_cols_off_diagonal, spgemm)
 
 
 @dataclass
@@ -276,5 +276,4 @@ def add_scaled(A: sp.csr_array, d: np.ndarray, B: sp.csr_array,
     """A + diag(d) @ B (rows of a term added to rows of the sum), shapes (r, n) and
     d (r,); on ``n_threads`` row ranges at once (the whole matrices of the in-memory
     path; a task's tile row runs on its one thread)."""
-    return map_row_ranges(lambda A_rows, B_rows, d_rows: add_diag_scaled(A_rows, d_rows, B_rows),
-                          [A, B], n_threads, rows=[np.asarray(d, dtype=A.dtype)])
+    return add_diag_scaled_rows(A, np.asarray(d, dtype=A.dtype), B, n_threads)

@@ -9,8 +9,8 @@ import scipy.sparse as sp
 
 from bigT.kernels import add_diag_scaled, prune
 from bigT.kernels.csr import row_work
-from bigT.kernels.row_ranges import (map_row_ranges, multiply_adds, prune_rows, row_bounds,
-                                     row_view, stack_rows, tile_pairs)
+from bigT.kernels.row_ranges import (add_diag_scaled_rows, multiply_adds, prune_rows,
+                                     row_bounds, row_view, stack_rows, tile_pairs)
 
 
 def _random(m, n, density, seed, dtype=np.float64, empty_rows=()):
@@ -91,22 +91,45 @@ def test_row_view_and_stack_rows_give_back_the_matrix():
     np.testing.assert_array_equal(B.toarray(), A.toarray())
 
 
-@pytest.mark.parametrize("threads", [1, 2, 3])
-def test_map_row_ranges_is_the_one_thread_result(threads):
-    A = _random(400, 400, 0.05, 9, dtype=np.float32, empty_rows=range(100, 150))
-    B = _random(400, 400, 0.05, 10, dtype=np.float32)
-    d = np.random.default_rng(11).standard_normal(400).astype(np.float32)
-    got = map_row_ranges(lambda a, b, d_rows: add_diag_scaled(a, d_rows, b), [A, B],
-                         threads, rows=[d])
-    want = add_diag_scaled(A, d, B)
-    assert got.dtype == want.dtype
+def _assert_same_csr(got, want):
+    assert got.dtype == want.dtype and got.shape == want.shape
     for name in ("indptr", "indices", "data"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
-    ref = (A + sp.diags_array(d) @ B).toarray()
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_add_diag_scaled_rows_is_add_diag_scaled(threads, dtype):
+    A = _random(400, 300, 0.05, 9, dtype=dtype, empty_rows=range(100, 150))
+    B = _random(400, 300, 0.05, 10, dtype=dtype, empty_rows=range(130, 200))
+    d = np.random.default_rng(11).standard_normal(400).astype(dtype)
+    d[::9] = 0.0  # rows of pixels left out: B's entries there vanish
+    # exact cancellations where both hold an entry: dropped as the wrapper drops them
+    both = (A.toarray() != 0) & (B.toarray() != 0)
+    rows, cols = np.nonzero(both)
+    dense_a = A.toarray()
+    for r, c in list(zip(rows, cols))[::2]:
+        if d[r] != 0:
+            dense_a[r, c] = -np.float64(d[r]) * B[r, c]
+    A = sp.csr_array(dense_a.astype(dtype))
+    for M in (A, B):
+        M.has_canonical_format = True
+    got, want = add_diag_scaled_rows(A, d, B, threads), add_diag_scaled(A, d, B)
+    _assert_same_csr(got, want)
+    assert got.has_canonical_format
+    ref = A.toarray().astype(np.float64) + d[:, None].astype(np.float64) * B.toarray()
     np.testing.assert_allclose(got.toarray(), ref, rtol=1e-6, atol=1e-7)
-    pruned = map_row_ranges(lambda a: prune(a, threshold=0.2), [A], threads)
-    np.testing.assert_array_equal(pruned.toarray(),
-                                  np.where(np.abs(A.toarray()) >= 0.2, A.toarray(), 0))
+
+
+def test_add_diag_scaled_rows_drops_what_rounds_to_zero_in_float32():
+    """A sum that is not 0 in float64 but rounds to 0 in float32 is dropped, as the
+    one-thread wrapper drops it."""
+    A = sp.csr_array(np.array([[1e-30, 1.0], [0.0, 2.0]], np.float32))
+    B = sp.csr_array(np.array([[1e-30, 0.0], [1e-30, 3.0]], np.float32))
+    d = np.array([1e-20, 1e-20], np.float32)
+    for M in (A, B):
+        M.has_canonical_format = True
+    _assert_same_csr(add_diag_scaled_rows(A, d, B, 2), add_diag_scaled(A, d, B))
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
