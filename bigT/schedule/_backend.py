@@ -15,7 +15,8 @@ from bigT.storage import (BlockCSR, KeptTiles, ObjectPath, as_location, from_sci
 from bigT.storage import open as open_store
 
 __all__ = [
-    "SPGEMM_GROUP", "BlockCSR", "add_diag_scaled_rows", "multiply_adds", "BlockDiagonal", "KeptTiles", "ObjectPath", "add_diag_scaled",
+    "SPGEMM_GROUP", "BlockCSR", "BlockDiagonal", "KeptTiles", "ObjectPath", "add_diag_scaled",
+    "add_diag_scaled_rows", "multiply_adds",
     "as_location", "is_url", "store_identity",
     "diagonal_blocks", "from_scipy", "off_block_diagonal", "open_store", "prune",
     "read_store_attrs", "release_workspaces", "row_marker", "scale_cols",
