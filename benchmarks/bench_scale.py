@@ -51,8 +51,9 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from _results import Results, run_name  # noqa: E402
 
 #: (H, W) of the sizes measured: n = 12288 (for a quick fit), 49152, 196608, 786432,
-#: 2073600.
-SIZES = [(96, 128), (192, 256), (384, 512), (768, 1024), (1080, 1920)]
+#: 2073600, and 4K UHD's 8294400 (its own run, ``--min-size 8294400 --max-size
+#: 8294400``, with ``--ff-cut``: see ``main``'s help).
+SIZES = [(96, 128), (192, 256), (384, 512), (768, 1024), (1080, 1920), (2160, 3840)]
 #: The dense preset at full HD anchors the scaled densities.
 ANCHOR_N, ANCHOR_CUT, ANCHOR_THRESHOLD = 1080 * 1920, 1e-4, 1e-7
 
@@ -78,6 +79,8 @@ def child_build(args) -> dict:
 
     H, W = args.size
     cut, thr = density_for(H * W)
+    cut = cut if args.ff_cut is None else args.ff_cut
+    thr = thr if args.threshold is None else args.threshold
     t0 = time.perf_counter()
     sc = scenes.corner((H, W), args.scene, ff_cut=cut, threshold=thr, preview=False,
                        progress=False, memory_limit=args.scene_memory)
@@ -152,6 +155,8 @@ def run_child(kind: str, args, size, scene: str) -> dict:
            "--size", f"{size[0]}x{size[1]}", "--terms", str(args.terms),
            "--prune", str(args.prune), "--memory-limit", args.memory_limit,
            "--sample", str(args.sample), "--scene-memory", str(args.scene_memory)]
+    cmd += [] if args.ff_cut is None else ["--ff-cut", str(args.ff_cut)]
+    cmd += [] if args.threshold is None else ["--threshold", str(args.threshold)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode:
         print(proc.stderr, file=sys.stderr)
@@ -395,6 +400,12 @@ def main(argv=None):
     p.add_argument("--memory-limit", default="4GiB")
     p.add_argument("--scene-memory", type=int, default=2 << 30,
                    help="memory_limit of the scene builds, bytes")
+    p.add_argument("--ff-cut", type=float, default=None,
+                   help="the scene's form-factor cut instead of the scaled one (the 4K point: "
+                        "7e-5 with --threshold 1e-7, the dense preset's, for > 50 entries per "
+                        "row at about 60%% of the scaled density's entries)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="the scene's threshold instead of the scaled one")
     p.add_argument("--sample", type=int, default=2048,
                    help="rows of the sampled error against the exact inverse")
     p.add_argument("--no-compensate", action="store_true")
