@@ -290,7 +290,7 @@ def summary_alternatives_colour(rec: Record | None) -> list[str]:
     if table is None:
         return ["bigT's colour inverse against the rivals that take a colour T (sparse LU "
                 f"and GMRES on the 3n system, three grey solves with un-mixing): {NOT_MEASURED}."]
-    return [f"Colour Cornell box, {s[0].lower()}{s[1:]}" for s in alternatives_sentences(table)] \
+    return [f"Colour Cornell box: {s}" for s in alternatives_sentences(table)] \
         or [f"The colour alternatives table has no timed rows: {NOT_MEASURED}."]
 
 
@@ -310,6 +310,7 @@ def alternatives_sentences(table: Table) -> list[str]:
                  f"{_cost_text(best[k], k)}" for k in FRAME_COUNTS]
         text = f"At {size} (n = {n}): " + "; ".join(parts) + "."
         text += _crossings(costs, best[FRAME_COUNTS[0]], best[FRAME_COUNTS[-1]])
+        text += _paybacks(costs)
         light = [c for c in costs if c.peak is not None]
         if light:
             low = min(light, key=lambda c: c.peak)
@@ -324,6 +325,30 @@ def alternatives_sentences(table: Table) -> list[str]:
     out += [f"{m} is the quickest for {fmt(k)} frame{'s' if k > 1 else ''} at "
             f"{', '.join(sizes)}." for (m, k), sizes in sorted(wins.items())]
     return out
+
+
+#: The rivals bigT's explicit inverse's payback is stated against, one sentence each
+#: (issue #34: PARDISO, the fastest direct solver, and bigT's own matrix-free path).
+PAYBACK_RIVALS = ("PARDISO", "matrix-free")
+
+
+def _paybacks(costs: list[Cost]) -> str:
+    """After how many frames (batched) bigT's explicit X, its setup included, has
+    caught up with each of :data:`PAYBACK_RIVALS` timed at this size."""
+    ours = next((c for c in costs if c.method.startswith("bigT explicit")), None)
+    if ours is None:
+        return ""
+    big, parts = FRAME_COUNTS[-1], []
+    for name in PAYBACK_RIVALS:
+        rival = next((c for c in costs if name in c.method and c is not ours), None)
+        if rival is None:
+            continue
+        k = _break_even(ours, rival, big)
+        parts.append(f"with {rival.method} after {fmt(whole_frames(k))} frames"
+                     if k is not None else f"never with {rival.method} (its frames are as "
+                     "cheap)")
+    return (f" {ours.method}, its setup included, catches up " + " and ".join(parts) + "."
+            if parts else "")
 
 
 def quickest(costs: list[Cost], frames: int) -> Cost:
@@ -541,7 +566,8 @@ def colour_sweep_sentences(table: Table | None) -> list[str]:
     rows = _rows(table)
     parts = []
     for path in dict.fromkeys(r.get("path") for r in rows):
-        settings = [Setting(str(path), f"prune {fmt(r.get('prune'))}, {r.get('terms')} terms",
+        settings = [Setting(str(path), f"prune {fmt(r.get('prune'))}, {r.get('terms')} "
+                            f"term{'' if r.get('terms') == 1 else 's'}",
                             _num(r.get("seconds")), _num(r.get("seen dE2000 mean")))
                     for r in rows if r.get("path") == path]
         settings = [x for x in settings if x.seconds is not None and x.error is not None]

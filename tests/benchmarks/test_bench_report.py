@@ -343,7 +343,7 @@ def test_when_to_use_bigT_is_computed_from_the_tables(tmp_path, monkeypatch):
                              "for 12,000 frames or more")
     assert "quickest of the 4 methods timed" in colour  # PARDISO did not run
     lines = report.summary_alternatives_colour(records["alternatives"])
-    assert lines[0].startswith("Colour Cornell box, at 48x64 (n = 3,072): for 1 frame the "
+    assert lines[0].startswith("Colour Cornell box: At 48x64 (n = 3,072): for 1 frame the "
                                "quickest is 3 grey splu + per-pixel un-mixing")
     assert "Not run here: MKL PARDISO of the 3n system" not in lines[0]  # empty: not a reason
 
@@ -459,3 +459,18 @@ def test_clusters_in_the_summary(tmp_path, monkeypatch):
     objects_line, = report.summary_objects(records["objects"])
     assert "S3 on loopback took 2.5 s with threads (1.25× the local directory's 2 s)" \
         in objects_line
+
+
+def test_the_payback_against_pardiso_and_the_matrix_free_path(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    res = _results.Results("alternatives", "alternatives")
+    res.table("alternatives", "grey", ALT_COLUMNS,
+              [["96x128", 12288, "MKL PARDISO (pypardiso)", 0.4, 0.004, 0.003, 300.0, 1e-12],
+               ["96x128", 12288, "bigT explicit X (4 terms)", 3.0, 0.002, 0.0005, 500.0, 4e-5],
+               ["96x128", 12288, "bigT matrix-free (4 terms)", 0.2, 0.02, 0.005, 200.0, 4e-5]])
+    res.save()
+    line = report.summary_alternatives(report.load_records(tmp_path)["alternatives"])[0]
+    # (3 - 0.4) / (0.003 - 0.0005) = 1040 frames; (3 - 0.2) / (0.005 - 0.0005) = 622.2 -> 623
+    assert ("bigT explicit X (4 terms), its setup included, catches up with MKL PARDISO "
+            "(pypardiso) after 1,040 frames and with bigT matrix-free (4 terms) after 623 "
+            "frames.") in line
