@@ -220,11 +220,19 @@ class Cost:
 
     def total(self, frames: int) -> float | None:
         """Setup and ``frames`` frames, batched when there are enough to batch."""
-        per = self.frame64 if frames >= 64 and self.frame64 is not None else self.frame1
+        per = self.per_frame(frames)
         return None if per is None else self.setup + frames * per
 
+    def batched(self, frames: int) -> bool:
+        """Whether ``frames`` frames go quicker in batches of 64 than one by one (a
+        user batches only where it pays: a sparse LU's solve of 64 right-hand sides
+        may take longer a frame than one)."""
+        if frames < 64 or self.frame64 is None:
+            return False
+        return self.frame1 is None or self.frame64 <= self.frame1
+
     def per_frame(self, frames: int) -> float | None:
-        return self.frame64 if frames >= 64 and self.frame64 is not None else self.frame1
+        return self.frame64 if self.batched(frames) else self.frame1
 
 
 def _costs(rows: list[dict]) -> list[Cost]:
@@ -250,7 +258,7 @@ def _break_even(a: Cost, b: Cost, frames: int) -> float | None:
 def _cost_text(c: Cost, frames: int) -> str:
     total = c.total(frames)
     per = c.per_frame(frames)
-    batch = "batch 64" if frames >= 64 and c.frame64 is not None else "batch 1"
+    batch = "batch 64" if c.batched(frames) else "batch 1"
     return (f"{c.method} ({fmt(c.setup)} s setup + {fmt(frames)} × {fmt(per)} s a frame "
             f"at {batch} = {fmt(total)} s; error {fmt(c.error)})")
 
@@ -725,7 +733,7 @@ def when_sentences(table: Table, what: str) -> list[str]:
     k = payback(costs, ours, big)
     one = quickest(costs, 1)
     text = (f"{what.capitalize()}, at {size}: " + (
-        f"use {ours.method} for {fmt(k)} frames or more (batched): from there it is the "
+        f"use {ours.method} for {fmt(k)} frames or more: from there it is the "
         f"quickest of the {len(costs)} methods timed, its {fmt(ours.setup)} s setup included "
         f"({fmt(ours.per_frame(big))} s a frame)" if k is not None else
         f"{ours.method} is never the quickest for good: another method's frames are as cheap"))

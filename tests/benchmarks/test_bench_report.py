@@ -332,13 +332,13 @@ def test_when_to_use_bigT_is_computed_from_the_tables(tmp_path, monkeypatch):
     # (0.2 s, 5e-3): ahead of splu after ceil(2.5 / 7.5e-3) = 334 frames, of the
     # matrix-free path after ceil(2.8 / 4.5e-3) = 623: the later one
     assert grey.startswith("Grey, at 96x128: use bigT explicit X (4 terms) for 623 frames or "
-                           "more (batched)")
+                           "more: from there")
     assert "quickest of the 3 methods timed, its 3 s setup included" in grey
     assert "not for a single frame: bigT matrix-free (4 terms) gives it in 0.22 s against 3 s" \
         in grey
     # colour: the global path's frames are the cheapest; splu's 0.3 s setup at 3e-3 a frame:
-    # ceil((2.2 - 0.3) / (3e-3 - 4e-5)) = 642; un-mixing: ceil(2 / (3.5e-3 - 4e-5)) = 579;
-    # the general path: ceil(0.6 / 5e-5) = 12,000
+    # ceil((2.2 - 0.3) / (3e-3 - 4e-5)) = 642; un-mixing, one by one (its batch of 64 is
+    # slower a frame): ceil(2 / (3e-3 - 4e-5)) = 676; the general path: ceil(0.6 / 5e-5)
     assert colour.startswith("Colour, at 48x64: use bigT colour X, global-mixing path (4 terms) "
                              "for 12,000 frames or more")
     assert "quickest of the 4 methods timed" in colour  # PARDISO did not run
@@ -474,3 +474,12 @@ def test_the_payback_against_pardiso_and_the_matrix_free_path(tmp_path, monkeypa
     assert ("bigT explicit X (4 terms), its setup included, catches up with MKL PARDISO "
             "(pypardiso) after 1,040 frames and with bigT matrix-free (4 terms) after 623 "
             "frames.") in line
+
+
+def test_frames_are_batched_only_where_batching_pays():
+    lu = report.Cost("scipy splu", 0.3, 0.004, 0.02, 1e-12, None)
+    X = report.Cost("bigT explicit X", 2.0, 0.002, 0.0005, 4e-5, None)
+    assert not lu.batched(1000) and lu.per_frame(1000) == 0.004
+    assert X.batched(1000) and X.per_frame(1000) == 0.0005
+    assert not X.batched(10) and X.per_frame(10) == 0.002  # too few frames to batch
+    assert lu.total(1000) == pytest.approx(0.3 + 1000 * 0.004)
