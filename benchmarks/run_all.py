@@ -42,7 +42,8 @@ import report  # noqa: E402
 from _results import NAME_ENV, OUT_ENV, code_state, machine  # noqa: E402
 
 #: The full plan (about 70 minutes on 2 cores before issue #34's colour alternatives,
-#: colour sweep and calibration, which add about 8), in the order of issue #16: the paper's
+#: colour sweep, calibration and cluster model, which add about 11), in the order of
+#: issue #16: the paper's
 #: figures, time against error (pruning included), the alternatives, scaling, kernels,
 #: distributed; then the rest. Scratch folders are under bench-out/ (relative to the
 #: repository's root, the children's working directory), where a later run reuses the
@@ -67,6 +68,10 @@ FULL = [
     ("kernels", ["bench_kernels.py", "--sizes", "96x128,192x256"]),
     ("distributed", ["bench_distributed.py", "--size", "192x256",
                      "--workdir", "bench-out/distributed"]),
+    # issue #34 (5): the cluster model checked on threads, local:1 and local:2 (192x256,
+    # ~3 min), its full-HD and 4K predictions beside them
+    ("cluster-model", ["bench_scale.py", "--cluster-model", "--workdir",
+                       "bench-out/cluster-model"]),
     ("inverse-dense", ["bench_inverse.py", "--size", "384x512", "--density", "dense",
                        "--settings", "power:1e-5,power:3e-6:1e-4,power:3e-6:1e-4:1e-5,"
                        "power:3e-6:1e-4:3e-5", "--sample", "2048",

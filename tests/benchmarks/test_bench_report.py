@@ -483,3 +483,12 @@ def test_frames_are_batched_only_where_batching_pays():
     assert X.batched(1000) and X.per_frame(1000) == 0.0005
     assert not X.batched(10) and X.per_frame(10) == 0.002  # too few frames to batch
     assert lu.total(1000) == pytest.approx(0.3 + 1000 * 0.004)
+
+
+def test_the_target_table_prints_the_error_reached_beside_its_target():
+    import bench_target
+
+    assert bench_target.reached({"error": 9.996e-4, "E": 1e-3, "met": True}) == "9.996e-4"
+    assert bench_target.reached({"error": 1.0004e-3, "E": 1e-3, "met": False}) == \
+        "0.0010004 (not met)"
+    assert bench_target.reached({"error": 2.26e-3, "E": 3.92e-3, "met": True}) == "0.00226"
