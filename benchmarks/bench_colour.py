@@ -175,7 +175,8 @@ def metrics_rows(T, X_runs, desired: np.ndarray, target: str) -> list[list]:
 
     row("uncompensated", desired)
     for j, img in enumerate(series_images(T, desired, TERMS)):
-        row("per-pixel 3x3 (term 0)" if j == 0 else f"{j} term(s), unpruned", img)
+        row("per-pixel 3x3 (term 0)" if j == 0 else
+            f"{j} term{'' if j == 1 else 's'}, unpruned", img)
     for run in X_runs:
         X = bigT.open(run.path)
         row(f"X {run.label} (4 terms, pruned)", X.matmul(desired.ravel()).reshape(desired.shape))

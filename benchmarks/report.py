@@ -365,11 +365,13 @@ def quickest(costs: list[Cost], frames: int) -> Cost:
                else math.inf)
 
 
-def payback(costs: list[Cost], method: Cost, frames: int = FRAME_COUNTS[-1]) -> float | None:
-    """Frames from which ``method``, its setup included, is the quickest of ``costs``
-    (per-frame times as for ``frames`` frames: batched); None when another method's
-    frames are as cheap (it is never ahead for good)."""
-    mine, worst = method.per_frame(frames), 1
+def payback(costs: list[Cost], method: Cost,
+            frames: int = FRAME_COUNTS[-1]) -> tuple[int, Cost | None] | None:
+    """(frames from which ``method``, its setup included, is the quickest of ``costs``,
+    the method it overtakes last, None when it leads from the first frame), per-frame
+    times as for ``frames`` frames; None when another method's frames are as cheap (it
+    is never ahead for good)."""
+    mine, worst, last = method.per_frame(frames), 1, None
     if mine is None:
         return None
     for other in costs:
@@ -380,8 +382,10 @@ def payback(costs: list[Cost], method: Cost, frames: int = FRAME_COUNTS[-1]) -> 
             return None
         if other.setup > method.setup:
             continue  # behind from the first frame, and falling further behind
-        worst = max(worst, whole_frames(_break_even(method, other, frames)))
-    return worst
+        k = whole_frames(_break_even(method, other, frames))
+        if k > worst:
+            worst, last = k, other
+    return worst, last
 
 
 def whole_frames(x: float) -> int:
@@ -730,13 +734,17 @@ def when_sentences(table: Table, what: str) -> list[str]:
         return []
     big = FRAME_COUNTS[-1]
     ours = min(mine, key=lambda c: c.per_frame(big))
-    k = payback(costs, ours, big)
+    paid = payback(costs, ours, big)
     one = quickest(costs, 1)
-    text = (f"{what.capitalize()}, at {size}: " + (
-        f"use {ours.method} for {fmt(k)} frames or more: from there it is the "
-        f"quickest of the {len(costs)} methods timed, its {fmt(ours.setup)} s setup included "
-        f"({fmt(ours.per_frame(big))} s a frame)" if k is not None else
-        f"{ours.method} is never the quickest for good: another method's frames are as cheap"))
+    if paid is None:
+        text = (f"{what.capitalize()}, at {size}: {ours.method} is never the quickest for "
+                "good: another method's frames are as cheap")
+    else:
+        k, last = paid
+        text = (f"{what.capitalize()}, at {size}: use {ours.method} for {fmt(k)} frames or "
+                f"more: from there it is the quickest of the {len(costs)} methods timed, its "
+                f"{fmt(ours.setup)} s setup included ({fmt(ours.per_frame(big))} s a frame"
+                + (f"; the last it overtakes is {last.method}" if last else "") + ")")
     if one is not ours:
         text += (f"; not for a single frame: {one.method} gives it in {fmt(one.total(1))} s "
                  f"against {fmt(ours.total(1))} s")

@@ -333,7 +333,8 @@ def test_when_to_use_bigT_is_computed_from_the_tables(tmp_path, monkeypatch):
     # matrix-free path after ceil(2.8 / 4.5e-3) = 623: the later one
     assert grey.startswith("Grey, at 96x128: use bigT explicit X (4 terms) for 623 frames or "
                            "more: from there")
-    assert "quickest of the 3 methods timed, its 3 s setup included" in grey
+    assert ("quickest of the 3 methods timed, its 3 s setup included (5.00e-4 s a frame; the "
+            "last it overtakes is bigT matrix-free (4 terms))") in grey
     assert "not for a single frame: bigT matrix-free (4 terms) gives it in 0.22 s against 3 s" \
         in grey
     # colour: the global path's frames are the cheapest; splu's 0.3 s setup at 3e-3 a frame:
