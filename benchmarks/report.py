@@ -275,8 +275,9 @@ def _crossings(costs: list[Cost], few: Cost, many: Cost) -> str:
     if cheapest.method != many.method:
         k = _break_even(cheapest, many, big)
         if k is not None:
+            batched = ", batched" if cheapest.batched(big) else ""
             text += (f" {cheapest.method} has the cheapest frames ({fmt(cheapest.per_frame(big))}"
-                     f" s each, batched) and pays back its {fmt(cheapest.setup)} s setup "
+                     f" s each{batched}) and pays back its {fmt(cheapest.setup)} s setup "
                      f"against {many.method} after about {fmt(whole_frames(k))} frames.")
     return text
 
@@ -341,8 +342,9 @@ PAYBACK_RIVALS = ("PARDISO", "matrix-free")
 
 
 def _paybacks(costs: list[Cost]) -> str:
-    """After how many frames (batched) bigT's explicit X, its setup included, has
-    caught up with each of :data:`PAYBACK_RIVALS` timed at this size."""
+    """After how many frames bigT's explicit X, its setup included, has caught up with
+    each of :data:`PAYBACK_RIVALS` timed at this size (per-frame times as for 1,000
+    frames: batched where that is quicker)."""
     ours = next((c for c in costs if c.method.startswith("bigT explicit")), None)
     if ours is None:
         return ""
@@ -352,9 +354,12 @@ def _paybacks(costs: list[Cost]) -> str:
         if rival is None:
             continue
         k = _break_even(ours, rival, big)
-        parts.append(f"with {rival.method} after {fmt(whole_frames(k))} frames"
-                     if k is not None else f"never with {rival.method} (its frames are as "
-                     "cheap)")
+        if k is None:
+            parts.append(f"never with {rival.method} (its frames are as cheap)")
+        elif k == 0:
+            parts.append(f"with {rival.method} from the first frame (less setup)")
+        else:
+            parts.append(f"with {rival.method} after {fmt(whole_frames(k))} frames")
     return (f" {ours.method}, its setup included, catches up " + " and ".join(parts) + "."
             if parts else "")
 
