@@ -742,8 +742,11 @@ def when_sentences(table: Table, what: str) -> list[str]:
     paid = payback(costs, ours, big)
     one = quickest(costs, 1)
     if paid is None:
+        cheaper = min((c for c in costs if c is not ours and c.per_frame(big) is not None),
+                      key=lambda c: c.per_frame(big))
         text = (f"{what.capitalize()}, at {size}: {ours.method} is never the quickest for "
-                "good: another method's frames are as cheap")
+                f"good: {cheaper.method}'s frames are as cheap ({fmt(cheaper.per_frame(big))} "
+                f"s against {fmt(ours.per_frame(big))} s)")
     else:
         k, last = paid
         text = (f"{what.capitalize()}, at {size}: use {ours.method} for {fmt(k)} frames or "
