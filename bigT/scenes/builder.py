@@ -45,6 +45,7 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from ..progress import progress_bar
+from ..schedule.memory import return_freed_memory
 from ..storage import BlockCSRWriter, ObjectPath, PixelOrder, as_location, check_replaceable
 from . import geometry, palette, radiosity, stored
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES
@@ -311,9 +312,11 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     A = stored.write_interreflection(r.patches(), r.albedo, r.cut, gt / "A", r.pixel_order,
                                      T.tile_size, progress)
     timings["seconds_form_factors"] = time.perf_counter() - t0
+    return_freed_memory()  # each phase starts from what it holds, not the last one's peak
     t0 = time.perf_counter()
     T, max_bounces = _write_transport(T, A, r, progress)
     timings["seconds_T"] = time.perf_counter() - t0
+    return_freed_memory()
     t0 = time.perf_counter()
     if r.colour is None:
         stats = ground_truth_stats(T, A, r.f, r.G, r.memory_limit)
@@ -383,6 +386,8 @@ def _transport_rows(writer, times_A, recipe: _Recipe, progress):
         if noise > 0 or floor > 0:
             rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
         writer.write_tile_row(i, rows)
+        del rows
+        return_freed_memory()  # a tile row's temporaries, a few ms against ~1 s of products
     return writer.finalize(), max_bounces
 
 
