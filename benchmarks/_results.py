@@ -96,6 +96,33 @@ class Claim:
     holds: bool | None = None
 
 
+def significant(x: float, digits: int = 3) -> str:
+    """``x`` to ``digits`` significant figures, scientific below 1e-3 (errors) and from
+    1e6, as RESULTS.md's cells print numbers: "4.98e-4", "0.0392", "1.5"."""
+    a = abs(x)
+    if a != 0 and math.isfinite(x) and (a < 1e-3 or a >= 1e6):
+        mant, exp = f"{x:.{digits - 1}e}".split("e")
+        return f"{mant}e{int(exp)}"
+    return f"{x:.{digits}g}"
+
+
+#: The most significant figures :func:`beside` prints (float64 holds ~16).
+MAX_DIGITS = 12
+
+
+def beside(value: float, target: float, digits: int = 3) -> str:
+    """``value`` printed beside ``target`` with enough significant figures (``digits``
+    at least) that it reads on its own side: an error of 4.998e-4 against a target of
+    5e-4 prints "4.998e-4", never "5.00e-4", which would read as meeting it exactly.
+    A value equal to its target prints at ``digits``."""
+    for d in range(digits, MAX_DIGITS + 1):
+        text = significant(value, d)
+        shown = float(text)
+        if (value < target) == (shown < target) and (value > target) == (shown > target):
+            return text
+    return significant(value, MAX_DIGITS)
+
+
 def _jsonable(x):
     if isinstance(x, float) and not math.isfinite(x):
         return None

@@ -42,10 +42,32 @@ frames from which bigT's explicit X, its inverse included, is the fastest of all
 ``payback:<size>:<batch>``. Timings on a shared 2-core machine drift with its load:
 compare within one run.
 
+**Colour** (``--colour-sizes``): the colour Cornell box (``bigT.scenes`` with
+``colour=True``, a global mixing rig, form-factor cut 1e-2) at small sizes, its desired
+frames what the surfaces show lit directly by colour test patterns (``F l``: in every
+pixel's gamut), scaled like the grey ones so the exact compensation stays below 0.95.
+The rivals that take a colour T:
+
+* ``splu`` and MKL PARDISO of the 3n x 3n system (T as stored: rows 3 p + camera
+  channel, columns 3 q + projector primary);
+* per-frame GMRES on the 3n system, block-Jacobi preconditioned (the inverse of each
+  pixel's 3x3 diagonal block), to bigT's error like the grey GMRES;
+* three grey ``splu`` with per-pixel un-mixing, for a global-mixing rig: T = (I x C) U
+  (I x P) with the rig's recorded 3x3 camera C and projector P, U three grey bands, so
+  T^-1 d = (I x P^-1) U^-1 (I x C^-1) d: setup un-mixes T and factors the three bands,
+  every frame is un-mixed, solved three times and mixed back;
+* bigT's colour inverse (4 terms, default prune) on its general path (3x3 blocks, every
+  product over 3n x 3n) and on its global-mixing path (three grey inverses between two
+  un-mixings), X held in memory (``Compensator``).
+
+Same columns as the grey table, in the table ``alternatives-colour``; the error is the
+same ||T l_in - d|| / ||d|| over the first four colour frames.
+
 Run (2 cores shared: nice it)::
 
     nice -n 10 .venv/bin/python benchmarks/bench_alternatives.py --quick   # 48x64, 96x128
     nice -n 10 .venv/bin/python benchmarks/bench_alternatives.py           # up to 384x512
+    nice -n 10 .venv/bin/python benchmarks/bench_alternatives.py --sizes "" --colour-sizes 48x64
 
 ``--workdir DIR`` keeps the scenes there (and reuses them on the next run); without it
 everything is built in a temporary directory that is removed at the end.
@@ -93,6 +115,23 @@ METHODS = {
 }
 #: The order the methods run in: bigT's inverse first, its error is the others' target.
 RUN_ORDER = ("explicit", "matrix-free", "jacobi", "gmres", "splu", "pardiso", "inv", "pinv")
+#: The colour Cornell box's methods (the module's docstring), in table order.
+COLOUR_METHODS = {
+    "splu-3n": "scipy splu of the 3n system",
+    "pardiso-3n": "MKL PARDISO of the 3n system",
+    "unmix-splu": "3 grey splu + per-pixel un-mixing",
+    "gmres-3n": "GMRES per frame, 3n system (3x3 block-Jacobi prec.)",
+    "colour-general": "bigT colour X, general path (4 terms)",
+    "colour-global": "bigT colour X, global-mixing path (4 terms)",
+}
+#: bigT's general path first: its error is GMRES's target.
+COLOUR_RUN_ORDER = ("colour-general", "colour-global", "gmres-3n", "splu-3n", "unmix-splu",
+                    "pardiso-3n")
+#: Every method's label, grey and colour.
+LABELS = {**METHODS, **COLOUR_METHODS}
+#: The colour scene's form-factor cut (the colour demo's and ``bench_colour --quick``'s:
+#: a small Cornell box is nearly dense at the density presets' cuts).
+COLOUR_FF_CUT = 1e-2
 COLUMNS = ["size", "n", "method", "setup s", "frame s (batch 1)", "frame s (batch 64)",
            "peak MiB", "error"]
 FRAMES = 64        # frames of the batch-64 timing
@@ -153,8 +192,8 @@ class Row:
     def cells(self) -> list:
         m = self.measured
         if m is None:
-            return [self.size, self.n, METHODS[self.method], None, None, None, None, None]
-        return [self.size, self.n, METHODS[self.method], m.setup_s, m.frame1_s, m.frame64_s,
+            return [self.size, self.n, LABELS[self.method], None, None, None, None, None]
+        return [self.size, self.n, LABELS[self.method], m.setup_s, m.frame1_s, m.frame64_s,
                 m.peak_bytes / MIB, self.error]
 
 
@@ -205,6 +244,26 @@ def desired_frames(scene) -> tuple[np.ndarray, float, float]:
     exact = (B - scene.A.matmul(B, order="matrix")) / scene.F_stored[:, None]  # F^-1 (I - A) d
     gain = min(1.0, 0.95 / float(exact.max()))
     return patterns * gain, gain, float(np.mean(exact < 0))
+
+
+def desired_colour_frames(scene) -> tuple[np.ndarray, float, float]:
+    """(FRAMES, H, W, 3) desired colour images: what the surfaces show lit directly
+    (``F l``) by projector images whose channels are three of the grey test patterns,
+    times the gain that keeps the exact compensation T^-1 d (splu, here) below 0.95;
+    and that gain and the share of values the exact compensation would clip below 0."""
+    from scipy.sparse.linalg import splu
+
+    from bigT.cli.demo_cmd import direct_view  # the colour demo's targets
+
+    size = tuple(scene.summary["image_shape"])
+    light = np.stack([np.stack([test_pattern(size, k + c) for c in range(3)], -1)
+                      for k in range(FRAMES)])
+    frames = np.stack([direct_view(scene.F, f) for f in light])
+    order = scene.T.pixel_order
+    Ts = scene.T.to_scipy(output_order="matrix").astype(np.float64).tocsc()
+    exact = splu(Ts).solve(to_vectors(frames, order, np.float64))
+    gain = min(1.0, 0.95 / float(exact.max()))
+    return frames * gain, gain, float(np.mean(exact < 0))
 
 
 # --- the methods (in the child) -----------------------------------------------------------
@@ -300,13 +359,14 @@ def _gmres_batch(Ts, M, B, rtol, counts):
     return out
 
 
-def setup_gmres(Ts, job, frames, order):
-    """Jacobi preconditioner M = diag(T)^-1; rtol starts at ``job.target`` and is
-    halved until the test frames reach it (not timed)."""
+def setup_gmres(Ts, job, frames, order, M=None):
+    """Jacobi preconditioner M = diag(T)^-1 (or ``M``: a colour T's block Jacobi); rtol
+    starts at ``job.target`` and is halved until the test frames reach it (not timed)."""
     from scipy.sparse.linalg import LinearOperator
 
-    finv = 1.0 / Ts.diagonal()
-    M = LinearOperator(Ts.shape, matvec=lambda x: finv * x.ravel(), dtype=np.float64)
+    if M is None:
+        finv = 1.0 / Ts.diagonal()
+        M = LinearOperator(Ts.shape, matvec=lambda x: finv * x.ravel(), dtype=np.float64)
     B = to_vectors(frames[:ERROR_FRAMES], order, np.float64)
     rtol, counts = job.target, []
     for _ in range(8):
@@ -315,6 +375,67 @@ def setup_gmres(Ts, job, frames, order):
         rtol /= 2
     compensate = _framewise(lambda V: _gmres_batch(Ts, M, V, rtol, counts), order)
     return compensate, (lambda: f"rtol {rtol:.2g}, {np.mean(counts):.1f} iterations/frame")
+
+
+def block_jacobi(Ts):
+    """The inverse of T's 3x3 diagonal blocks (one per pixel) as a sparse (3n, 3n)
+    matrix: the colour first bounce F^-1, GMRES's preconditioner."""
+    from scipy.sparse import bsr_array
+
+    coo = Ts.tocoo()
+    own = coo.row // 3 == coo.col // 3
+    blocks = np.zeros((Ts.shape[0] // 3, 3, 3))
+    np.add.at(blocks, (coo.row[own] // 3, coo.row[own] % 3, coo.col[own] % 3), coo.data[own])
+    count = len(blocks)
+    return bsr_array((np.linalg.inv(blocks), np.arange(count), np.arange(count + 1)),
+                     shape=Ts.shape).tocsr()
+
+
+def setup_unmix_splu(Ts, store, order):
+    """Three grey splu between two per-pixel un-mixings, for a global-mixing rig:
+    T = (I x C) U (I x P), C and P the 3x3 camera and projector mixing recorded with T,
+    U the three grey bands (U[3p+k, 3q+k]); T^-1 = (I x P^-1) U^-1 (I x C^-1)."""
+    from scipy.sparse import identity, kron
+    from scipy.sparse.linalg import splu
+
+    from bigT.algorithms.mixing import recorded_mixing
+
+    mixing = recorded_mixing(store)
+    n = Ts.shape[0] // 3
+    c_inv, p_inv = np.linalg.inv(mixing.camera), np.linalg.inv(mixing.projector)
+    U = (kron(identity(n), c_inv) @ Ts @ kron(identity(n), p_inv)).tocsr()
+    bands = [U[k::3][:, k::3] for k in range(3)]
+    cross = math.sqrt(max(sp_norm2(U) - sum(sp_norm2(b) for b in bands), 0.0) / sp_norm2(U))
+    lus = [splu(b.tocsc()) for b in bands]
+
+    def apply(B):  # (3n, K) in T's order: un-mix, three grey solves, mix back
+        K = B.shape[1]
+        V = np.einsum("ij,pjk->pik", c_inv, B.reshape(n, 3, K))
+        Y = np.stack([lus[k].solve(np.ascontiguousarray(V[:, k])) for k in range(3)], 1)
+        return np.einsum("ij,pjk->pik", p_inv, Y).reshape(3 * n, K)
+
+    fill = sum(lu.L.nnz + lu.U.nnz for lu in lus)
+    return _framewise(apply, order), (f"nnz(L+U) = {fill:,} over 3 bands; cross-channel "
+                                      f"residue of U {cross:.1e} (dropped)")
+
+
+def sp_norm2(M) -> float:
+    """||M||_F^2 of a sparse matrix."""
+    return float(np.sum(np.square(M.data)))
+
+
+def setup_colour_bigT(store, job, path: str):
+    """bigT's colour inverse on ``path`` ("general" or "global"), X held in memory."""
+    from bigT.compensation import choose_path
+    from bigT.compensation.realtime import Compensator
+
+    out = os.path.join(job.work, "X.zarr")
+    bigT.stratified_inverse(store, out, terms=TERMS, colour_path=path, overwrite=True,
+                            progress=False)
+    X = bigT.open(out)
+    comp = Compensator(X, None, choose_path(X, None, None, "explicit"))
+    return ((lambda frames: np.asarray(comp(frames), np.float64)),
+            f"nnz(X) = {X.nnz:,}; {comp.residency.describe(1)}")
 
 
 def setup_bigT(store, job, path: str):
@@ -350,14 +471,25 @@ def setup_method(job, store, frames):
     if job.method in ("explicit", "matrix-free"):
         (comp, detail), setup = _timed(setup_bigT, store, job, job.method)
         return comp, 0.0, setup, detail
+    if job.method in ("colour-general", "colour-global"):
+        path = job.method.split("-", 1)[1]
+        (comp, detail), setup = _timed(setup_colour_bigT, store, job, path)
+        return comp, 0.0, setup, detail
     Ts, load = _load_T(store)
     order = store.pixel_order
     builders = {"inv": lambda: setup_dense(Ts, order, False),
                 "pinv": lambda: setup_dense(Ts, order, True),
                 "splu": lambda: setup_splu(Ts, order),
-                "pardiso": lambda: setup_pardiso(Ts, order)}
+                "pardiso": lambda: setup_pardiso(Ts, order),
+                "splu-3n": lambda: setup_splu(Ts, order),
+                "pardiso-3n": lambda: setup_pardiso(Ts, order),
+                "unmix-splu": lambda: setup_unmix_splu(Ts, store, order)}
     if job.method in builders:
         (comp, detail), setup = _timed(builders[job.method])
+        return comp, load, setup, detail
+    if job.method == "gmres-3n":  # setup: the 3x3 blocks inverted (timed); rtol search not
+        M, setup = _timed(block_jacobi, Ts)
+        comp, detail = setup_gmres(Ts, job, frames, order, M)
         return comp, load, setup, detail
     # the iterative ones: setup is F^-1 = 1 / diag(T) (timed); the tolerance search is not
     setup = _timed(Ts.diagonal)[1]
@@ -398,7 +530,7 @@ def run_child(job: Job) -> Measured:
     frames = np.load(job.frames)
     comp, load, setup, detail = setup_method(job, store, frames)
     first, per1, per64, why, outs = time_frames(comp, frames, job.frame_budget,
-                                                job.method == "gmres")
+                                                job.method in ("gmres", "gmres-3n"))
     np.save(job.out, np.stack(outs))
     detail = detail() if callable(detail) else detail
     return Measured(load, setup, first, per1, per64, peak_rss(), detail, why)
@@ -460,9 +592,9 @@ def skip_reason(method: str, n: int, history: History, target, args) -> str | No
     """Why ``method`` is not run at this n, or None."""
     if method in history.failed:
         return history.failed[method]
-    if method == "pardiso" and args.pardiso_missing:
+    if method in ("pardiso", "pardiso-3n") and args.pardiso_missing:
         return args.pardiso_missing
-    if method in ("gmres", "jacobi") and target is None:
+    if method in ("gmres", "jacobi", "gmres-3n") and target is None:
         return "no error of bigT's inverse to match at this size"
     if method in ("inv", "pinv"):
         return dense_skip(method, n, history, args)
@@ -472,7 +604,8 @@ def skip_reason(method: str, n: int, history: History, target, args) -> str | No
 def launch(job: Job, args) -> tuple[Measured | None, str | None, bool]:
     """Run ``job`` in a child process: (what it measured, None, False), or (None, why
     not, whether a larger n would fail too: out of time or of memory)."""
-    limit = args.mem_limit if job.method not in ("explicit", "matrix-free") else None
+    limit = (args.mem_limit if job.method not in ("explicit", "matrix-free", "colour-general",
+                                                  "colour-global") else None)
 
     def cap():  # in the child, before exec: its address space only
         if limit:
@@ -515,6 +648,45 @@ def run_size(size, work: Path, history: History, res: Results, args) -> list[Row
     return [rows[m] for m in METHODS]
 
 
+def colour_scene(size, path: Path):
+    """The colour Cornell box (global mixing, form factors cut at COLOUR_FF_CUT) at
+    ``path``, reused when an earlier run left it there."""
+    from bigT import scenes
+
+    if not path.exists():
+        scenes.build("cornell", size=size, path=path, density="sparse", ff_cut=COLOUR_FF_CUT,
+                     colour=True, mixing="global", preview=False, progress=False)
+    return scenes.load(path)
+
+
+def run_colour_size(size, work: Path, history: History, res: Results, args) -> list[Row]:
+    """The colour methods at one size (the module's docstring)."""
+    H, W = size
+    label = f"{H}x{W}"
+    t0 = time.perf_counter()
+    scene = colour_scene(size, work / f"cornell_colour_{label}_cut{COLOUR_FF_CUT:g}.zarr")
+    n = H * W
+    print(f"\n[colour {label}] n = {n:,} pixels, a {3 * n:,} x {3 * n:,} system: colour "
+          f"Cornell box ready in {time.perf_counter() - t0:.1f} s; T "
+          f"{scene.T.nnz / (3 * n):.0f} nonzeros/row", flush=True)
+    frames, gain, neg = desired_colour_frames(scene)
+    np.save(work / "desired.npy", frames)
+    uncomp = relative_error(relight(scene.T, frames[:ERROR_FRAMES]), frames[:ERROR_FRAMES])
+    res.value(f"colour uncompensated error:{label}", uncomp, "colour: error with l_in = "
+              "l_desired")
+    res.value(f"colour clipped:{label}", neg, "colour: share of the exact compensation's "
+              "values below 0 (clipped by every method: an error floor for all)")
+    print(f"  desired: direct views of colour test patterns x {gain:.3f}; the exact "
+          f"compensation is below 0 on {100 * neg:.2f} % of values; uncompensated error "
+          f"{uncomp:.4f}")
+    rows, target = {}, None
+    for method in COLOUR_RUN_ORDER:
+        rows[method] = run_method(method, scene, work, target, history, res, args)
+        if method == "colour-general" and rows[method].error is not None:
+            target = TARGET_SLACK * rows[method].error
+    return [rows[m] for m in COLOUR_METHODS]
+
+
 def run_method(method, scene, work: Path, target, history: History, res: Results, args) -> Row:
     """One method at one size: skipped, failed or measured (and its error computed here,
     alike for every method, from the test frames' outputs)."""
@@ -528,8 +700,8 @@ def run_method(method, scene, work: Path, target, history: History, res: Results
                   args.frame_budget)
         measured, why = measure(job, label, history, args)
     if measured is None:
-        res.note(f"{label}, {METHODS[method]}: skipped: {why}.")
-        print(f"  {METHODS[method]:<32} skipped: {why}", flush=True)
+        res.note(f"{label}, {LABELS[method]}: skipped: {why}.")
+        print(f"  {LABELS[method]:<32} skipped: {why}", flush=True)
         return Row(label, n, method, None, None)
     desired = np.load(work / "desired.npy")[:ERROR_FRAMES]
     error = relative_error(relight(scene.T, np.load(job.out)), desired)
@@ -553,10 +725,10 @@ def measure(job: Job, label: str, history: History, args) -> tuple[Measured | No
 
 def record_row(row: Row, res: Results) -> None:
     """A measured row's notes and values into ``res``, and its line printed."""
-    m, name = row.measured, METHODS[row.method]
+    m, name = row.measured, LABELS[row.method]
     if m.skipped64:
         res.note(f"{row.size}, {name}: {m.skipped64}.")
-    if row.method in ("gmres", "jacobi"):
+    if row.method in ("gmres", "jacobi", "gmres-3n"):
         res.value(f"{row.method}:{row.size}", m.detail,
                   f"{name}: how it reached bigT's error (within 10 %) on the test frames")
     print(f"  {name:<32} setup {m.setup_s:8.3f} s  batch 1 {m.frame1_s:9.5f} s  batch 64 "
@@ -707,8 +879,25 @@ def plot(rows: list[Row], path: Path) -> Path:
     return path
 
 
+def report_colour(rows: list[Row], res: Results) -> None:
+    """The colour table into ``res``, and printed."""
+    if not rows:
+        return
+    res.table("alternatives-colour", "Colour: bigT's colour inverse against the rivals that "
+              "take a colour T, per size", COLUMNS, [r.cells() for r in rows],
+              note="The colour Cornell box (global mixing rig, form factors cut at "
+                   f"{COLOUR_FF_CUT:g}); n counts pixels, the system is 3n x 3n; desired "
+                   "frames: direct views of colour test patterns; error = ||T l_in - d|| / "
+                   "||d|| over 4 frames, l_in clipped to [0, 1]; GMRES is tuned to reach the "
+                   "error of bigT's general path; 3 grey splu: the rig's recorded mixing "
+                   "un-mixed per pixel, one splu per colour band; empty = skipped (notes).")
+    print("\ncolour:\n" + markdown(rows) + "\n")
+
+
 def report(rows: list[Row], res: Results) -> None:
     """Table, figure, winners into ``res``; the markdown table and sentences printed."""
+    if not rows:
+        return
     res.table("alternatives", "bigT against the alternatives a user would pick, per size",
               COLUMNS, [r.cells() for r in rows],
               note="Same T (dense corner scene) and the same desired frames for every method; "
@@ -729,12 +918,20 @@ def report(rows: list[Row], res: Results) -> None:
 
 # --- main ---------------------------------------------------------------------------------
 
+def _sizes(text: str) -> list[tuple[int, int]]:
+    """"48x64,96x128" -> [(48, 64), (96, 128)]; "" -> []."""
+    return [_size(s) for s in text.split(",") if s.strip()]
+
+
 def parse(argv):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="48x64 and 96x128, small budgets")
     p.add_argument("--sizes", default=None,
                    help="comma-separated HxW (default 48x64,96x128,192x256,384x512; quick: "
                         "48x64,96x128)")
+    p.add_argument("--colour-sizes", default=None,
+                   help="comma-separated HxW of the colour Cornell box (default 48x64,96x128; "
+                        "quick: 48x64; '' for none)")
     p.add_argument("--density", default="dense", help="corner scene density preset")
     p.add_argument("--workdir", default=None,
                    help="keep (and reuse) the scenes here; default: a temporary directory")
@@ -749,8 +946,10 @@ def parse(argv):
     p.add_argument("--_child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     quick = args.quick
-    args.sizes = [_size(s) for s in (args.sizes or ("48x64,96x128" if quick else
-                                                    "48x64,96x128,192x256,384x512")).split(",")]
+    grey = "48x64,96x128" if quick else "48x64,96x128,192x256,384x512"
+    args.sizes = _sizes(grey if args.sizes is None else args.sizes)
+    colour = "48x64" if quick else "48x64,96x128"
+    args.colour_sizes = _sizes(colour if args.colour_sizes is None else args.colour_sizes)
     args.setup_budget = args.setup_budget or (10.0 if quick else 150.0)
     args.frame_budget = args.frame_budget or (10.0 if quick else 60.0)
     args.child_timeout = args.child_timeout or (60.0 if quick else 420.0)
@@ -774,12 +973,15 @@ def main(argv=None) -> None:
         res.note(f"MKL PARDISO: {args.pardiso_missing}.")
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_alternatives_"))
     work.mkdir(parents=True, exist_ok=True)
-    rows, history = [], History({}, {})
+    rows, colour_rows, history = [], [], History({}, {})
     try:
         for size in args.sizes:
             rows += run_size(size, work, history, res, args)
+        for size in args.colour_sizes:
+            colour_rows += run_colour_size(size, work, history, res, args)
     finally:
         report(rows, res)
+        report_colour(colour_rows, res)
         print(f"results -> {res.save()}")
         if args.workdir is None:
             shutil.rmtree(work, ignore_errors=True)

@@ -8,7 +8,8 @@ fixed threshold, so the cut scales as n^-1/3 and the threshold as n^-1/2). Then,
 in a fresh child process:
 
 * the scene build: time and peak RSS;
-* ``bigT.stratified_inverse`` (power form, 4 terms, prune 1e-5, ``--memory-limit``):
+* ``bigT.stratified_inverse`` (power form, 4 terms, the README's recommended prune
+  3e-6, feed 1e-4 and operator 1e-5, ``--memory-limit``):
   time per term, peak RSS, X's nonzeros and bytes on disk;
 * the error of X against the exact inverse F^-1 (I - A) on a random sample of rows
   (``Scene.inverse_error(X, sample=...)``), and the residual estimate;
@@ -51,8 +52,9 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from _results import Results, run_name  # noqa: E402
 
 #: (H, W) of the sizes measured: n = 12288 (for a quick fit), 49152, 196608, 786432,
-#: 2073600.
-SIZES = [(96, 128), (192, 256), (384, 512), (768, 1024), (1080, 1920)]
+#: 2073600, and 4K UHD's 8294400 (its own run, ``--min-size 8294400 --max-size
+#: 8294400``, with ``--ff-cut``: see ``main``'s help).
+SIZES = [(96, 128), (192, 256), (384, 512), (768, 1024), (1080, 1920), (2160, 3840)]
 #: The dense preset at full HD anchors the scaled densities.
 ANCHOR_N, ANCHOR_CUT, ANCHOR_THRESHOLD = 1080 * 1920, 1e-4, 1e-7
 
@@ -78,6 +80,8 @@ def child_build(args) -> dict:
 
     H, W = args.size
     cut, thr = density_for(H * W)
+    cut = cut if args.ff_cut is None else args.ff_cut
+    thr = thr if args.threshold is None else args.threshold
     t0 = time.perf_counter()
     sc = scenes.corner((H, W), args.scene, ff_cut=cut, threshold=thr, preview=False,
                        progress=False, memory_limit=args.scene_memory)
@@ -93,6 +97,7 @@ def child_invert(args) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     rep = bigT.stratified_inverse(scene.T, out, terms=args.terms, prune=args.prune,
+                                  prune_feed=args.prune_feed, prune_operator=args.prune_operator,
                                   memory_limit=args.memory_limit, progress=False)
     wall = time.perf_counter() - t0
     peak = peak_rss()  # before the error is measured: that reads X and A again
@@ -152,6 +157,10 @@ def run_child(kind: str, args, size, scene: str) -> dict:
            "--size", f"{size[0]}x{size[1]}", "--terms", str(args.terms),
            "--prune", str(args.prune), "--memory-limit", args.memory_limit,
            "--sample", str(args.sample), "--scene-memory", str(args.scene_memory)]
+    cmd += [] if args.prune_feed is None else ["--prune-feed", str(args.prune_feed)]
+    cmd += [] if args.prune_operator is None else ["--prune-operator", str(args.prune_operator)]
+    cmd += [] if args.ff_cut is None else ["--ff-cut", str(args.ff_cut)]
+    cmd += [] if args.threshold is None else ["--threshold", str(args.threshold)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode:
         print(proc.stderr, file=sys.stderr)
@@ -184,9 +193,17 @@ def exponents(rows) -> dict[str, tuple[float, str]]:
     }
 
 
+def settings(args) -> str:
+    """The series' thresholds, as a user gives them."""
+    words = [f"prune {args.prune:g}"]
+    words += [] if args.prune_feed is None else [f"feed {args.prune_feed:g}"]
+    words += [] if args.prune_operator is None else [f"operator {args.prune_operator:g}"]
+    return ", ".join(words)
+
+
 def record_rows(res, rows, args) -> None:
     """The printed table, handed to RESULTS.md (``_results.Results``)."""
-    res.table("scale", f"{args.terms}-term inverse (prune {args.prune:g}, memory limit "
+    res.table("scale", f"{args.terms}-term inverse ({settings(args)}, memory limit "
               f"{args.memory_limit}) against n, the corner at ~constant nonzeros per row",
               ["size", "n", "T nnz/row", "build s", "build peak GiB", "inverse s",
                "terms s", "peak GiB", "X on disk GiB", "error", "residual",
@@ -243,6 +260,8 @@ def invert_report(scene: str, out: str, scheduler, args) -> dict:
     cmd = [sys.executable, "-m", "bigT.cli", "invert", scene, "-o", out, "--terms",
            str(args.terms), "--prune", str(args.prune), "--memory-limit", args.memory_limit,
            "--no-progress", "--overwrite", "--json", report]
+    cmd += [] if args.prune_feed is None else ["--prune-feed", str(args.prune_feed)]
+    cmd += [] if args.prune_operator is None else ["--prune-operator", str(args.prune_operator)]
     if scheduler:
         cmd += ["--scheduler", scheduler]
     env = {**os.environ, "BIGT_IN_MEMORY": "0"}  # a cluster run is out of core: so is this
@@ -391,10 +410,20 @@ def main(argv=None):
                    help="largest n to run (default 196608; 2073600 for full HD)")
     p.add_argument("--min-size", type=int, default=0, help="smallest n to run")
     p.add_argument("--terms", type=int, default=4)
-    p.add_argument("--prune", type=float, default=1e-5)
+    # the README's recommended thresholds (issue #30's full-HD figure): P_k pruned at
+    # 1e-4 keeps the products of a dense 4K T within minutes
+    p.add_argument("--prune", type=float, default=3e-6)
+    p.add_argument("--prune-feed", type=float, default=1e-4)
+    p.add_argument("--prune-operator", type=float, default=1e-5)
     p.add_argument("--memory-limit", default="4GiB")
     p.add_argument("--scene-memory", type=int, default=2 << 30,
                    help="memory_limit of the scene builds, bytes")
+    p.add_argument("--ff-cut", type=float, default=None,
+                   help="the scene's form-factor cut instead of the scaled one (the 4K point: "
+                        "7e-5 with --threshold 1e-7, the dense preset's, for > 50 entries per "
+                        "row at about 60%% of the scaled density's entries)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="the scene's threshold instead of the scaled one")
     p.add_argument("--sample", type=int, default=2048,
                    help="rows of the sampled error against the exact inverse")
     p.add_argument("--no-compensate", action="store_true")

@@ -50,7 +50,7 @@ from bigT.algorithms.target import (
     probe_vectors,
 )
 
-from _results import Results, run_name
+from _results import Results, beside, run_name
 
 COLUMNS = ["scene", "rho", "E", "chosen setting", "time s", "best fixed setting",
            "its time s", "ratio", "error reached", "load"]
@@ -184,7 +184,13 @@ def table_rows(rows) -> list[list]:
     """The table's cells (``COLUMNS``), for RESULTS.md."""
     return [[r["scene"], r["rho"], r["E"], r["chosen"], r["time"], r["best"],
              r["best_time"], _ratio(r),
-             f"{r['error']:.2e}{'' if r['met'] else ' (not met)'}", r["load"]] for r in rows]
+             reached(r), r["load"]] for r in rows]
+
+
+def reached(r) -> str:
+    """The error reached, with the digits that show which side of E it is on (an error
+    of 0.0009996 against E = 0.001 must not print as "1.00e-3")."""
+    return beside(r["error"], r["E"]) + ("" if r["met"] else " (not met)")
 
 
 def table(rows) -> str:
@@ -193,7 +199,7 @@ def table(rows) -> str:
         ratio = _ratio(r)
         lines.append(f"| {r['scene']} | {r['rho']:.2f} | {r['E']:.3g} | {r['chosen']} | "
                      f"{r['time']:.1f} | {r['best']} | {r['best_time']:.1f} | {ratio:.2f} | "
-                     f"{r['error']:.2e}{'' if r['met'] else ' (not met)'} | {r['load']:.1f} |")
+                     f"{reached(r)} | {r['load']:.1f} |")
     return "\n".join(lines)
 
 

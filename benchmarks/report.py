@@ -36,6 +36,7 @@ from _results import (  # noqa: E402
     Machine,
     Table,
     Value,
+    beside,
     machine,
 )
 
@@ -219,11 +220,19 @@ class Cost:
 
     def total(self, frames: int) -> float | None:
         """Setup and ``frames`` frames, batched when there are enough to batch."""
-        per = self.frame64 if frames >= 64 and self.frame64 is not None else self.frame1
+        per = self.per_frame(frames)
         return None if per is None else self.setup + frames * per
 
+    def batched(self, frames: int) -> bool:
+        """Whether ``frames`` frames go quicker in batches of 64 than one by one (a
+        user batches only where it pays: a sparse LU's solve of 64 right-hand sides
+        may take longer a frame than one)."""
+        if frames < 64 or self.frame64 is None:
+            return False
+        return self.frame1 is None or self.frame64 <= self.frame1
+
     def per_frame(self, frames: int) -> float | None:
-        return self.frame64 if frames >= 64 and self.frame64 is not None else self.frame1
+        return self.frame64 if self.batched(frames) else self.frame1
 
 
 def _costs(rows: list[dict]) -> list[Cost]:
@@ -249,7 +258,7 @@ def _break_even(a: Cost, b: Cost, frames: int) -> float | None:
 def _cost_text(c: Cost, frames: int) -> str:
     total = c.total(frames)
     per = c.per_frame(frames)
-    batch = "batch 64" if frames >= 64 and c.frame64 is not None else "batch 1"
+    batch = "batch 64" if c.batched(frames) else "batch 1"
     return (f"{c.method} ({fmt(c.setup)} s setup + {fmt(frames)} × {fmt(per)} s a frame "
             f"at {batch} = {fmt(total)} s; error {fmt(c.error)})")
 
@@ -261,14 +270,15 @@ def _crossings(costs: list[Cost], few: Cost, many: Cost) -> str:
     if few.method != many.method:
         k = _break_even(many, few, big)
         if k is not None:
-            text += f" {many.method} overtakes {few.method} after about {fmt(math.ceil(k))} frames."
+            text += f" {many.method} overtakes {few.method} after about {fmt(whole_frames(k))} frames."
     cheapest = min(costs, key=lambda c: c.per_frame(big))
     if cheapest.method != many.method:
         k = _break_even(cheapest, many, big)
         if k is not None:
+            batched = ", batched" if cheapest.batched(big) else ""
             text += (f" {cheapest.method} has the cheapest frames ({fmt(cheapest.per_frame(big))}"
-                     f" s each, batched) and pays back its {fmt(cheapest.setup)} s setup "
-                     f"against {many.method} after about {fmt(math.ceil(k))} frames.")
+                     f" s each{batched}) and pays back its {fmt(cheapest.setup)} s setup "
+                     f"against {many.method} after about {fmt(whole_frames(k))} frames.")
     return text
 
 
@@ -278,6 +288,24 @@ def summary_alternatives(rec: Record | None) -> list[str]:
     if table is None:
         return ["The alternatives a user would pick instead (dense inverse, sparse LU, "
                 f"PARDISO, GMRES, Jacobi, bigT's two paths): {NOT_MEASURED}."]
+    out = alternatives_sentences(table)
+    out += _quoted_values(rec, "winner:")
+    return out or [f"The alternatives table has no timed rows: {NOT_MEASURED}."]
+
+
+def summary_alternatives_colour(rec: Record | None) -> list[str]:
+    """The same answers for the colour Cornell box (``alternatives-colour``)."""
+    table = rec.table("alternatives-colour") if rec else None
+    if table is None:
+        return ["bigT's colour inverse against the rivals that take a colour T (sparse LU "
+                f"and GMRES on the 3n system, three grey solves with un-mixing): {NOT_MEASURED}."]
+    return [f"Colour Cornell box: {s}" for s in alternatives_sentences(table)] \
+        or [f"The colour alternatives table has no timed rows: {NOT_MEASURED}."]
+
+
+def alternatives_sentences(table: Table) -> list[str]:
+    """Per size of an alternatives table: the quickest for 1 and for 1,000 frames, where
+    they cross, the least memory and what did not run; then who wins where."""
     rows = _rows(table)
     out, wins = [], {}
     for size in dict.fromkeys(r.get("size") for r in rows):
@@ -286,12 +314,12 @@ def summary_alternatives(rec: Record | None) -> list[str]:
         if not costs:
             continue
         n = fmt(sized[0].get("n"))
-        best = {k: min(costs, key=lambda c: c.total(k) if c.total(k) is not None
-                       else math.inf) for k in FRAME_COUNTS}
+        best = {k: quickest(costs, k) for k in FRAME_COUNTS}
         parts = [f"for {fmt(k)} frame{'s' if k > 1 else ''} the quickest is "
                  f"{_cost_text(best[k], k)}" for k in FRAME_COUNTS]
         text = f"At {size} (n = {n}): " + "; ".join(parts) + "."
         text += _crossings(costs, best[FRAME_COUNTS[0]], best[FRAME_COUNTS[-1]])
+        text += _paybacks(costs)
         light = [c for c in costs if c.peak is not None]
         if light:
             low = min(light, key=lambda c: c.peak)
@@ -305,8 +333,70 @@ def summary_alternatives(rec: Record | None) -> list[str]:
             wins.setdefault((best[k].method, k), []).append(str(size))
     out += [f"{m} is the quickest for {fmt(k)} frame{'s' if k > 1 else ''} at "
             f"{', '.join(sizes)}." for (m, k), sizes in sorted(wins.items())]
-    out += _quoted_values(rec, "winner:")
-    return out or [f"The alternatives table has no timed rows: {NOT_MEASURED}."]
+    return out
+
+
+#: The rivals bigT's explicit inverse's payback is stated against, one sentence each
+#: (issue #34: PARDISO, the fastest direct solver, and bigT's own matrix-free path).
+PAYBACK_RIVALS = ("PARDISO", "matrix-free")
+
+
+def _paybacks(costs: list[Cost]) -> str:
+    """After how many frames bigT's explicit X, its setup included, has caught up with
+    each of :data:`PAYBACK_RIVALS` timed at this size (per-frame times as for 1,000
+    frames: batched where that is quicker)."""
+    ours = next((c for c in costs if c.method.startswith("bigT explicit")), None)
+    if ours is None:
+        return ""
+    big, parts = FRAME_COUNTS[-1], []
+    for name in PAYBACK_RIVALS:
+        rival = next((c for c in costs if name in c.method and c is not ours), None)
+        if rival is None:
+            continue
+        k = _break_even(ours, rival, big)
+        if k is None:
+            parts.append(f"never with {rival.method} (its frames are as cheap)")
+        elif k == 0:
+            parts.append(f"with {rival.method} from the first frame (less setup)")
+        else:
+            parts.append(f"with {rival.method} after {fmt(whole_frames(k))} frames")
+    return (f" {ours.method}, its setup included, catches up " + " and ".join(parts) + "."
+            if parts else "")
+
+
+def quickest(costs: list[Cost], frames: int) -> Cost:
+    """The method that compensates ``frames`` frames soonest, its setup included."""
+    return min(costs, key=lambda c: c.total(frames) if c.total(frames) is not None
+               else math.inf)
+
+
+def payback(costs: list[Cost], method: Cost,
+            frames: int = FRAME_COUNTS[-1]) -> tuple[int, Cost | None] | None:
+    """(frames from which ``method``, its setup included, is the quickest of ``costs``,
+    the method it overtakes last, None when it leads from the first frame), per-frame
+    times as for ``frames`` frames; None when another method's frames are as cheap (it
+    is never ahead for good)."""
+    mine, worst, last = method.per_frame(frames), 1, None
+    if mine is None:
+        return None
+    for other in costs:
+        theirs = other.per_frame(frames)
+        if other is method or theirs is None:
+            continue
+        if theirs <= mine:
+            return None
+        if other.setup > method.setup:
+            continue  # behind from the first frame, and falling further behind
+        k = whole_frames(_break_even(method, other, frames))
+        if k > worst:
+            worst, last = k, other
+    return worst, last
+
+
+def whole_frames(x: float) -> int:
+    """The frames a break-even point ``x`` needs: ``x`` rounded up, after rounding off
+    float noise (0.6 / 5e-5 is 12000.000000000002 in floats, and 12,000 frames)."""
+    return math.ceil(float(f"{x:.9g}"))
 
 
 #: The error targets the tradeoff summary answers, loosest first.
@@ -381,11 +471,12 @@ def summary_tradeoff(rec: Record | None) -> list[str]:
             if best is None:
                 low = min(settings, key=lambda s: s.error)
                 parts.append(f"none of its {len(settings)} settings reaches error ≤ "
-                             f"{fmt(target)} (lowest: {fmt(low.error)}, {low.what}, "
+                             f"{fmt(target)} (lowest: {beside(low.error, target)}, {low.what}, "
                              f"{fmt(low.seconds)} s)")
                 break  # a tighter target is not reached either
+            # the error with the digits that show it is within the target, not at it
             parts.append(f"error ≤ {fmt(target)} takes {fmt(best.seconds)} s ({best.what}: "
-                         f"error {fmt(best.error)})")
+                         f"error {beside(best.error, target)})")
         out.append(f"{scene}, fastest of the {len(settings)} settings measured: "
                    + "; ".join(parts) + ".")
     return out
@@ -455,20 +546,217 @@ def summary_video(rec: Record | None) -> list[str]:
         if parts else []
 
 
+#: The goals issue #28 set for the colour paths' time over the grey inverse's.
+COLOUR_GOALS = {"general_over_grey": 10.0, "global_over_grey": 3.5}
+
+
 def summary_colour(rec: Record | None) -> list[str]:
-    """The colour paths' time against grey, and the seen error per term count."""
+    """The colour paths' time against grey (beside their goals), the seen test pattern
+    per compensation, and the time-against-error sweep."""
     if rec is None or rec.table("inverse") is None:
         return [f"Colour (RGB transport): {NOT_MEASURED}."]
-    out = [f"{rec.table('inverse').title}: the general path took "
-           f"{fmt(rec.value('general_over_grey'))}× and the global-mixing path "
-           f"{fmt(rec.value('global_over_grey'))}× the grey inverse's time."]
+    ratios = {k: rec.value(k) for k in COLOUR_GOALS}
+    words = [f"the {what} path took {beside(ratios[k], COLOUR_GOALS[k])}× the grey "
+             f"inverse's time (goal ≤ {fmt(COLOUR_GOALS[k])})"
+             for k, what in (("general_over_grey", "general"),
+                             ("global_over_grey", "global-mixing"))
+             if _num(ratios[k]) is not None]
+    out = [f"{rec.table('inverse').title}: " + " and ".join(words) + "."] if words else []
     seen = rec.table("seen")
     if seen is not None:
         rows = [r for r in _rows(seen) if r.get("target") == "F test pattern"]
-        parts = [f"{r.get('projector image')} {fmt(r.get('dE2000 mean'))}" for r in rows]
+        parts = [f"{r.get('projector image')} {fmt(r.get('dE2000 mean'))} / "
+                 f"{fmt(r.get('dE2000 p95'))} (PSNR {fmt(r.get('PSNR dB'))} dB, SSIM "
+                 f"{fmt(r.get('SSIM'))})" for r in rows]
         if parts:
-            out.append("CIEDE2000 ΔE (mean) of the seen test pattern: " + ", ".join(parts) + ".")
+            out.append("CIEDE2000 ΔE (mean / p95) of the seen colour test pattern: "
+                       + "; ".join(parts) + ".")
+    out += colour_sweep_sentences(rec.table("tradeoff"))
     return out
+
+
+def colour_sweep_sentences(table: Table | None) -> list[str]:
+    """Per colour path: its quickest setting to each seen ΔE of :data:`DELTA_E_TARGETS`
+    (the sweep's rows, term by term over prunes)."""
+    if table is None:
+        return []
+    rows = _rows(table)
+    parts = []
+    for path in dict.fromkeys(r.get("path") for r in rows):
+        settings = [Setting(str(path), f"prune {fmt(r.get('prune'))}, {r.get('terms')} "
+                            f"term{'' if r.get('terms') == 1 else 's'}",
+                            _num(r.get("seconds")), _num(r.get("seen dE2000 mean")))
+                    for r in rows if r.get("path") == path]
+        settings = [x for x in settings if x.seconds is not None and x.error is not None]
+        for target in DELTA_E_TARGETS:
+            best = fastest_within(settings, target)
+            parts.append(f"the {path} path reaches seen ΔE ≤ {fmt(target)} in "
+                         f"{fmt(best.seconds)} s ({best.what}: ΔE "
+                         f"{beside(best.error, target)})" if best else
+                         f"the {path} path does not reach seen ΔE ≤ {fmt(target)} in its "
+                         f"{len(settings)} settings")
+    return [f"{table.title}: " + "; ".join(parts) + "."] if parts else []
+
+
+#: Seen colour errors the colour sweep's summary answers: ΔE 1 is about the smallest
+#: difference a viewer notices side by side; 0.1 a tenth of it.
+DELTA_E_TARGETS = (1.0, 0.1)
+
+
+def summary_calibration(rec: Record | None) -> list[str]:
+    """T's error from one exposure against brackets, and the seen error with and
+    without the calibrated responses (``bench_calibration.py``)."""
+    hdr = rec.table("hdr") if rec else None
+    seen = rec.table("seen") if rec else None
+    if hdr is None and seen is None:
+        return ["Calibration on the simulated nonlinear rig (HDR brackets, the projector's "
+                f"response): {NOT_MEASURED}."]
+    out = []
+    for grid, rows in _grouped(_rows(hdr) if hdr else [], "grid").items():
+        known = [r for r in rows if r.get("response") == "gamma:2.2"]
+        recovered = [r for r in rows if r.get("response") == "recover"]
+        if not known:
+            continue
+        errors = ", ".join(f"{fmt(r.get('T rel. error'))} ({r.get('exposures')} "
+                           f"exposure{'s' if r.get('exposures') != 1 else ''})" for r in known)
+        text = (f"On the {grid} grid (camera {known[0].get('camera')}), T's relative error "
+                f"against the scene's truth from the known camera response: {errors}; its "
+                f"interreflection part {fmt(known[0].get('interreflection (off-diagonal)'))} "
+                f"from one exposure, {fmt(known[-1].get('interreflection (off-diagonal)'))} "
+                f"from {known[-1].get('exposures')}")
+        if recovered:
+            text += ("; with the response recovered from the brackets: " + ", ".join(
+                f"{fmt(r.get('T rel. error'))} ({r.get('exposures')} exposures)"
+                for r in recovered))
+        out.append(text + ".")
+    for r in _rows(seen) if seen else []:
+        out.append(f"The seen error of a compensated gradient on the {r.get('grid')} grid: "
+                   f"{fmt(r.get('linear rig'))} on a linear rig; on the nonlinear rig "
+                   f"{fmt(r.get('nonlinear, calibrated'))} with the calibrated responses "
+                   f"({r.get('calibrated / linear')}× the linear rig's) and "
+                   f"{fmt(r.get('nonlinear, uncalibrated'))} without them.")
+    return out or [f"The calibration tables have no rows: {NOT_MEASURED}."]
+
+
+def _grouped(rows: list[dict], column: str) -> dict[Any, list[dict]]:
+    """Rows by their value in ``column``, in the table's order."""
+    out: dict[Any, list[dict]] = {}
+    for r in rows:
+        out.setdefault(r.get(column), []).append(r)
+    return out
+
+
+def summary_objects(rec: Record | None) -> list[str]:
+    """Object storage against the local directory, per scheduler."""
+    table = rec.table("runs") if rec else None
+    if table is None:
+        return [f"Object storage (S3 on loopback) against a local directory: {NOT_MEASURED}."]
+    rows = _rows(table)
+    parts = [f"{fmt(r.get('seconds'))} s with {r.get('scheduler')} ({fmt(r.get('/ local'))}× "
+             f"the local directory's {fmt(_local_seconds(rows, r))} s)"
+             for r in rows if r.get("storage") != "local directory"]
+    return [f"{table.title.split(':')[0]}: S3 on loopback took " + ", ".join(parts) + "."] \
+        if parts else []
+
+
+def _local_seconds(rows: list[dict], row: dict) -> Any:
+    return next((r.get("seconds") for r in rows if r.get("storage") == "local directory"
+                 and r.get("scheduler") == row.get("scheduler")), None)
+
+
+def summary_cluster_model(rec: Record | None) -> list[str]:
+    """The model's error against the runs made here, and its predictions at the largest
+    size for 1 worker and the quickest worker count, per storage."""
+    if rec is None:
+        return ["The cluster model's predictions (`bench_scale.py --cluster-model`): "
+                f"{NOT_MEASURED}."]
+    out = []
+    check = rec.table("check")
+    if check is not None:
+        errs = [(_num(r.get("error %")), r) for r in _rows(check)]
+        errs = [(e, r) for e, r in errs if e is not None]
+        if errs:
+            worst, r = max(errs, key=lambda x: abs(x[0]))
+            out.append(f"The cluster model predicted the {len(errs)} runs made here within "
+                       f"{fmt(abs(worst))} % of their time (worst: {r.get('predicts')} from "
+                       f"{r.get('from')}, {fmt(r.get('predicted s'))} s predicted against "
+                       f"{fmt(r.get('measured s'))} s measured).")
+    predicted = rec.table("predicted")
+    if predicted is not None and predicted.rows:
+        rows = _rows(predicted)
+        n = max(_num(r.get("n")) or 0 for r in rows)
+        parts = []
+        for storage, mine in _grouped([r for r in rows if _num(r.get("n")) == n],
+                                      "storage").items():
+            timed = [r for r in mine if _num(r.get("seconds")) is not None]
+            if not timed:
+                continue
+            one = min(timed, key=lambda r: _num(r.get("workers")))
+            best = min(timed, key=lambda r: _num(r.get("seconds")))
+            parts.append(f"{storage}: {fmt(one.get('seconds'))} s on {one.get('workers')} "
+                         f"worker, {fmt(best.get('seconds'))} s at best on "
+                         f"{best.get('workers')} workers")
+        if parts:
+            out.append(f"It predicts the inverse at n = {fmt(int(n))} as " + "; ".join(parts)
+                       + ".")
+    return out
+
+
+def summary_when(records: dict[str, Record]) -> list[str]:
+    """When to use bigT and when not, each sentence from a table's numbers: the grey and
+    the colour alternatives (where bigT's inverse pays back, what is quicker for a few
+    frames), and the schedulers (whether more processes paid on this machine)."""
+    out = []
+    for key, what in (("alternatives", "grey"), ("alternatives-colour", "colour")):
+        rec = records.get("alternatives")
+        table = rec.table(key) if rec else None
+        if table is not None:
+            out += when_sentences(table, what)
+    rec = records.get("distributed")
+    table = rec.table("schedulers") if rec else None
+    if table is not None:
+        timed = [r for r in _rows(table) if _num(r.get("total s")) is not None]
+        if timed:
+            best = min(timed, key=lambda r: _num(r.get("total s")))
+            others = ", ".join(f"{r.get('scheduler')} {fmt(r.get('total s'))} s"
+                               for r in timed if r is not best)
+            out.append(f"On one machine, {best.get('scheduler')} ran the inverse quickest "
+                       f"of the {len(timed)} schedulers ({fmt(best.get('total s'))} s; "
+                       f"{others}).")
+    return out or [f"When to use bigT, and when not: {NOT_MEASURED} (the alternatives and "
+                   "the schedulers are needed)."]
+
+
+def when_sentences(table: Table, what: str) -> list[str]:
+    """At the largest size of an alternatives table: from how many frames bigT's
+    explicit inverse (its cheapest-framed bigT row) is the quickest, and what is quicker
+    for one frame."""
+    rows = _rows(table)
+    size = list(dict.fromkeys(r.get("size") for r in rows))[-1]
+    costs = _costs([r for r in rows if r.get("size") == size])
+    mine = [c for c in costs if c.method.startswith("bigT") and c.per_frame(64) is not None]
+    if not mine:
+        return []
+    big = FRAME_COUNTS[-1]
+    ours = min(mine, key=lambda c: c.per_frame(big))
+    paid = payback(costs, ours, big)
+    one = quickest(costs, 1)
+    if paid is None:
+        cheaper = min((c for c in costs if c is not ours and c.per_frame(big) is not None),
+                      key=lambda c: c.per_frame(big))
+        text = (f"{what.capitalize()}, at {size}: {ours.method} is never the quickest for "
+                f"good: {cheaper.method}'s frames are as cheap ({fmt(cheaper.per_frame(big))} "
+                f"s against {fmt(ours.per_frame(big))} s)")
+    else:
+        k, last = paid
+        text = (f"{what.capitalize()}, at {size}: use {ours.method} for {fmt(k)} frames or "
+                f"more: from there it is the quickest of the {len(costs)} methods timed, its "
+                f"{fmt(ours.setup)} s setup included ({fmt(ours.per_frame(big))} s a frame"
+                + (f"; the last it overtakes is {last.method}" if last else "") + ")")
+    if one is not ours:
+        text += (f"; not for a single frame: {one.method} gives it in {fmt(one.total(1))} s "
+                 f"against {fmt(ours.total(1))} s")
+    return [text + "."]
 
 
 def summary_target(rec: Record | None) -> list[str]:
@@ -541,15 +829,20 @@ def summary_paper(records: Iterable[Record], found: bool) -> list[str]:
 def summary(records: dict[str, Record]) -> list[str]:
     """The generated summary: each topic's sentences under a bold lead."""
     topics = [
+        ("When to use bigT, and when not", summary_when(records)),
         ("When bigT's stratified inverse, sparse LU or the matrix-free path is the "
          "right tool", summary_alternatives(records.get("alternatives"))),
         ("Which setting meets an error target fastest", summary_tradeoff(records.get("tradeoff"))
          + summary_target(records.get("target"))),
         ("How it scales", summary_scale(records.get("scale"))
-         + summary_distributed(records.get("distributed"))),
+         + summary_distributed(records.get("distributed"))
+         + summary_cluster_model(records.get("cluster-model"))
+         + summary_objects(records.get("objects"))),
         ("Kernels and throughput", summary_kernels(records.get("kernels"))
          + summary_video(records.get("video"))),
-        ("Colour", summary_colour(records.get("colour"))),
+        ("Colour", summary_colour(records.get("colour"))
+         + summary_alternatives_colour(records.get("alternatives"))),
+        ("Calibration", summary_calibration(records.get("calibration"))),
         ("The paper's figures", summary_paper(records.values(), "paper" in records)),
     ]
     lines = ["## Summary", ""]

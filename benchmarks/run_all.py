@@ -41,7 +41,9 @@ sys.path.insert(0, str(HERE))
 import report  # noqa: E402
 from _results import NAME_ENV, OUT_ENV, code_state, machine  # noqa: E402
 
-#: The full plan (about 70 minutes on 2 cores), in the order of issue #16: the paper's
+#: The full plan (about 70 minutes on 2 cores before issue #34's colour alternatives,
+#: colour sweep, calibration and cluster model, which add about 11), in the order of
+#: issue #16: the paper's
 #: figures, time against error (pruning included), the alternatives, scaling, kernels,
 #: distributed; then the rest. Scratch folders are under bench-out/ (relative to the
 #: repository's root, the children's working directory), where a later run reuses the
@@ -58,6 +60,7 @@ FULL = [
     # rho 0.9 (48x64 Cornell box): tens of terms per setting, ~10 min with its sweep
     ("target-high-rho", ["bench_target.py", "--quick", "--rho", "0.9", "--targets",
                          "0.00392"]),
+    # grey up to 384x512, and the colour Cornell box at 48x64 and 96x128 (issue #34)
     ("alternatives", ["bench_alternatives.py", "--workdir", "bench-out/alternatives"]),
     # the full-HD point (--max-size 2073600, ~40 min) is run on its own
     ("scale", ["bench_scale.py", "--min-size", "12288", "--max-size", "786432",
@@ -65,14 +68,22 @@ FULL = [
     ("kernels", ["bench_kernels.py", "--sizes", "96x128,192x256"]),
     ("distributed", ["bench_distributed.py", "--size", "192x256",
                      "--workdir", "bench-out/distributed"]),
+    # issue #34 (5): the cluster model checked on threads, local:1 and local:2 (192x256,
+    # ~3 min), its full-HD and 4K predictions beside them
+    ("cluster-model", ["bench_scale.py", "--cluster-model", "--workdir",
+                       "bench-out/cluster-model"]),
     ("inverse-dense", ["bench_inverse.py", "--size", "384x512", "--density", "dense",
                        "--settings", "power:1e-5,power:3e-6:1e-4,power:3e-6:1e-4:1e-5,"
                        "power:3e-6:1e-4:3e-5", "--sample", "2048",
                        "--memory-limit", "2GiB", "--workdir", "bench-out/inverse"]),
     ("defaults", ["bench_defaults.py", "--workdir", "bench-out/defaults"]),  # issue #30
     ("video", ["bench_video.py", "--out", "bench-out/video"]),
-    # the colour Cornell box at 384x512: grey vs general vs global-mixing, seen ΔE, video
+    # the colour Cornell box at 384x512: grey vs general vs global-mixing, seen ΔE, video;
+    # time against error of both paths at 96x128
     ("colour", ["bench_colour.py", "--workdir", "bench-out/colour"]),
+    # issue #29 on the simulated nonlinear rig: T from one exposure against brackets, the
+    # seen error with and without the calibrated responses (12x16 and 24x32, ~3 min)
+    ("calibration", ["bench_calibration.py", "--workdir", "bench-out/calibration"]),
     ("compensate", ["bench_compensate.py", "--skip", "throughput"]),
     ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
     ("store", ["bench_store.py"]),
@@ -97,7 +108,7 @@ QUICK = [
                   "--workdir", "bench-out/tradeoff-quick"]),
     ("target", ["bench_target.py", "--quick", "--rho", "0.2", "--targets", "0.00392"]),
     ("alternatives", ["bench_alternatives.py", "--quick", "--sizes", "32x48,48x64",
-                      "--workdir", "bench-out/alternatives-quick"]),
+                      "--colour-sizes", "24x32", "--workdir", "bench-out/alternatives-quick"]),
     ("scale", ["bench_scale.py", "--max-size", "49152", "--no-compensate",
                "--workdir", "bench-out/scale-quick"]),
     ("kernels", ["bench_kernels.py", "--sizes", "48x64", "--repeat", "1"]),

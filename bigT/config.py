@@ -215,6 +215,17 @@ SCENE_SPECTRAL_RTOL = 1e-6
 #: ...and gives up (the radius "undetermined", never a guess) after this many products
 #: (each one streams T or A once when they do not fit SCENE_IN_MEMORY_BYTES).
 SCENE_SPECTRAL_MAX_PRODUCTS = 600
+#: Above this many unknowns (beyond full HD) a grey scene's rho(M) and rho(A) are
+#: bracketed by Collatz-Wielandt bounds (rigorous, their half-width recorded as the
+#: uncertainty) instead of ARPACK's tolerance: ARPACK's Krylov vectors take
+#: SPECTRAL_RADIUS_NCV n float64 (1.3 GB at 4K, beyond a 4 GiB build's share) and its
+#: ~600 products, each streaming T from disk, did not converge in 18 minutes on the 4K
+#: corner; the bracket holds a handful of vectors and took ~20 products.
+SCENE_BRACKET_MIN_N = 4_000_000
+#: Share of a scene build's memory limit the ground truth's products may fill with
+#: decoded tile rows of T or A; the rest holds the estimates' vectors (n float64 each)
+#: and the products' temporaries.
+SCENE_STATS_CACHE_SHARE = 0.5
 #: Memory a scene build may hold of A and T (default of ``memory_limit``): a matrix
 #: within it is read whole once, a larger one tile row by tile row.
 SCENE_IN_MEMORY_BYTES = 2 << 30

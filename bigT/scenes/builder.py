@@ -34,7 +34,9 @@ import hashlib
 import math
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +45,7 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import BigTError, InvalidMatrixError, ShapeMismatchError
 from ..progress import progress_bar
+from ..schedule.memory import return_freed_memory
 from ..storage import BlockCSRWriter, ObjectPath, PixelOrder, as_location, check_replaceable
 from . import geometry, palette, radiosity, stored
 from .catalog import DEFAULT_SIZES, DENSITIES, SCENE_NAMES
@@ -99,6 +102,11 @@ def _albedo_vector(albedo, size, perm) -> tuple[np.ndarray, object]:
                                  "light back and makes T singular, one reflecting all light "
                                  "(1) makes the bounce series diverge")
     return vec, label
+
+
+def _permuted_patches(name, size, perm: np.ndarray) -> geometry.Patches:
+    """The scene's patches in the store's pixel order."""
+    return _patches(name, size).take(perm)
 
 
 def _patches(name, size):
@@ -232,7 +240,8 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     density, cut, thr = _resolve_density(density, ff_cut, threshold, pixels)
     radiosity.check_all_pairs(pixels, cut)
 
-    P = _patches(name, size).take(perm)
+    patches = partial(_permuted_patches, name, size, perm)
+    P = patches()
     G = radiosity.gaussian_blur_matrix(size, blur, perm) if blur > 0 else None
     colour_parts = None
     if rig is None:
@@ -244,6 +253,9 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
         colour_parts = ColourParts.of(rig, size, perm, f_bands, table)
         f = f_bands.ravel()  # the bands interleaved, 3 p + k
         G = None if G is None else radiosity.interleave_bands(G)
+    # the form factors make the patches again: their ~76 bytes a pixel (630 MB at 4K)
+    # are not held while T is multiplied out beside A
+    del P
     memory_limit = int(memory_limit or config.SCENE_IN_MEMORY_BYTES)
     exact = thr == 0 and noise == 0 and floor == 0 and blur == 0
     params = {
@@ -256,7 +268,7 @@ def build(name: str, size=None, path=None, *, albedo=0.6, density=None, ff_cut=N
     if albedo_label == "texture":  # a texture is not in the parameters: its digest is
         params["albedo_digest"] = hashlib.sha256(albedo_vec.tobytes()).hexdigest()
     path.parent.mkdir(parents=True, exist_ok=True)
-    recipe = _Recipe(path, params, P, albedo_vec, f, G, cut, thr, noise, floor, int(seed),
+    recipe = _Recipe(path, params, patches, albedo_vec, f, G, cut, thr, noise, floor, int(seed),
                      tile_size, dtype, po, memory_limit, exact, colour_parts)
     with stored.disk_full_names(path):
         return _build_resumable(recipe, preview, progress, t_start)
@@ -269,7 +281,7 @@ class _Recipe:
 
     path: Path
     params: dict
-    patches: geometry.Patches
+    patches: Callable[[], geometry.Patches]  # made for A only, then let go
     albedo: np.ndarray
     f: np.ndarray
     G: sp.csr_array | None
@@ -297,12 +309,14 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     T = BlockCSRWriter(tmp, (params["n"], params["n"]), tile_size=r.tile_size,
                        dtype=r.dtype, pixel_order=r.pixel_order, resume=True)
     gt = new_ground_truth_group(tmp)
-    A = stored.write_interreflection(r.patches, r.albedo, r.cut, gt / "A", r.pixel_order,
+    A = stored.write_interreflection(r.patches(), r.albedo, r.cut, gt / "A", r.pixel_order,
                                      T.tile_size, progress)
     timings["seconds_form_factors"] = time.perf_counter() - t0
+    return_freed_memory()  # each phase starts from what it holds, not the last one's peak
     t0 = time.perf_counter()
     T, max_bounces = _write_transport(T, A, r, progress)
     timings["seconds_T"] = time.perf_counter() - t0
+    return_freed_memory()
     t0 = time.perf_counter()
     if r.colour is None:
         stats = ground_truth_stats(T, A, r.f, r.G, r.memory_limit)
@@ -372,6 +386,8 @@ def _transport_rows(writer, times_A, recipe: _Recipe, progress):
         if noise > 0 or floor > 0:
             rows = _add_noise(rows, noise, floor, np.random.default_rng([seed, i]))
         writer.write_tile_row(i, rows)
+        del rows
+        return_freed_memory()  # a tile row's temporaries, a few ms against ~1 s of products
     return writer.finalize(), max_bounces
 
 

@@ -23,7 +23,8 @@ def finite_or_none(value: float) -> float | None:
 
 def spectral_radius_T(times_T, d) -> SpectralRadius:
     """rho(M) for M = I - T diag(d)^-1 on the pixels with d > 0, to
-    ``config.SCENE_SPECTRAL_RTOL``; ``times_T(V)`` is T @ V."""
+    ``config.SCENE_SPECTRAL_RTOL`` (bracketed beyond ``config.SCENE_BRACKET_MIN_N``
+    pixels, :func:`_radius`); ``times_T(V)`` is T @ V."""
     inv = np.zeros_like(d)
     inv[d > 0] = 1.0 / d[d > 0]
     lit = d > 0
@@ -34,7 +35,19 @@ def spectral_radius_T(times_T, d) -> SpectralRadius:
         W = V * inv[:, None]
         return times_T(W) - d[:, None] * W
 
-    return spectral_radius(minus_M, len(d), lit, rtol=config.SCENE_SPECTRAL_RTOL,
+    return _radius(minus_M, len(d), lit)
+
+
+def _radius(apply_nonneg, n: int, active: np.ndarray | None = None) -> SpectralRadius:
+    """rho of the nonnegative operator ``apply_nonneg`` (T >= 0 makes -M and A so) on
+    ``active``: ARPACK to ``config.SCENE_SPECTRAL_RTOL``, or beyond
+    ``config.SCENE_BRACKET_MIN_N`` unknowns the Collatz-Wielandt bracket first (ARPACK
+    only where it is not narrow, ``bigT.spectral.spectral_radius``)."""
+    if n > config.SCENE_BRACKET_MIN_N:
+        return spectral_radius(lambda V: -apply_nonneg(V), n, active, nonpositive=True,
+                               rtol=config.SCENE_SPECTRAL_RTOL,
+                               max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
+    return spectral_radius(apply_nonneg, n, active, rtol=config.SCENE_SPECTRAL_RTOL,
                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
 
 
@@ -106,13 +119,13 @@ def _radii_and_bounces(T, A, f, G, memory_limit: int, radius_of_M, lit: np.ndarr
     and the bounce images of the light ``lit`` (f G lit first), T and A each held
     within ``memory_limit`` in turn."""
     n = T.shape[0]
-    times_T = stored.stored_apply(T, memory_limit)
+    cache = int(config.SCENE_STATS_CACHE_SHARE * memory_limit)
+    times_T = stored.stored_apply(T, cache)
     rho_M = radius_of_M(times_T)
     T1 = times_T(np.ones(n))
     del times_T
-    times_A = stored.stored_apply(A, memory_limit)
-    rho_A = spectral_radius(times_A, n, rtol=config.SCENE_SPECTRAL_RTOL,
-                            max_products=config.SCENE_SPECTRAL_MAX_PRODUCTS)
+    times_A = stored.stored_apply(A, cache)
+    rho_A = _radius(times_A, n)
     b0 = f * (G @ lit if G is not None else lit)
     bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
                                       config.SCENE_SHARE_TOL)

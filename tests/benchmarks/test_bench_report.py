@@ -267,3 +267,230 @@ def test_the_committed_results_need_a_clean_tree(monkeypatch):
     clean = _results.CodeState("abc1234", True)
     monkeypatch.setattr(run_all, "code_state", lambda root: clean)
     assert run_all.refuse_dirty(committed, allow_dirty=False) is None
+
+
+# --- errors beside their targets ----------------------------------------------------------------
+
+@pytest.mark.parametrize("value, target, text", [
+    (4.98e-4, 5e-4, "4.98e-4"), (5.02e-4, 5e-4, "5.02e-4"), (5e-4, 5e-4, "5.00e-4"),
+    (4.9996e-4, 5e-4, "4.9996e-4"), (1.0004e-4, 1e-4, "1.0004e-4"), (1.4996, 1.5, "1.4996"),
+    (0.00226, 0.00392, "0.00226"), (0.0039199, 0.00392, "0.0039199")])
+def test_an_error_never_prints_as_its_target(value, target, text):
+    shown = _results.beside(value, target)
+    assert shown == text
+    # read back, it lies on the same side of the target as the value
+    assert (float(shown) < target) == (value < target)
+    assert (float(shown) > target) == (value > target)
+
+
+def test_tradeoff_summary_prints_an_error_just_under_its_target_as_under(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    res = _results.Results("tradeoff", "Run time against error")
+    res.table("terms:corner", "Time against error per term: corner",
+              ["method", "term", "term s", "cumulative s", "wall s", "error", "residual",
+               "nnz(X)"],
+              [["power", 3, 0.3, 0.9, 1.0, 9.9996e-5, 8e-5, 4000],
+               ["power", 4, 0.3, 1.2, 1.3, 1.00004e-4, 8e-5, 4000]],
+              note="n = 12288, prune 1e-05. cumulative s: ...")
+    res.save()
+    line, = report.summary_tradeoff(report.load_records(tmp_path)["tradeoff"])
+    assert "error ≤ 1.00e-4 takes 0.9 s (power, 3 terms, prune 1e-05: error 9.9996e-5)" in line
+
+
+# --- colour, calibration and clusters in the summary --------------------------------------------
+
+ALT_COLUMNS = ["size", "n", "method", "setup s", "frame s (batch 1)", "frame s (batch 64)",
+               "peak MiB", "error"]
+
+
+def _alternatives(folder: Path) -> None:
+    """Grey and colour alternatives: bigT's X has the cheapest frames and the most setup;
+    splu is the quickest to one frame."""
+    res = _results.Results("alternatives", "alternatives")
+    res.table("alternatives", "grey", ALT_COLUMNS,
+              [["96x128", 12288, "scipy splu", 0.5, 0.01, 0.008, 300.0, 1e-12],
+               ["96x128", 12288, "bigT explicit X (4 terms)", 3.0, 0.002, 0.0005, 500.0, 4e-5],
+               ["96x128", 12288, "bigT matrix-free (4 terms)", 0.2, 0.02, 0.005, 200.0, 4e-5]])
+    res.table("alternatives-colour", "colour", ALT_COLUMNS,
+              [["48x64", 3072, "scipy splu of the 3n system", 0.3, 0.004, 0.003, 190.0, 3e-3],
+               ["48x64", 3072, "3 grey splu + per-pixel un-mixing", 0.2, 0.003, 0.0035,
+                185.0, 3e-3],
+               ["48x64", 3072, "bigT colour X, general path (4 terms)", 1.6, 5e-4, 9e-5,
+                207.0, 3e-3],
+               ["48x64", 3072, "bigT colour X, global-mixing path (4 terms)", 2.2, 4e-4, 4e-5,
+                191.0, 3e-3],
+               ["48x64", 3072, "MKL PARDISO of the 3n system", None, None, None, None, None]])
+    res.save()
+
+
+def test_when_to_use_bigT_is_computed_from_the_tables(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    _alternatives(tmp_path)
+    records = report.load_records(tmp_path)
+    grey, colour = report.summary_when(records)
+    # grey: X (3 s setup, 5e-4 s a frame) against splu (0.5 s, 8e-3) and matrix-free
+    # (0.2 s, 5e-3): ahead of splu after ceil(2.5 / 7.5e-3) = 334 frames, of the
+    # matrix-free path after ceil(2.8 / 4.5e-3) = 623: the later one
+    assert grey.startswith("Grey, at 96x128: use bigT explicit X (4 terms) for 623 frames or "
+                           "more: from there")
+    assert ("quickest of the 3 methods timed, its 3 s setup included (5.00e-4 s a frame; the "
+            "last it overtakes is bigT matrix-free (4 terms))") in grey
+    assert "not for a single frame: bigT matrix-free (4 terms) gives it in 0.22 s against 3 s" \
+        in grey
+    # colour: the global path's frames are the cheapest; splu's 0.3 s setup at 3e-3 a frame:
+    # ceil((2.2 - 0.3) / (3e-3 - 4e-5)) = 642; un-mixing, one by one (its batch of 64 is
+    # slower a frame): ceil(2 / (3e-3 - 4e-5)) = 676; the general path: ceil(0.6 / 5e-5)
+    assert colour.startswith("Colour, at 48x64: use bigT colour X, global-mixing path (4 terms) "
+                             "for 12,000 frames or more")
+    assert "quickest of the 4 methods timed" in colour  # PARDISO did not run
+    lines = report.summary_alternatives_colour(records["alternatives"])
+    assert lines[0].startswith("Colour Cornell box: At 48x64 (n = 3,072): for 1 frame the "
+                               "quickest is 3 grey splu + per-pixel un-mixing")
+    assert "Not run here: MKL PARDISO of the 3n system" not in lines[0]  # empty: not a reason
+
+
+def test_when_to_use_bigT_says_never_when_another_has_cheaper_frames(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    res = _results.Results("alternatives", "alternatives")
+    res.table("alternatives", "grey", ALT_COLUMNS,
+              [["48x64", 3072, "numpy.linalg.inv (dense)", 1.0, 3e-4, 1e-4, 300.0, 1e-12],
+               ["48x64", 3072, "bigT explicit X (4 terms)", 3.0, 1e-3, 2e-4, 500.0, 4e-5]])
+    res.save()
+    line, = report.summary_when(report.load_records(tmp_path))
+    assert ("bigT explicit X (4 terms) is never the quickest for good: numpy.linalg.inv "
+            "(dense)'s frames are as cheap (1.00e-4 s against 2.00e-4 s)") in line
+
+
+def test_summary_without_records_says_not_measured():
+    assert "not measured in this run" in report.summary_when({})[0]
+    assert "not measured in this run" in report.summary_calibration(None)[0]
+    assert "not measured in this run" in report.summary_colour(None)[0]
+    assert "not measured in this run" in report.summary_alternatives_colour(None)[0]
+    assert "not measured in this run" in report.summary_objects(None)[0]
+    assert "not measured in this run" in report.summary_cluster_model(None)[0]
+
+
+def test_calibration_summary_quotes_its_tables(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    res = _results.Results("calibration", "Calibration")
+    res.table("seen", "seen", ["grid", "camera", "linear rig", "nonlinear, calibrated",
+                               "nonlinear, uncalibrated", "calibrated / linear",
+                               "goal <= 1.5x met"],
+              [["24x32", "60x80", 0.0553, 0.0428, 0.7176, _results.beside(1.4996, 1.5), True]])
+    res.table("hdr", "hdr", ["grid", "camera", "exposures", "response", "camera response",
+                             "nnz/row", "T rel. error", "direct (diagonal)",
+                             "interreflection (off-diagonal)", "off-diagonal light kept",
+                             "projector response max error", "build s"],
+              [["24x32", "60x80", 1, "gamma:2.2", "gamma 2.2", 2.2, 0.0097, 0.0047, 0.4794,
+                0.107, 2.8e-4, 1.4],
+               ["24x32", "60x80", 3, "gamma:2.2", "gamma 2.2", 20.7, 0.0068, 0.0046, 0.2848,
+                0.321, 2.9e-4, 4.3],
+               ["24x32", "60x80", 3, "recover", "recovered", 20.0, 0.0071, 0.0046, 0.29,
+                0.3, 3e-4, 4.4]])
+    res.save()
+    hdr, seen = report.summary_calibration(report.load_records(tmp_path)["calibration"])
+    assert ("On the 24x32 grid (camera 60x80), T's relative error against the scene's truth "
+            "from the known camera response: 0.0097 (1 exposure), 0.0068 (3 exposures); its "
+            "interreflection part 0.479 from one exposure, 0.285 from 3; with the response "
+            "recovered from the brackets: 0.0071 (3 exposures).") == hdr
+    assert "0.0428 with the calibrated responses (1.4996× the linear rig's)" in seen
+    assert "0.718 without them" in seen
+
+
+def test_colour_summary_compares_with_goals_and_reads_the_sweep(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    res = _results.Results("colour")
+    res.table("inverse", "Cornell box 48x64", ["path", "seconds", "nnz(X)", "x grey"],
+              [["grey", 1.0, 10, 1.0]])
+    res.value("general_over_grey", 1.53, "")
+    res.value("global_over_grey", 3.4996, "")
+    res.table("tradeoff", "Time against error, colour",
+              ["path", "prune", "terms", "seconds", "nnz(X)", "error", "seen dE2000 mean"],
+              [["general", 1e-4, 1, 0.5, 10, 1e-3, 1.2], ["general", 1e-4, 2, 0.8, 10, 1e-3, 0.3],
+               ["general", 1e-6, 3, 1.5, 10, 1e-3, 0.09],
+               ["global", 1e-4, 1, 0.6, 10, 1e-3, 0.9], ["global", 1e-4, 2, 0.9, 10, 1e-3, 0.2]])
+    res.save()
+    lines = report.summary_colour(report.load_records(tmp_path)["colour"])
+    assert ("the general path took 1.53× the grey inverse's time (goal ≤ 10) and the "
+            "global-mixing path took 3.4996× the grey inverse's time (goal ≤ 3.5)") in lines[0]
+    sweep = lines[-1]
+    assert "the general path reaches seen ΔE ≤ 1 in 0.8 s (prune 1.00e-4, 2 terms: ΔE 0.3)" \
+        in sweep
+    assert "the general path reaches seen ΔE ≤ 0.1 in 1.5 s (prune 1.00e-6, 3 terms" in sweep
+    assert "the global path reaches seen ΔE ≤ 1 in 0.6 s" in sweep
+    assert "the global path does not reach seen ΔE ≤ 0.1 in its 2 settings" in sweep
+
+
+def test_clusters_in_the_summary(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    dist = _results.Results("distributed", "schedulers")
+    dist.table("schedulers", "4-term inverse", ["scheduler", "total s", "terms s", "tasks",
+                                                "ms/task", "peak RSS per process",
+                                                "max |X - X_threads|"],
+               [["threads", 16.6, "", 0, 0, "", 0.0], ["local:2", 24.0, "", 10, 1, "", 0.0],
+                ["2 dask workers", 18.8, "", 10, 1, "", 0.0]])
+    dist.save()
+    objects = _results.Results("objects", "Object storage: a 4-term inverse, local vs S3")
+    objects.table("runs", "Object storage: best of the repeats",
+                  ["storage", "scheduler", "engine path", "seconds", "/ local"],
+                  [["local directory", "threads", "in-memory", 2.0, 1.0],
+                   ["S3 on loopback", "threads", "in-memory", 2.5, 1.25]])
+    objects.save()
+    model = _results.Results("cluster-model", "The cluster run")
+    model.table("check", "check", ["from", "predicts", "predicted s", "measured s", "error %",
+                                   "predicted MiB/worker", "measured MiB/worker",
+                                   "memory error %"],
+                [["local:1", "local:2", 10.0, 11.0, -9.1, 100, 110, -9],
+                 ["local:1", "threads", 8.0, 8.4, 4.8, 100, 100, 0]])
+    model.table("predicted", "predicted", ["n", "storage", "workers", "seconds",
+                                           "GiB per worker", "batched"],
+                [[8294400, "shared filesystem", 1, 5000.0, 6.0, False],
+                 [8294400, "shared filesystem", 16, 600.0, 1.0, False],
+                 [8294400, "shared filesystem", 64, 700.0, 0.5, True],
+                 [2073600, "shared filesystem", 1, 900.0, 2.0, False]])
+    model.save()
+    records = report.load_records(tmp_path)
+    assert report.summary_when(records)[-1] == (
+        "On one machine, threads ran the inverse quickest of the 3 schedulers (16.6 s; "
+        "local:2 24 s, 2 dask workers 18.8 s).")
+    check, predicted = report.summary_cluster_model(records["cluster-model"])
+    assert check.startswith("The cluster model predicted the 2 runs made here within 9.1 % "
+                            "of their time (worst: local:2 from local:1")
+    assert predicted == ("It predicts the inverse at n = 8,294,400 as shared filesystem: "
+                         "5,000 s on 1 worker, 600 s at best on 16 workers.")
+    objects_line, = report.summary_objects(records["objects"])
+    assert "S3 on loopback took 2.5 s with threads (1.25× the local directory's 2 s)" \
+        in objects_line
+
+
+def test_the_payback_against_pardiso_and_the_matrix_free_path(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    res = _results.Results("alternatives", "alternatives")
+    res.table("alternatives", "grey", ALT_COLUMNS,
+              [["96x128", 12288, "MKL PARDISO (pypardiso)", 0.4, 0.004, 0.003, 300.0, 1e-12],
+               ["96x128", 12288, "bigT explicit X (4 terms)", 3.0, 0.002, 0.0005, 500.0, 4e-5],
+               ["96x128", 12288, "bigT matrix-free (4 terms)", 0.2, 0.02, 0.005, 200.0, 4e-5]])
+    res.save()
+    line = report.summary_alternatives(report.load_records(tmp_path)["alternatives"])[0]
+    # (3 - 0.4) / (0.003 - 0.0005) = 1040 frames; (3 - 0.2) / (0.005 - 0.0005) = 622.2 -> 623
+    assert ("bigT explicit X (4 terms), its setup included, catches up with MKL PARDISO "
+            "(pypardiso) after 1,040 frames and with bigT matrix-free (4 terms) after 623 "
+            "frames.") in line
+
+
+def test_frames_are_batched_only_where_batching_pays():
+    lu = report.Cost("scipy splu", 0.3, 0.004, 0.02, 1e-12, None)
+    X = report.Cost("bigT explicit X", 2.0, 0.002, 0.0005, 4e-5, None)
+    assert not lu.batched(1000) and lu.per_frame(1000) == 0.004
+    assert X.batched(1000) and X.per_frame(1000) == 0.0005
+    assert not X.batched(10) and X.per_frame(10) == 0.002  # too few frames to batch
+    assert lu.total(1000) == pytest.approx(0.3 + 1000 * 0.004)
+
+
+def test_the_target_table_prints_the_error_reached_beside_its_target():
+    import bench_target
+
+    assert bench_target.reached({"error": 9.996e-4, "E": 1e-3, "met": True}) == "9.996e-4"
+    assert bench_target.reached({"error": 1.0004e-3, "E": 1e-3, "met": False}) == \
+        "0.0010004 (not met)"
+    assert bench_target.reached({"error": 2.26e-3, "E": 3.92e-3, "met": True}) == "0.00226"

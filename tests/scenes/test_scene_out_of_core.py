@@ -137,3 +137,26 @@ def test_a_leftover_of_other_parameters_is_started_over(tmp_path, monkeypatch):
     fresh = build(tmp_path / "fresh.zarr", albedo=0.6)
     assert (exact(scene.T) != exact(fresh.T)).nnz == 0
     assert (path / GROUND_TRUTH / "A").is_dir()
+
+
+def test_beyond_the_bracket_size_the_radii_are_brackets_holding_the_eigenvalues(
+        tmp_path, monkeypatch):
+    """A scene beyond ``config.SCENE_BRACKET_MIN_N`` pixels (here every scene) records
+    Collatz-Wielandt brackets of rho(M) and rho(A), which hold numpy's values."""
+    from bigT import config
+
+    monkeypatch.setattr(config, "SCENE_BRACKET_MIN_N", 0)
+    sc = build(tmp_path / "c.zarr")
+    T, A = exact(sc.T).toarray(), exact(sc.A).toarray()
+    d = np.diag(T)
+    rho_M = np.abs(np.linalg.eigvals(np.eye(len(d)) - T / d[None, :])).max()
+    rho_A = np.abs(np.linalg.eigvals(A)).max()
+    s = sc.summary
+    for got, width, method, want in (
+            (s["spectral_radius"], s["spectral_radius_uncertainty"],
+             s["spectral_radius_method"], rho_M),
+            (s["spectral_radius_A"], s["spectral_radius_A_uncertainty"],
+             s["spectral_radius_A_method"], rho_A)):
+        assert method == "collatz-wielandt"
+        assert 0 < width <= 0.1 * got  # narrow enough to be accepted
+        assert got - width <= want <= got + width

@@ -6,7 +6,7 @@ import scipy.sparse as sp
 
 from bigT import config
 from bigT.errors import MemoryLimitError
-from bigT.schedule import blocks
+from bigT.schedule import blocks, memory
 from bigT.schedule.memory import (M_ROW_BYTES_PER_ENTRY, MemoryPlan, plan_memory,
                                   resident_bytes, stored_bytes)
 
@@ -120,3 +120,19 @@ def test_human_bytes():
 
     assert [human_bytes(b) for b in (12, 3 << 10, 45 * MiB, 3 << 30)] == \
         ["12 B", "3 KiB", "45 MiB", "3.00 GiB"]
+
+
+@pytest.mark.skipif(memory._glibc() is None, reason="malloc_trim is glibc's")
+def test_freed_heap_pages_are_handed_back():
+    """64 KB arrays come from glibc's heap; freed below a live one at its top, they stay
+    resident until ``return_freed_memory``."""
+    before = memory.resident_bytes()
+    arrays = [np.ones(8000) for _ in range(8000)]  # 8000 x 64 KB = 512 MB
+    top = np.ones(8000)  # keeps the heap's top in use: no automatic trim
+    grown = memory.resident_bytes() - before
+    del arrays
+    memory.return_freed_memory()
+    after = memory.resident_bytes() - before
+    assert grown > 400 << 20
+    assert after < grown / 4
+    assert top.sum() == 8000
