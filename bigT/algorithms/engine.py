@@ -40,6 +40,7 @@ import numpy as np
 from ..errors import DivergenceError
 from ..storage import InverseStore
 from ..storage import open as open_store
+from ..schedule.memory import return_freed_memory
 from .divergence import checked_radius, refuse_growing_residual
 from .engine_path import IN_MEMORY, OUT_OF_CORE, PathChoice
 from .matvecs import MatVecs
@@ -186,6 +187,7 @@ class InverseEngine:
             self._publish_held()
         self.passes.warn_row_width(held, k, self.record.history)
         self.store.clean(keep={self.record.dir, k})
+        return_freed_memory()  # the last term's temporaries: each term starts from what it holds
         t0 = time.perf_counter()
         stats = []
         write = self._writes(k)

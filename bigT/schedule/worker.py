@@ -28,7 +28,8 @@ from ._backend import (BlockDiagonal, KeptTiles, as_location, is_url, open_store
                        write_tile_row)
 from .cache import TileCache
 from .costs import shared_read_bytes, thread_io
-from .memory import PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory, resident_bytes
+from .memory import (PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory, resident_bytes,
+                     return_freed_memory)
 from .operators import MOperand, StoreOperand, needed_rows
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 
@@ -409,6 +410,10 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
         if budget is not None:
             ctx.cache.resize(budget)
         stats = spec.task(ctx)
+        del ctx
+        # the task's temporaries back to the system: else glibc's heap keeps them
+        # resident, and a term of many tasks outgrows the memory plan (4K corner)
+        return_freed_memory()
     except BigTError:
         raise
     except OSError as exc:
