@@ -102,11 +102,11 @@ class _CountingSource:
         self.read_so_far = 0
         self._lock = threading.Lock()
 
-    def read(self, file):
+    def read(self, file, dtype=np.float64):
         time.sleep(0.002)
         with self._lock:
             self.read_so_far += 1
-        return np.full((2, 3), int(file[1:]), np.float64)
+        return np.full((2, 3), int(file[1:]), dtype)
 
 
 def test_decoded_ahead_keeps_at_most_ahead_frames_in_flight():
