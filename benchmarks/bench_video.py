@@ -21,7 +21,12 @@ out/ --batch 1`` (:class:`bigT.compensation.FileCompensation`, X in memory: the 
 decoded ahead and encoded behind on a pool of threads) and, as it was, one batch at a
 time (``--serial``), beside a plain loop a user would write: read each frame (imageio,
 and OpenCV's decoder for the quicker loop), multiply with scipy, write it (the same
-library). Interleaved repeats, best of each; X loaded before the clock starts in all.
+library). The PNG files are lossless 16-bit in all; bigT writes zlib level 1, imageio
+(Pillow) level 6 unless told, so the imageio loop also runs at level 1 (the fair rival),
+and OpenCV writes level 1 with its own filter and strategy (:data:`PLAIN_LOOPS`).
+Interleaved repeats, best of each; X loaded before the clock starts in all. With
+``--folder-trees main=/work/main,branch=.`` the CLI of each checkout runs too, each in
+its own process (its report's seconds: X loaded before): before and after in one run.
 
 Issue #32 items 3 and 2 (``--realtime``, ``--uhd-X``): at full HD, ``bigT compensate
 X.zarr in.mp4 -o out.mp4`` (a lossless and a CRF 18 H.264 input) at batch 1, 4 and 8
