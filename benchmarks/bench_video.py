@@ -348,7 +348,10 @@ def record(rows: list[Row], products: list[tuple], X, frames: int,
                        "before the clock starts; zlib levels: imageio (Pillow) 6 by "
                        "default, the level-1 loop and bigT 1, OpenCV 1 (sub filter, RLE); "
                        "CPU seconds: the process's, every thread's (a loaded machine "
-                       "stretches the wall time, less so these)")
+                       "stretches the wall time, less so these; a CLI row's include its "
+                       "start-up and X's loading). On two free cores a single-threaded loop "
+                       "runs at best at 1000 / its CPU ms per frame, the pooled bigT at "
+                       "2000 / its own")
         pooled = next(r for r in folder if r.mode == "compensate --batch 1")
         res.value("folder:speedup", pooled.ratio, "compensate --batch 1 of a folder of 16-bit "
                   "PNG frames over the plain imageio + scipy loop")
@@ -360,13 +363,14 @@ def record(rows: list[Row], products: list[tuple], X, frames: int,
 
 FOLDER_COLUMNS = ["mode", "frames", "seconds (best)", "frames/s", "x the imageio loop",
                   "x the level-1 imageio loop", "x the OpenCV loop",
-                  "CPU seconds (all threads)", "kB per frame written", "load 1/5/15 min"]
+                  "CPU seconds (all threads)", "CPU ms per frame", "kB per frame written",
+                  "load 1/5/15 min"]
 
 
 def folder_cells(r: FolderRow) -> list:
     return [r.mode, r.frames, round(r.seconds, 2), round(r.fps, 1), round(r.ratio, 2),
             round(r.ratio_level1, 2), round(r.ratio_opencv, 2), round(r.cpu_seconds, 2),
-            round(r.kb_per_frame), r.load]
+            round(1e3 * r.cpu_seconds / r.frames, 1), round(r.kb_per_frame), r.load]
 
 
 def print_folder(rows: list[FolderRow]) -> None:
