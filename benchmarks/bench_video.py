@@ -21,7 +21,12 @@ out/ --batch 1`` (:class:`bigT.compensation.FileCompensation`, X in memory: the 
 decoded ahead and encoded behind on a pool of threads) and, as it was, one batch at a
 time (``--serial``), beside a plain loop a user would write: read each frame (imageio,
 and OpenCV's decoder for the quicker loop), multiply with scipy, write it (the same
-library). Interleaved repeats, best of each; X loaded before the clock starts in all.
+library). The PNG files are lossless 16-bit in all; bigT writes zlib level 1, imageio
+(Pillow) level 6 unless told, so the imageio loop also runs at level 1 (the fair rival),
+and OpenCV writes level 1 with its own filter and strategy (:data:`PLAIN_LOOPS`).
+Interleaved repeats, best of each; X loaded before the clock starts in all. With
+``--folder-trees main=/work/main,branch=.`` the CLI of each checkout runs too, each in
+its own process (its report's seconds: X loaded before): before and after in one run.
 
 Issue #32 items 3 and 2 (``--realtime``, ``--uhd-X``): at full HD, ``bigT compensate
 X.zarr in.mp4 -o out.mp4`` (a lossless and a CRF 18 H.264 input) at batch 1, 4 and 8
@@ -208,31 +213,49 @@ def make_png_folder(folder: Path, shape, frames: int) -> None:
 
 @dataclass(frozen=True)
 class FolderRow:
+    """One mode of the folder rows: its best wall time, its ratios to the plain loops
+    and the mean size of the files it wrote."""
+
     mode: str
     frames: int
     seconds: float
     fps: float
-    ratio: float
+    ratio: float  # the imageio loop's seconds over this mode's (Pillow's zlib level 6)
+    ratio_level1: float  # ... over the imageio loop at zlib level 1, bigT's level
+    ratio_opencv: float  # ... over the OpenCV loop (level 1, another filter and strategy)
     cpu_seconds: float
+    kb_per_frame: float
     load: str
 
 
-def _plain_codecs(library: str):
+#: The plain loops: (library, its writer's options) and the zlib level each PNG is
+#: written at. bigT writes level 1 (``bigT.images.PNG_COMPRESSION``, every row filtered
+#: "up"); Pillow (imageio's writer) level 6 unless told, with its adaptive filters;
+#: OpenCV level 1 with the "sub" filter and zlib's RLE strategy (quicker on noisy
+#: frames, ~19x larger files of smooth ones). The level-1 imageio loop is the fair rival:
+#: the same zlib level as bigT's; all are lossless 16-bit.
+PLAIN_LOOPS = {"plain loop (imageio + scipy)": ("imageio", {}),
+               "plain loop (imageio level 1 + scipy)": ("imageio", {"compress_level": 1}),
+               "plain loop (OpenCV + scipy)": ("opencv", {})}
+IMAGEIO_LOOP, LEVEL1_LOOP, OPENCV_LOOP = PLAIN_LOOPS
+
+
+def _plain_codecs(library: str, options: dict):
     """(read, write) of 16-bit grey PNG files in ``library``: what a plain loop calls."""
     if library == "imageio":
         import imageio.v3 as iio
 
-        return iio.imread, iio.imwrite
+        return iio.imread, lambda f, a: iio.imwrite(f, a, **options)
     import cv2
 
     return (lambda f: cv2.imread(str(f), cv2.IMREAD_UNCHANGED),
             lambda f, a: cv2.imwrite(str(f), a))
 
 
-def plain_loop(Xs, files, out: Path, library: str) -> float:
+def plain_loop(Xs, files, out: Path, library: str, options: dict | None = None) -> float:
     """Seconds of a loop that decodes, multiplies with scipy and encodes each frame
     (``Xs`` the row-major CSR X: ``Xs @ image.ravel()``)."""
-    read, write = _plain_codecs(library)
+    read, write = _plain_codecs(library, options or {})
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     for f in files:
@@ -242,41 +265,70 @@ def plain_loop(Xs, files, out: Path, library: str) -> float:
     return time.perf_counter() - t
 
 
-def folder_rows(X, folder: Path, out: Path, repeats: int) -> list[FolderRow]:
+def cli_compensate(tree: Path, X, folder: Path, out: Path) -> float:
+    """The run's seconds (its report's: X loaded and imports done before) of ``bigT
+    compensate X folder -o out --batch 1`` in its own process, with the bigT of
+    ``tree`` (a checkout: the same run's before and after)."""
+    import json
+    import subprocess
+
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    done = subprocess.run([sys.executable, "-m", "bigT.cli", "compensate", str(X.path),
+                           str(folder), "-o", str(out), "--batch", "1", "--json"],
+                          env=env, cwd=tree, capture_output=True, text=True, check=True)
+    return float(json.loads(done.stdout.strip().splitlines()[-1])["seconds"])
+
+
+def folder_rows(X, folder: Path, out: Path, repeats: int,
+                trees: dict[str, Path] | None = None) -> list[FolderRow]:
     """The plain loops against `bigT compensate --batch 1` (pooled codecs, and one
-    batch at a time), interleaved ``repeats`` times, best of each."""
+    batch at a time), interleaved ``repeats`` times, best of each; with ``trees``
+    (label: checkout), the CLI of each in its own process too."""
     files = sorted(folder.glob("*.png"))
     Xs = X.to_scipy().astype(np.float32)
     jobs = {"compensate --batch 1": FileCompensation(X, folder, out / "c", batch=1),
             "compensate --batch 1 --serial": FileCompensation(X, folder, out / "s", batch=1)}
     for job in jobs.values():
         job.__enter__()  # X loaded into memory once, before any clock starts
-    modes = {"plain loop (imageio + scipy)": lambda o: plain_loop(Xs, files, o, "imageio"),
-             "plain loop (OpenCV + scipy)": lambda o: plain_loop(Xs, files, o, "opencv"),
-             "compensate --batch 1": lambda o: jobs["compensate --batch 1"].run().stream.seconds,
-             "compensate --batch 1 --serial":
-                 lambda o: jobs["compensate --batch 1 --serial"].run(overlap=False).stream.seconds}
+    modes = {mode: (lambda o, lib=lib, opt=opt: plain_loop(Xs, files, o, lib, opt))
+             for mode, (lib, opt) in PLAIN_LOOPS.items()}
+    modes["compensate --batch 1"] = (
+        lambda o: jobs["compensate --batch 1"].run().stream.seconds)
+    modes["compensate --batch 1 --serial"] = (
+        lambda o: jobs["compensate --batch 1 --serial"].run(overlap=False).stream.seconds)
+    for label, tree in (trees or {}).items():
+        modes[f"CLI compensate --batch 1 ({label})"] = (
+            lambda o, tree=tree: cli_compensate(tree, X, folder, o))
     best = dict.fromkeys(modes, float("inf"))
     cpu = dict.fromkeys(modes, float("inf"))
-    loads = {}
+    loads, sizes = {}, {}
     try:
         for _ in range(repeats):
             for mode, run in modes.items():
-                target = out / ("c" if mode == "compensate --batch 1" else "s"
-                                if mode.endswith("--serial") else "loop")
+                target = out / "c" if mode == "compensate --batch 1" else (
+                    out / "s" if mode.endswith("--serial") else out / "other")
                 shutil.rmtree(target, ignore_errors=True)
-                load0, cpu0 = _load(), time.process_time()
+                load0, cpu0 = _load(), time.process_time() + _children_cpu()
                 best[mode] = min(best[mode], run(target))
-                # every thread's CPU time: what the run costs a machine, whatever the load
-                cpu[mode] = min(cpu[mode], time.process_time() - cpu0)
+                # every thread's CPU time (a CLI's: its process's, start-up and X's
+                # loading included): what the run costs a machine, whatever the load
+                cpu[mode] = min(cpu[mode], time.process_time() + _children_cpu() - cpu0)
                 loads[mode] = f"{load0} -> {_load()}"
+                sizes[mode] = np.mean([(target / f.name).stat().st_size for f in files]) / 1e3
                 print(f"  folder: {mode}: {best[mode]:.2f} s", file=sys.stderr, flush=True)
     finally:
         for job in jobs.values():
             job.__exit__(None, None, None)
-    loop = best["plain loop (imageio + scipy)"]
-    return [FolderRow(m, len(files), s, len(files) / s, loop / s, cpu[m], loads[m])
+    loops = [best[m] for m in PLAIN_LOOPS]
+    return [FolderRow(m, len(files), s, len(files) / s, *(loop / s for loop in loops),
+                      cpu[m], sizes[m], loads[m])
             for m, s in best.items()]
+
+
+def _children_cpu() -> float:
+    """CPU seconds of the child processes waited for (the CLI runs)."""
+    usage = os.times()
+    return usage.children_user + usage.children_system
 
 
 def record(rows: list[Row], products: list[tuple], X, frames: int,
@@ -291,29 +343,44 @@ def record(rows: list[Row], products: list[tuple], X, frames: int,
         res.table("folder", f"{folder[0].frames} 16-bit PNG frames of {H}x{W} in a folder: "
                   "`bigT compensate X.zarr in/ -o out/ --batch 1` (X in memory) against a "
                   "plain loop that decodes, multiplies with scipy and encodes each frame",
-                  ["mode", "frames", "seconds (best)", "frames/s", "x the imageio loop",
-                   "CPU seconds (all threads)", "load 1/5/15 min"],
-                  [[r.mode, r.frames, r.seconds, r.fps, r.ratio, r.cpu_seconds, r.load]
-                   for r in folder],
+                  FOLDER_COLUMNS, [folder_cells(r) for r in folder],
                   note="interleaved repeats, best of each; X in memory in all, loaded "
-                       "before the clock starts; CPU seconds: the process's, every thread's "
-                       "(a loaded machine stretches the wall time, less so these)")
+                       "before the clock starts; zlib levels: imageio (Pillow) 6 by "
+                       "default, the level-1 loop and bigT 1, OpenCV 1 (sub filter, RLE); "
+                       "CPU seconds: the process's, every thread's (a loaded machine "
+                       "stretches the wall time, less so these; a CLI row's include its "
+                       "start-up and X's loading). On two free cores a single-threaded loop "
+                       "runs at best at 1000 / its CPU ms per frame, the pooled bigT at "
+                       "2000 / its own")
         pooled = next(r for r in folder if r.mode == "compensate --batch 1")
         res.value("folder:speedup", pooled.ratio, "compensate --batch 1 of a folder of 16-bit "
                   "PNG frames over the plain imageio + scipy loop")
+        res.value("folder:speedup-level1", pooled.ratio_level1, "compensate --batch 1 of a "
+                  "folder of 16-bit PNG frames over the plain imageio + scipy loop writing "
+                  "at bigT's zlib level (1)")
     res.save()
+
+
+FOLDER_COLUMNS = ["mode", "frames", "seconds (best)", "frames/s", "x the imageio loop",
+                  "x the level-1 imageio loop", "x the OpenCV loop",
+                  "CPU seconds (all threads)", "CPU ms per frame", "kB per frame written",
+                  "load 1/5/15 min"]
+
+
+def folder_cells(r: FolderRow) -> list:
+    return [r.mode, r.frames, round(r.seconds, 2), round(r.fps, 1), round(r.ratio, 2),
+            round(r.ratio_level1, 2), round(r.ratio_opencv, 2), round(r.cpu_seconds, 2),
+            round(1e3 * r.cpu_seconds / r.frames, 1), round(r.kb_per_frame), r.load]
 
 
 def print_folder(rows: list[FolderRow]) -> None:
     print()
     print(f"Folder of {rows[0].frames} 16-bit PNG frames, batch 1, X in memory:")
     print()
-    print("| mode | frames | seconds (best) | frames/s | x the imageio loop | CPU seconds "
-          "| load 1/5/15 min |")
-    print("|---|---|---|---|---|---|---|")
+    print("| " + " | ".join(FOLDER_COLUMNS) + " |")
+    print("|" + "---|" * len(FOLDER_COLUMNS))
     for r in rows:
-        print(f"| {r.mode} | {r.frames} | {r.seconds:.2f} | {r.fps:.1f} | {r.ratio:.2f} | "
-              f"{r.cpu_seconds:.2f} | {r.load} |")
+        print("| " + " | ".join(str(c) for c in folder_cells(r)) + " |")
     print(flush=True)
 
 
@@ -621,6 +688,9 @@ def main():
                     help="interleaved repeats of the folder rows (best of)")
     ap.add_argument("--folder-only", action="store_true",
                     help="only the folder rows (no video, no products)")
+    ap.add_argument("--folder-trees", default="",
+                    help="LABEL=CHECKOUT,... : the folder rows also run `bigT compensate` "
+                         "of each checkout in its own process (before and after in one run)")
     ap.add_argument("--realtime", action="store_true",
                     help="with --X: `compensate in.mp4 -o out.mp4` at batch 1, 4, 8 in float32 "
                          "and float16, and each bound alone (decode, encode, the products, "
@@ -662,7 +732,9 @@ def main():
         folder = []
         if folder_frames:
             make_png_folder(tmp / "frames", shape, folder_frames)
-            folder = folder_rows(X, tmp / "frames", tmp / "folder-out", args.folder_repeats)
+            trees = dict(item.split("=", 1) for item in args.folder_trees.split(",") if item)
+            folder = folder_rows(X, tmp / "frames", tmp / "folder-out", args.folder_repeats,
+                                 {label: Path(tree).resolve() for label, tree in trees.items()})
             print_folder(folder)
         if args.folder_only:
             record([], [], X, frames, folder)

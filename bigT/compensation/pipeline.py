@@ -104,7 +104,7 @@ def decoded_ahead(pool: CodecPool, source, batch: int,
     following = iter(files)
 
     def read(file: Path) -> np.ndarray:
-        return source.read(file).astype(np.float32)
+        return source.read(file, np.float32)  # the codes divided in float32: one pass
 
     def top_up() -> None:
         while len(pending) < ahead:
