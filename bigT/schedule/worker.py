@@ -295,7 +295,7 @@ class TaskContext:
         """The tile cache's budget for this pass: the spec's, when it sets one; none
         (left as it is) for a pass that caches nothing; the plan's share less what a
         whole right factor borrows; for a mat-vec of M, also the factor's share and
-        half the tasks' (nothing else is held then)."""
+        half the tasks', less what its dense blocks take (:func:`_cache_budget`)."""
         spec = self.spec
         if spec.cache_bytes is not None:
             return spec.cache_bytes
@@ -303,7 +303,10 @@ class TaskContext:
             return None
         if spec.right is not None:
             return _cache_budget(self.plan, self.operand(spec.right))
-        return _cache_budget(self.plan, None) if not spec.outputs else self.plan.cache_bytes
+        if spec.outputs:
+            return self.plan.cache_bytes
+        V = self.shared.get("V")
+        return _cache_budget(self.plan, None, 0 if V is None else _block_bytes(V, spec.n))
 
     def stats(self, **fields) -> BlockStats:
         """The task's :class:`BlockStats`, with its products' multiply-adds and kernel
@@ -322,12 +325,27 @@ def _whole_limit(plan: MemoryPlan, right: StoreOperand) -> int:
     return plan.whole_bytes
 
 
-def _cache_budget(plan: MemoryPlan, right: StoreOperand | None) -> int:
+#: The dense (n, k) blocks alive during a mat-vec pass, as multiples of its V: V, its
+#: -F^-1 V, the product gathered, and the caller's (the residual estimate's probes Z,
+#: X Z and the product's difference from Z). At 4K (k = 4 probes, float64) each is
+#: 265 MB: unplanned, they put a 4 GiB run at 5.4 GiB.
+MATVEC_BLOCKS_HELD = 6
+
+
+def _block_bytes(V: np.ndarray, n: int) -> int:
+    """Bytes of the dense blocks a mat-vec with ``V`` (shape (n, k)) holds."""
+    k = V.shape[1] if V.ndim == 2 else 1
+    return MATVEC_BLOCKS_HELD * n * k * 8
+
+
+def _cache_budget(plan: MemoryPlan, right: StoreOperand | None, blocks_bytes: int = 0) -> int:
     """The tile cache's budget during a pass: its share, less what a whole right
     factor borrows from it; a pass without a right factor (a mat-vec) may also use the
-    factor's share and half the tasks' (nothing else is held then)."""
+    factor's share and half the tasks', less ``blocks_bytes``, its dense blocks'
+    (:data:`MATVEC_BLOCKS_HELD`); never below nothing."""
     if right is None:
-        return plan.cache_bytes + plan.whole_bytes + plan.threads * plan.work_bytes_per_task // 2
+        spare = plan.cache_bytes + plan.whole_bytes + plan.threads * plan.work_bytes_per_task // 2
+        return max(0, spare - int(blocks_bytes))
     borrowed = max(0, right.nbytes - plan.whole_bytes) if right.nbytes <= (
         plan.whole_bytes + plan.cache_bytes) else 0
     return plan.cache_bytes - borrowed

@@ -102,7 +102,7 @@ def test_whole_factor_may_borrow_the_cache_share():
     whole, the cache shrunk for the pass; a larger one is read in batches."""
     from bigT.schedule.cache import TileCache
     from bigT.schedule.memory import MemoryPlan
-    from bigT.schedule.worker import _cache_budget, _whole_limit
+    from bigT.schedule.worker import MATVEC_BLOCKS_HELD, _block_bytes, _cache_budget, _whole_limit
 
     plan = MemoryPlan(limit=1, baseline=0, fixed_per_task=0, cache_bytes=1000,
                       whole_bytes=1000, work_bytes_per_task=100, threads=2)
@@ -116,6 +116,11 @@ def test_whole_factor_may_borrow_the_cache_share():
         cache.get(("T", "M", k), lambda: np.zeros(25))  # 200 bytes each
     # a mat-vec pass (no factor) may use the factor's share and half the tasks'
     assert _cache_budget(plan, None) == 1000 + 1000 + 100
+    # ... less what its dense blocks take, never below nothing
+    assert _cache_budget(plan, None, 600) == 1000 + 1000 + 100 - 600
+    assert _cache_budget(plan, None, 5000) == 0
+    assert _block_bytes(np.zeros((10, 3)), 10) == MATVEC_BLOCKS_HELD * 10 * 3 * 8
+    assert _block_bytes(np.zeros(10), 10) == MATVEC_BLOCKS_HELD * 10 * 8
     assert _whole_limit(plan, Factor(900)) == 1000
     assert _cache_budget(plan, Factor(900)) == 1000
     assert _whole_limit(plan, Factor(1500)) == 1500
