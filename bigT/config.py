@@ -223,8 +223,8 @@ SCENE_SPECTRAL_MAX_PRODUCTS = 600
 #: corner; the bracket holds a handful of vectors and took ~20 products.
 SCENE_BRACKET_MIN_N = 4_000_000
 #: Share of a scene build's memory limit the ground truth's products may fill with
-#: decoded tile rows of T or A; the rest holds the estimates' vectors (n float64 each)
-#: and the products' temporaries.
+#: decoded tile rows of T or A (at most what the process does not hold already); the
+#: rest holds the estimates' vectors (n float64 each) and the products' temporaries.
 SCENE_STATS_CACHE_SHARE = 0.5
 #: Memory a scene build may hold of A and T (default of ``memory_limit``): a matrix
 #: within it is read whole once, a larger one tile row by tile row.

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
+from ..schedule.memory import resident_bytes
 from ..spectral import SpectralRadius, spectral_radius
 from . import radiosity, stored
 from .colouring import ColourParts
@@ -114,12 +115,25 @@ class GroundTruthStats:
                 "bounce_shares": self.shares}
 
 
+#: The (n,) float64 vectors the statistics hold beside the cached tile rows: the
+#: bracket's v, w and product, the bounce images' two, T 1.
+STATS_VECTORS = 6
+
+
+def _cache_bytes(memory_limit: int, n: int) -> int:
+    """Bytes of decoded tile rows the statistics' products may cache: a share of the
+    limit, and no more than what the process does not hold already (the build's
+    earlier phases leave ~2 GB resident at 4K) besides the vectors."""
+    free = int(memory_limit) - resident_bytes() - STATS_VECTORS * 8 * int(n)
+    return max(0, min(int(config.SCENE_STATS_CACHE_SHARE * memory_limit), free))
+
+
 def _radii_and_bounces(T, A, f, G, memory_limit: int, radius_of_M, lit: np.ndarray):
     """What both kinds of scene measure: rho(M) (``radius_of_M(times_T)``), T 1, rho(A)
     and the bounce images of the light ``lit`` (f G lit first), T and A each held
     within ``memory_limit`` in turn."""
     n = T.shape[0]
-    cache = int(config.SCENE_STATS_CACHE_SHARE * memory_limit)
+    cache = _cache_bytes(memory_limit, n)
     times_T = stored.stored_apply(T, cache)
     rho_M = radius_of_M(times_T)
     T1 = times_T(np.ones(n))

@@ -160,3 +160,17 @@ def test_beyond_the_bracket_size_the_radii_are_brackets_holding_the_eigenvalues(
         assert method == "collatz-wielandt"
         assert 0 < width <= 0.1 * got  # narrow enough to be accepted
         assert got - width <= want <= got + width
+
+
+def test_the_statistics_cache_what_the_process_does_not_hold_already():
+    from bigT import config
+    from bigT.scenes import statistics
+    from bigT.schedule.memory import resident_bytes
+
+    big = 1 << 40  # far beyond what is held: the share
+    assert statistics._cache_bytes(big, 1000) == int(config.SCENE_STATS_CACHE_SHARE * big)
+    assert statistics._cache_bytes(resident_bytes() // 2, 1000) == 0  # held already
+    held = resident_bytes()
+    limit = held + (64 << 20)  # 64 MiB to spare, less the vectors, a little drift
+    got = statistics._cache_bytes(limit, 1000)
+    assert 0 < got <= limit - held - statistics.STATS_VECTORS * 8 * 1000 + (8 << 20)
