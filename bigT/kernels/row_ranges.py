@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .csr import _small_enough, add_diag_scaled, prune, row_work
+from .csr import _small_enough, _split_rows, add_diag_scaled, prune, row_work
 from .threads import run_on_threads
 
 
@@ -65,11 +65,7 @@ def _tile_pairs_numpy(left, nonempty, ts, n_blocks):
 def row_bounds(indptr: np.ndarray, n_parts: int) -> np.ndarray:
     """Row boundaries cutting the rows of ``indptr`` (shape (m + 1,)) into at most
     ``n_parts`` ranges of about equal entries, shape (k + 1,) int64, from 0 to m."""
-    n_rows = len(indptr) - 1
-    targets = indptr[-1] * np.arange(1, n_parts) / n_parts
-    cuts = np.searchsorted(indptr, targets, side="left")
-    return np.unique(np.concatenate(([0], np.clip(cuts, 0, n_rows), [n_rows]))).astype(
-        np.int64)
+    return _split_rows(np.diff(indptr), n_parts)  # each row's work: its entries
 
 
 def row_view(A: sp.csr_array, r0: int, r1: int) -> sp.csr_array:
