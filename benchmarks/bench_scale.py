@@ -33,6 +33,14 @@ interleaved (the best kept); the model built from the threads run and from the
 N = 1..128 workers on a shared filesystem and an object store::
 
     python benchmarks/bench_scale.py --cluster-model [--size 192x256] [--repeats 2]
+
+On a machine with more cores, ``--workers 16,8,4,2 --measure-only`` makes the runs and
+keeps their reports (``cluster_curve.sh`` does it at full HD), and ``--from-reports
+DIR --bases local:2,threads`` checks the model on them anywhere. The 16-core run of
+``benchmarks/results/cluster-h200/`` (an accelerator machine's CPUs, no GPU used)::
+
+    python benchmarks/bench_scale.py --cluster-model --size 1080x1920 --repeats 1 \
+        --from-reports benchmarks/results/cluster-h200 --bases local:2,threads
 """
 
 from __future__ import annotations
@@ -250,10 +258,6 @@ def plot(rows, path: str) -> str:
     return path
 
 
-CLUSTER_CONFIGS = (("threads", None, 1, 2), ("local:1", "local:1", 1, 1),
-                   ("local:2", "local:2", 2, 1))
-
-
 def invert_report(scene: str, out: str, scheduler, args) -> dict:
     """One out-of-core ``bigT invert`` in a fresh process; its JSON report."""
     report = out + ".json"
@@ -265,7 +269,8 @@ def invert_report(scene: str, out: str, scheduler, args) -> dict:
     if scheduler:
         cmd += ["--scheduler", scheduler]
     env = {**os.environ, "BIGT_IN_MEMORY": "0"}  # a cluster run is out of core: so is this
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env,
+                          timeout=getattr(args, "run_timeout", None))
     if proc.returncode:
         raise SystemExit(f"invert on {scheduler or 'threads'} failed: {proc.stderr.strip()}")
     with open(report) as fh:
@@ -284,36 +289,101 @@ def store_bandwidth(path: str) -> tuple[float, float]:
     return nbytes / wall, wall / max(1, len(files))
 
 
+def cluster_configs(workers: list[int], threads: int) -> list[tuple[str, str | None, int, int]]:
+    """(label, --scheduler, worker processes, threads each) of the runs to make: local
+    threads (one per core) first, then ``local:N`` for each N asked for."""
+    return [("threads", None, 1, threads)] + [(f"local:{n}", f"local:{n}", n, 1)
+                                              for n in workers]
+
+
+def measure_configs(args, scene: str, work: str, configs) -> dict:
+    """Each configuration's best run (``--repeats``, interleaved) as ``{label: (seconds,
+    report)}``; a configuration that fails or outlasts ``--run-timeout`` is left out (the
+    model is checked on those that ran). Each report stays beside its X as
+    ``X-<label>.zarr.json`` and ``runs.json`` lists them (``--from-reports`` reads it); a
+    later call in the same ``--workdir`` adds to it, skipping the runs it holds."""
+    best: dict = {}
+    runs = []
+    saved = os.path.join(work, "runs.json")
+    if os.path.exists(saved):  # an earlier call's runs, kept: those configurations are done
+        with open(saved) as fh:
+            old = json.load(fh)
+        runs = old["runs"]
+        best = {label: (min(r["seconds"] for r in runs if r["label"] == label), report)
+                for label, report in old["best"].items()}
+    for rep in range(args.repeats):
+        for label, scheduler, workers, threads in configs:
+            if label in best and rep < sum(r["label"] == label for r in runs):
+                continue
+            t0 = time.perf_counter()
+            try:
+                r = invert_report(scene, os.path.join(work, f"X-{label}.zarr"), scheduler,
+                                  args)
+            except (SystemExit, subprocess.TimeoutExpired) as exc:
+                print(f"run {rep + 1} {label}: left out ({exc})", flush=True)
+                continue
+            wall = time.perf_counter() - t0
+            total = sum(h["seconds"] for h in r["history"]) + r["seconds_spectral_radius"]
+            print(f"run {rep + 1} {label}: {total:.2f} s (terms and spectral radius), "
+                  f"{wall:.1f} s the whole process", flush=True)
+            runs.append({"label": label, "workers": workers, "threads": threads,
+                         "seconds": total, "process_seconds": wall, "repeat": rep + 1})
+            if label not in best or total < best[label][0]:
+                best[label] = (total, r)
+            with open(os.path.join(work, "runs.json"), "w") as fh:
+                json.dump({"cpus": os.cpu_count(), "runs": runs,
+                           "best": {k: v[1] for k, v in best.items()}}, fh)
+    return best
+
+
 def cluster_model(args) -> None:
     import cluster_model as cm
 
     H, W = args.size
     work = os.path.join(args.workdir, f"corner-{H}x{W}")
-    os.makedirs(work, exist_ok=True)
-    scene = os.path.join(work, "T.zarr")
-    if not os.path.exists(scene):
-        run_child("build", args, (H, W), scene)
-    warm_up()
-    best: dict = {}
-    for rep in range(args.repeats):
-        for label, scheduler, _, _ in CLUSTER_CONFIGS:
-            r = invert_report(scene, os.path.join(work, f"X-{label}.zarr"), scheduler, args)
-            total = sum(h["seconds"] for h in r["history"]) + r["seconds_spectral_radius"]
-            print(f"run {rep + 1} {label}: {total:.2f} s (terms and spectral radius)",
-                  flush=True)
-            if label not in best or total < best[label][0]:
-                best[label] = (total, r)
-    bandwidth, per_file = store_bandwidth(scene)
+    configs = cluster_configs(args.workers, args.threads or os.cpu_count() or 1)
+    if args.from_reports:
+        saved = json.load(open(os.path.join(args.from_reports, "runs.json")))
+        best = {label: (None, r) for label, r in saved["best"].items()}
+        storage = json.load(open(os.path.join(args.from_reports, "storage.json")))
+        bandwidth, per_file = storage["bandwidth"], storage["per_file"]
+        cpus = saved["cpus"]
+        configs = [c for c in cluster_configs(
+            sorted({r["workers"] for r in saved["runs"] if r["label"] != "threads"}),
+            next((r["threads"] for r in saved["runs"] if r["label"] == "threads"), cpus))
+            if c[0] in best]
+    else:
+        os.makedirs(work, exist_ok=True)
+        scene = os.path.join(work, "T.zarr")
+        if not os.path.exists(os.path.join(work, "build.json")):  # else built (the
+            # builder resumes a scene an earlier call left unfinished)
+            built = run_child("build", args, (H, W), scene)
+            print(f"scene built: {built['seconds']:.0f} s, peak "
+                  f"{built['peak_rss_bytes'] / 2**30:.2f} GiB", flush=True)
+            with open(os.path.join(work, "build.json"), "w") as fh:
+                json.dump(built, fh, default=str)
+        warm_up()
+        best = measure_configs(args, scene, work, configs)
+        bandwidth, per_file = store_bandwidth(scene)
+        with open(os.path.join(work, "storage.json"), "w") as fh:
+            json.dump({"bandwidth": bandwidth, "per_file": per_file}, fh)
+        cpus = os.cpu_count()
+    if args.measure_only:
+        print(f"reports in {work}: runs.json, storage.json")
+        return
     local = cm.local_storage(bandwidth, per_file)
     # the local cluster's vectors cross loopback: pickled and copied, ~2 GB/s
     sched = {"threads": cm.DASK_THREADS,
              "cluster": replace_network(cm.DASK_DISTRIBUTED, 2e9)}
+    bases = [b for b in args.bases.split(",") if b in best]
+    if not bases:
+        raise SystemExit(f"none of the base runs {args.bases} was made: {sorted(best)}")
     rows, checks = [], {}
-    for base in ("threads", "local:1"):
+    for base in bases:
         run = cm.RecordedRun.from_report(best[base][1], local)
         checks[base] = run
-        for label, _, workers, threads in CLUSTER_CONFIGS:
-            if label == base:
+        for label, _, workers, threads in configs:
+            if label == base or label not in best:
                 continue
             p = cm.predict(run, H * W, workers, local,
                            sched["threads" if label == "threads" else "cluster"],
@@ -324,14 +394,15 @@ def cluster_model(args) -> None:
             rows.append([base, label, p.seconds, m.seconds_terms + m.seconds_spectral,
                          100 * m.error, p.memory_per_worker / 2**20,
                          m.peak_per_worker / 2**20, 100 * m.memory_error])
-    print(f"\nstorage here: {bandwidth / 1e9:.2f} GB/s, {per_file * 1e6:.0f} us per file "
-          "(page cache)")
+    print(f"\nstorage: {bandwidth / 1e9:.2f} GB/s, {per_file * 1e6:.0f} us per file "
+          f"(page cache); {cpus} cores")
     print(f"{'from':>8} {'predicts':>8} {'pred s':>7} {'meas s':>7} {'err %':>6} "
           f"{'pred MiB':>8} {'meas MiB':>8} {'err %':>6}")
     for r in rows:
         print(f"{r[0]:>8} {r[1]:>8} {r[2]:>7.2f} {r[3]:>7.2f} {r[4]:>+6.0f} {r[5]:>8.0f} "
               f"{r[6]:>8.0f} {r[7]:>+6.0f}")
-    table = cm.prediction_table(checks["local:1"])
+    base = next((b for b in bases if b.startswith("local:")), bases[0])
+    table = cm.prediction_table(checks[base])
     print(f"\n{'n':>9} {'storage':>18} " + " ".join(f"{'N=' + str(n):>8}" for n in cm.WORKERS))
     out_rows = []
     for n in (cm.FULL_HD, cm.UHD_4K):
@@ -342,23 +413,25 @@ def cluster_model(args) -> None:
                   + " ".join(f"{p.memory_per_worker / 2**30:>8.2f}" for p in ps))
             out_rows += [[n, st.name, p.workers, p.seconds, p.memory_per_worker / 2**30,
                           p.batched] for p in ps]
+    where = f"{cpus} cores" + (f", reports of {args.from_reports}" if args.from_reports else "")
     res = Results(run_name("cluster-model"), "The cluster run, predicted and checked",
                   "python benchmarks/bench_scale.py " + " ".join(sys.argv[1:]))
-    res.table("check", f"the model against the runs made here ({H}x{W} corner, "
+    res.table("check", f"the model against the runs made ({H}x{W} corner, {where}, "
               f"{args.terms} terms, out of core, best of {args.repeats})",
               ["from", "predicts", "predicted s", "measured s", "error %",
                "predicted MiB/worker", "measured MiB/worker", "memory error %"], rows,
               note="seconds: the spectral radius and the terms (set-up and the cluster's "
-                   f"start left out); storage here {bandwidth / 1e9:.2f} GB/s (page cache)")
+                   f"start left out); storage {bandwidth / 1e9:.2f} GB/s (page cache)")
     res.table("predicted", "predicted inverse (spectral radius and 4 terms) on N dask "
-              "workers of 1 thread, 8 GiB each, from the 1-worker run",
+              f"workers of 1 thread, 8 GiB each, from the {base} run",
               ["n", "storage", "workers", "seconds", "GiB per worker", "batched"], out_rows,
               note=f"{cm.SHARED_FS.name}: {cm.SHARED_FS.source}; {cm.OBJECT_STORE.name}: "
                    f"{cm.OBJECT_STORE.source}; scheduler: {cm.DASK_DISTRIBUTED.source}")
     name = f"{res.name}.png"
-    print("plot:", plot_cluster(table, rows, H * W, str(res.figure_path(name))))
-    res.figure(name, "predicted time against workers at full HD and 4K, shared filesystem "
-               "and object store; right: the check against the runs made here")
+    print("plot:", plot_cluster(table, rows, H * W, cpus, base, str(res.figure_path(name))))
+    res.figure(name, f"left: predicted time against workers at full HD and 4K, shared "
+               f"filesystem and object store, from the {base} run; right: the runs made, "
+               "measured and predicted")
     res.save()
 
 
@@ -368,10 +441,10 @@ def replace_network(scheduler, network: float):
     return replace(scheduler, network=network)
 
 
-def plot_cluster(table, checks, n_here: int, path: str) -> str:
-    """Predicted seconds against N (log-log) for full HD and 4K, shared filesystem
-    (solid) and object store (dashed); beside it the runs made here, predicted and
-    measured."""
+def plot_cluster(table, checks, n_here: int, cpus: int, base: str, path: str) -> str:
+    """Left: predicted seconds against N (log-log) for full HD and 4K, shared filesystem
+    (solid) and object store (dashed), from the ``base`` run. Right: the runs made, as
+    measured against N workers (black), beside what each base run predicts for them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -380,7 +453,7 @@ def plot_cluster(table, checks, n_here: int, path: str) -> str:
     import cluster_model as cm
 
     fig, (ax, ax_c) = plt.subplots(1, 2, figsize=(11, 4.4),
-                                   gridspec_kw={"width_ratios": [2, 1]})
+                                   gridspec_kw={"width_ratios": [3, 2]})
     for n, colour, name in ((cm.FULL_HD, "C0", "full HD"), (cm.UHD_4K, "C3", "4K UHD")):
         for st, style in ((cm.SHARED_FS, "-"), (cm.OBJECT_STORE, "--")):
             ps = [p for p in table if p.n == n and p.storage == st.name]
@@ -388,16 +461,24 @@ def plot_cluster(table, checks, n_here: int, path: str) -> str:
                       marker="o", ms=3, label=f"{name}, {st.name}")
     ax.set_xlabel("dask workers N (1 thread each)")
     ax.set_ylabel("predicted wall time of the inverse (s)")
-    ax.set_title("predicted: spectral radius + 4 terms, from the 1-worker run", fontsize=10)
+    ax.set_title(f"predicted: spectral radius + 4 terms, from the {base} run", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    labels = [f"{r[1]}\nfrom {r[0]}" for r in checks]
-    x = range(len(checks))
-    ax_c.bar([i - 0.2 for i in x], [r[2] for r in checks], 0.4, label="predicted")
-    ax_c.bar([i + 0.2 for i in x], [r[3] for r in checks], 0.4, label="measured")
-    ax_c.set_xticks(list(x), labels, fontsize=7)
-    ax_c.set_ylabel("wall time (s)")
-    ax_c.set_title(f"checked here (n = {n_here}, 2 cores)", fontsize=10)
+    workers_of = lambda label: int(label.split(":")[1])  # noqa: E731 ("local:N")
+    measured = sorted({(workers_of(r[1]), r[3]) for r in checks if r[1] != "threads"})
+    ax_c.plot([m[0] for m in measured], [m[1] for m in measured], "ko-", lw=2,
+              label="measured")
+    for i, b in enumerate(dict.fromkeys(r[0] for r in checks)):
+        ps = sorted((workers_of(r[1]), r[2]) for r in checks
+                    if r[0] == b and r[1] != "threads")
+        ax_c.plot([p[0] for p in ps], [p[1] for p in ps], "--", marker="s", ms=4,
+                  color=f"C{i + 2}", label=f"predicted from the {b} run")
+    ax_c.set_xscale("log", base=2)
+    ax_c.set_xlabel("dask workers N (local:N, 1 thread each)")
+    ax_c.set_ylabel("wall time of the inverse (s)")
+    ax_c.set_ylim(bottom=0)
+    ax_c.set_title(f"checked: n = {n_here:,} on {cpus} cores", fontsize=10)
+    ax_c.grid(alpha=0.3, which="both")
     ax_c.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -434,6 +515,20 @@ def main(argv=None):
                         "its predictions (see the module's docstring)")
     p.add_argument("--repeats", type=int, default=2, help="runs of each configuration "
                    "(--cluster-model; the best kept)")
+    p.add_argument("--workers", default="1,2",
+                   help="--cluster-model: the local:N clusters to run, e.g. 1,2,4,8,16")
+    p.add_argument("--threads", type=int, default=None,
+                   help="--cluster-model: threads of the local-threads run (default: cores)")
+    p.add_argument("--run-timeout", type=float, default=None,
+                   help="--cluster-model: seconds after which a run is stopped and left out")
+    p.add_argument("--bases", default="threads,local:1",
+                   help="--cluster-model: the runs the model is built from, each predicting "
+                        "the others (the first local:N also gives the N = 1..128 table)")
+    p.add_argument("--measure-only", action="store_true",
+                   help="--cluster-model: make the runs, keep their reports, skip the model")
+    p.add_argument("--from-reports", default=None,
+                   help="--cluster-model: the model checked on the runs.json and storage.json "
+                        "a --measure-only run left in this folder (another machine's)")
     p.add_argument("--_child", default=None, help=argparse.SUPPRESS)
     p.add_argument("--scene", default=None, help=argparse.SUPPRESS)
     p.add_argument("--size", default=None,
@@ -441,6 +536,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.cluster_model:
         args.size = tuple(int(s) for s in (args.size or "192x256").split("x"))
+        args.workers = [int(n) for n in args.workers.split(",")]
         cluster_model(args)
         return
     if args._child:
