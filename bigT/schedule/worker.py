@@ -305,6 +305,11 @@ class TaskContext:
             return _cache_budget(self.plan, self.operand(spec.right))
         if spec.outputs:
             return self.plan.cache_bytes
+        # a mat-vec multiplies by no stored factor: the product kernel's idle workspaces,
+        # kept for the next product pass (each spans n columns: 863 MB at 4K), would sit
+        # beside its dense blocks and push the pass past the plan (4.15 GiB under a 4 GiB
+        # limit at 4K); the next product pass makes them again (~0.3 s each)
+        release_workspaces()
         V = self.shared.get("V")
         return _cache_budget(self.plan, None, 0 if V is None else _block_bytes(V, spec.n))
 
