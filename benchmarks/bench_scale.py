@@ -258,8 +258,9 @@ def plot(rows, path: str) -> str:
     return path
 
 
-def invert_report(scene: str, out: str, scheduler, args) -> dict:
-    """One out-of-core ``bigT invert`` in a fresh process; its JSON report."""
+def invert_report(scene: str, out: str, scheduler, args, threads: int | None = None) -> dict:
+    """One out-of-core ``bigT invert`` in a fresh process (on ``threads`` local threads
+    when no ``scheduler``; bigT's default otherwise); its JSON report."""
     report = out + ".json"
     cmd = [sys.executable, "-m", "bigT.cli", "invert", scene, "-o", out, "--terms",
            str(args.terms), "--prune", str(args.prune), "--memory-limit", args.memory_limit,
@@ -268,6 +269,8 @@ def invert_report(scene: str, out: str, scheduler, args) -> dict:
     cmd += [] if args.prune_operator is None else ["--prune-operator", str(args.prune_operator)]
     if scheduler:
         cmd += ["--scheduler", scheduler]
+    elif threads:
+        cmd += ["--threads", str(threads)]
     env = {**os.environ, "BIGT_IN_MEMORY": "0"}  # a cluster run is out of core: so is this
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env,
                           timeout=getattr(args, "run_timeout", None))
@@ -318,7 +321,7 @@ def measure_configs(args, scene: str, work: str, configs) -> dict:
             t0 = time.perf_counter()
             try:
                 r = invert_report(scene, os.path.join(work, f"X-{label}.zarr"), scheduler,
-                                  args)
+                                  args, threads)
             except (SystemExit, subprocess.TimeoutExpired) as exc:
                 print(f"run {rep + 1} {label}: left out ({exc})", flush=True)
                 continue
@@ -350,8 +353,8 @@ def cluster_model(args) -> None:
         cpus = saved["cpus"]
         configs = [c for c in cluster_configs(
             sorted({r["workers"] for r in saved["runs"] if r["label"] != "threads"}),
-            next((r["threads"] for r in saved["runs"] if r["label"] == "threads"), cpus))
-            if c[0] in best]
+            int(best["threads"][1]["threads"]) if "threads" in best else cpus)
+            if c[0] in best]  # the threads run's own count (its report's)
     else:
         os.makedirs(work, exist_ok=True)
         scene = os.path.join(work, "T.zarr")
