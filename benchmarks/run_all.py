@@ -318,7 +318,8 @@ def main(argv=None) -> int:
     names = {s.name for s in todo}
     runs = [r for r in (earlier.runs if earlier else []) if r.name not in names]
     kind = ("quick" if args.quick else "full") + (" (part)" if args.only else "")
-    print(f"plan: {len(todo)} benchmarks, estimated ~{estimate(todo):.0f} min", flush=True)
+    print(f"plan: {len(todo)} benchmark{'' if len(todo) == 1 else 's'}, estimated "
+          f"~{estimate(todo):.0f} min", flush=True)
     t0 = time.perf_counter()
     try:
         for i, todo_step in enumerate(todo):
