@@ -4,6 +4,8 @@
     python benchmarks/run_all.py --quick    # small sizes, under 5 min: bench-out/RESULTS.md
     python -m benchmarks --quick            # the same, from the repository's root
     python benchmarks/run_all.py --only paper,scale   # some of the plan; others' records stay
+    python benchmarks/run_all.py --only reliability   # a long point run on its own
+    python benchmarks/run_all.py --list     # the plan, each step's estimated minutes
 
 The machine and versions are stamped into ``machine.json`` as the run starts; each
 benchmark then runs in its own process (never two at once: they would share the cores
@@ -23,15 +25,21 @@ say so. Every record names the code it was measured with, so a plan run in parts
 a tree that changed during a long run, shows in RESULTS.md.
 Scratch data (scenes, inverses) stays in ``bench-out/``, which git ignores; the full
 plan's scenes are reused by a later run.
+
+Every step carries its estimated minutes and where the estimate comes from
+(:class:`Step`): ``--list`` prints them, each step is announced with its estimate and
+the plan's time left, and ``runs.json`` keeps the estimate beside the time taken.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -41,83 +49,181 @@ sys.path.insert(0, str(HERE))
 import report  # noqa: E402
 from _results import NAME_ENV, OUT_ENV, code_state, machine  # noqa: E402
 
-#: The full plan (about 70 minutes on 2 cores before issue #34's colour alternatives,
-#: colour sweep, calibration and cluster model, which add about 11), in the order of
-#: issue #16: the paper's
-#: figures, time against error (pruning included), the alternatives, scaling, kernels,
-#: distributed; then the rest. Scratch folders are under bench-out/ (relative to the
-#: repository's root, the children's working directory), where a later run reuses the
-#: scenes. Trimmed to fit: the target sweep at rho 0.9 asks for one target only,
-#: compensate its 384x512 throughput (alternatives and video measure that),
-#: stability and reliability run their quick sweeps (the tests run them all), and the
-#: scenes' build times come from scale's table instead of bench_scenes.py.
+@dataclass(frozen=True)
+class Step:
+    """One benchmark of a plan and how long it is expected to take.
+
+    ``argv`` is the script (in benchmarks/) and its arguments, run from the repository's
+    root; ``minutes`` the wall time expected on this machine (2 cores, otherwise idle)
+    with the scenes an earlier run left in bench-out/; ``basis`` says where that number
+    comes from (a recorded run, a timing of the step, or of its parts), so that a plan's
+    length is known before it runs and can be checked after (RESULTS.md shows both)."""
+
+    name: str
+    argv: tuple[str, ...]
+    minutes: float
+    basis: str
+
+    @property
+    def shown(self) -> list[str]:
+        """The command as RESULTS.md and the log show it."""
+        return ["python", f"benchmarks/{self.argv[0]}", *self.argv[1:]]
+
+
+def step(name: str, minutes: float, basis: str, *argv: str) -> Step:
+    return Step(name, tuple(argv), minutes, basis)
+
+
+#: Where the per-step estimates come from (the ``basis`` of each step).
+RECORDED = "the last full run's runs.json (2026-11-24, load ~1.1 at its start)"
+KERNEL_LOG = ("results/kernels.txt of that run: its 192x256 methods sum to 53 s a "
+              "repeat, x2, plus the scene and compilation")
+#: The grey scenes of tradeoff, inverse-dense and defaults share one folder: the same
+#: builder and arguments, so each scene (the dense 384x512 corner above all, minutes
+#: to build) is built once for the three.
+GREY_SCENES = "bench-out/tradeoff"
+
+#: The full plan (``make bench``, within about an hour on 2 cores: issue #34), in the
+#: order of issue #16: the paper's figures, time against error, the alternatives,
+#: scaling; then the rest. Scratch folders are under bench-out/ (relative to the
+#: repository's root, the children's working directory); the estimates are for a run
+#: that finds the scenes an earlier run built there (a first run builds them too:
+#: :data:`FIRST_RUN_BUILDS`). Trimmed to fit, each cut a point another step measures or
+#: that this wave does not change; they are in :data:`OWN_RUNS`, run with ``--only``:
+#: the target sweeps at 48x64 (rho 0.2 and 0.5; target-96x128 measures rho 0.2 where
+#: runs last seconds, defaults the default target on six scenes) and at rho 0.9, the
+#: defaults' 192x256 scenes (between the 96x128 ones and the dense 384x512 corner), the
+#: kernels at 96x128 (192x256 is the size of the alternatives' and the scheduler runs),
+#: reliability (the tests assert its crash points); and, as before, compensate's
+#: 384x512 throughput (alternatives and video measure it), stability's long sweep and
+#: the scenes' build times (scale's table has them).
 FULL = [
-    ("paper", ["bench_paper.py"]),
-    ("tradeoff", ["bench_tradeoff.py", "--workdir", "bench-out/tradeoff"]),
-    ("target", ["bench_target.py", "--quick", "--rho", "0.2,0.5"]),
+    step("paper", 1.1, RECORDED, "bench_paper.py"),
+    step("tradeoff", 6.7, RECORDED, "bench_tradeoff.py", "--workdir", GREY_SCENES),
     # rho 0.2 at n = 12288, where the runs last seconds, not tenths (fixed costs)
-    ("target-96x128", ["bench_target.py", "--size", "96x128", "--rho", "0.2"]),
-    # rho 0.9 (48x64 Cornell box): tens of terms per setting, ~10 min with its sweep
-    ("target-high-rho", ["bench_target.py", "--quick", "--rho", "0.9", "--targets",
-                         "0.00392"]),
-    # grey up to 384x512, and the colour Cornell box at 48x64 and 96x128 (issue #34)
-    ("alternatives", ["bench_alternatives.py", "--workdir", "bench-out/alternatives"]),
-    # the full-HD point (--max-size 2073600, ~40 min) is run on its own
-    ("scale", ["bench_scale.py", "--min-size", "12288", "--max-size", "786432",
-               "--workdir", "bench-out/scale"]),
-    ("kernels", ["bench_kernels.py", "--sizes", "96x128,192x256"]),
-    ("distributed", ["bench_distributed.py", "--size", "192x256",
-                     "--workdir", "bench-out/distributed"]),
-    # issue #34 (5): the cluster model checked on threads, local:1 and local:2 (192x256,
-    # ~3 min), its full-HD and 4K predictions beside them
-    ("cluster-model", ["bench_scale.py", "--cluster-model", "--workdir",
-                       "bench-out/cluster-model"]),
-    ("inverse-dense", ["bench_inverse.py", "--size", "384x512", "--density", "dense",
-                       "--settings", "power:1e-5,power:3e-6:1e-4,power:3e-6:1e-4:1e-5,"
-                       "power:3e-6:1e-4:3e-5", "--sample", "2048",
-                       "--memory-limit", "2GiB", "--workdir", "bench-out/inverse"]),
-    ("defaults", ["bench_defaults.py", "--workdir", "bench-out/defaults"]),  # issue #30
-    ("video", ["bench_video.py", "--out", "bench-out/video"]),
-    # the colour Cornell box at 384x512: grey vs general vs global-mixing, seen ΔE, video;
-    # time against error of both paths at 96x128
-    ("colour", ["bench_colour.py", "--workdir", "bench-out/colour"]),
+    step("target-96x128", 1.0, RECORDED, "bench_target.py", "--size", "96x128", "--rho",
+         "0.2"),
+    # grey 48x64 to 384x512, and the colour Cornell box at 48x64 and 96x128 (issue #34)
+    step("alternatives", 9.0, RECORDED + " (447 s) and the colour part timed alone "
+         "(96x128: 48 s, 2026-11-26; 48x64 about half)", "bench_alternatives.py",
+         "--workdir", "bench-out/alternatives"),
+    # the full-HD point (--max-size 2073600, ~40 min) and 4K are run on their own
+    step("scale", 3.8, RECORDED, "bench_scale.py", "--min-size", "12288", "--max-size",
+         "786432", "--workdir", "bench-out/scale"),
+    step("kernels", 2.3, KERNEL_LOG, "bench_kernels.py", "--sizes", "192x256", "--repeat",
+         "2"),
+    step("distributed", 1.7, RECORDED, "bench_distributed.py", "--size", "192x256",
+         "--workdir", "bench-out/distributed"),
+    # issue #34 (5): the cluster model checked on threads, local:1 and local:2 (192x256),
+    # its full-HD and 4K predictions beside them
+    step("cluster-model", 3.0, "its own note (6 runs of the 192x256 corner, ~3 min)",
+         "bench_scale.py", "--cluster-model", "--workdir", "bench-out/cluster-model"),
+    step("inverse-dense", 1.2, RECORDED, "bench_inverse.py", "--size", "384x512",
+         "--density", "dense", "--settings", "power:1e-5,power:3e-6:1e-4,"
+         "power:3e-6:1e-4:1e-5,power:3e-6:1e-4:3e-5", "--sample", "2048",
+         "--memory-limit", "2GiB", "--workdir", GREY_SCENES),
+    # issue #30: today's defaults against the old at equal error, on the six 96x128
+    # scenes and the dense 384x512 corner of the timing goal
+    step("defaults", 6.0, "its docstring (96x128: ~3 min) and single runs on the dense "
+         "384x512 corner (old 50-96 s, default 28-60 s, README's 27-50 s, 2026-11-26)",
+         "bench_defaults.py", "--sizes", "96x128", "--workdir", GREY_SCENES),
+    step("video", 0.6, RECORDED, "bench_video.py", "--out", "bench-out/video"),
+    # the colour Cornell box at 384x512 (issue #28's goals): grey vs general vs
+    # global-mixing, seen ΔE, video; time against error of both paths at 96x128, at the
+    # loosest and tightest prune (the middle decade adds a third of the sweep's time)
+    step("colour", 5.6, "a 384x512 run with its scenes built (268 s, 2026-11-26) and the "
+         "96x128 sweep timed alone (97 s at three prunes)", "bench_colour.py",
+         "--sweep-prunes", "1e-4,1e-6", "--workdir", "bench-out/colour"),
     # issue #29 on the simulated nonlinear rig: T from one exposure against brackets, the
-    # seen error with and without the calibrated responses (12x16 and 24x32, ~3 min)
-    ("calibration", ["bench_calibration.py", "--workdir", "bench-out/calibration"]),
-    ("compensate", ["bench_compensate.py", "--skip", "throughput"]),
-    ("out-of-core", ["bench_out_of_core.py", "--n", "393216", "--memory-limit", "1536MiB"]),
-    ("store", ["bench_store.py"]),
+    # seen error with and without the calibrated responses (12x16 and 24x32)
+    step("calibration", 2.5, "a run of its default grids (150 s, 2026-11-26)",
+         "bench_calibration.py", "--workdir", "bench-out/calibration"),
+    step("compensate", 0.75, RECORDED, "bench_compensate.py", "--skip", "throughput"),
+    step("out-of-core", 0.35, RECORDED, "bench_out_of_core.py", "--n", "393216",
+         "--memory-limit", "1536MiB"),
+    step("store", 0.2, RECORDED, "bench_store.py"),
     # the store layout's files and bytes per term (the before/after of issue #30 is run
-    # on its own with --baseline, an older checkout)
-    ("layout", ["bench_layout.py", "--workdir", "bench-out/layout"]),
-    ("startup", ["bench_startup.py"]),  # whole bigT processes: every help, a warm 4x4
-    # issue #31: local directory against S3 (moto) on loopback, threads and 2 workers
-    ("objects", ["bench_objects.py", "--workdir", "bench-out/objects"]),
-    ("acquire", ["bench_acquire.py", "--grid", "48x64", "--camera", "120x160"]),
-    ("stability", ["bench_stability.py", "--quick"]),
-    ("reliability", ["bench_reliability.py", "--quick"]),
+    # on its own with --baseline, an older checkout, at 384x512 and full HD)
+    step("layout", 1.2, "runs of the dense 384x512 corner with its scene built (28-50 s "
+         "each, 2026-11-26), two", "bench_layout.py", "--workdir", "bench-out/layout"),
+    # whole bigT processes: every help, a warm 4x4
+    step("startup", 0.8, "its cases: 15 helps x 5 at ~0.3 s, the 4x4 x 5 at 1-5 s",
+         "bench_startup.py"),
+    # issue #31: local directory against S3 (moto) on loopback, threads and 2 workers;
+    # one repeat (six runs of the 192x256 corner)
+    step("objects", 4.5, "a run at 192x256 (206 s a repeat, 2026-11-26) and the scene",
+         "bench_objects.py", "--repeats", "1", "--workdir", "bench-out/objects"),
+    step("acquire", 0.75, RECORDED, "bench_acquire.py", "--grid", "48x64", "--camera",
+         "120x160"),
+    step("stability", 0.3, RECORDED, "bench_stability.py", "--quick"),
+]
+#: What a first run (no scenes in bench-out/ yet) adds to the full plan's estimate,
+#: minutes: the dense 384x512 corner three times (tradeoff's folder, alternatives',
+#: layout's; ~2 min each idle, 8 under load), tradeoff's other scenes (~3), the colour
+#: Cornell boxes of 384x512 (grey and colour, 5.5), the scale ladder's and the 192x256
+#: scenes of the scheduler runs (~3).
+FIRST_RUN_BUILDS = 18
+#: Long points run on their own (``--only NAME``, into the same results: RESULTS.md
+#: marks their records as from their own run), out of the full plan to keep it within
+#: the hour: each answers what a step of the full plan answers at another size or
+#: setting, or what the tests assert.
+OWN_RUNS = [
+    # rho 0.2 and 0.5 (48x64 corner and Cornell box), two targets
+    step("target", 5.4, RECORDED, "bench_target.py", "--quick", "--rho", "0.2,0.5"),
+    # rho 0.9 (48x64 Cornell box): tens of terms per setting
+    step("target-high-rho", 8.3, RECORDED, "bench_target.py", "--quick", "--rho", "0.9",
+         "--targets", "0.00392"),
+    step("defaults-192x256", 12.0, "its docstring (all sizes ~25 min) less the 96x128 "
+         "scenes and the 384x512 corner", "bench_defaults.py", "--sizes", "192x256",
+         "--large", "", "--workdir", GREY_SCENES),
+    step("kernels-96x128", 1.8, "results/kernels.txt of the last full run (26 s a "
+         "repeat, 3 repeats)", "bench_kernels.py", "--sizes", "96x128"),
+    step("reliability", 4.6, RECORDED, "bench_reliability.py", "--quick"),
 ]
 #: The quick plan, under 5 minutes on 2 cores: the benchmarks the summary quotes, at
-#: small sizes (measured, CPU seconds: paper 15, tradeoff 94, target 6, alternatives
-#: 119, scale 26, kernels 23, distributed 37, out-of-core 6, store 5). Video (49 CPU-s at
-#: 64 frames of 96x128), compensate, inverse, scenes, acquire, stability and reliability
+#: small sizes. Video, compensate, inverse, scenes, acquire, stability and reliability
 #: are left to the full plan: with them the quick plan would take twice as long.
+QUICK_RUN = "a quick run from a fresh clone (2026-11-26 23:01, load ~1)"
 QUICK = [
-    ("paper", ["bench_paper.py", "--quick"]),
-    ("tradeoff", ["bench_tradeoff.py", "--quick", "--scenes", "corner-96x128-sparse",
-                  "--workdir", "bench-out/tradeoff-quick"]),
-    ("target", ["bench_target.py", "--quick", "--rho", "0.2", "--targets", "0.00392"]),
-    ("alternatives", ["bench_alternatives.py", "--quick", "--sizes", "32x48,48x64",
-                      "--colour-sizes", "24x32", "--workdir", "bench-out/alternatives-quick"]),
-    ("scale", ["bench_scale.py", "--max-size", "49152", "--no-compensate",
-               "--workdir", "bench-out/scale-quick"]),
-    ("kernels", ["bench_kernels.py", "--sizes", "48x64", "--repeat", "1"]),
-    ("distributed", ["bench_distributed.py", "--size", "48x64",
-                     "--workdir", "bench-out/distributed-quick"]),
-    ("out-of-core", ["bench_out_of_core.py", "--n", "32768", "--memory-limit", "2GiB"]),
-    ("store", ["bench_store.py", "--n", "20000", "--nnz-per-row", "20"]),
-    ("colour", ["bench_colour.py", "--quick", "--workdir", "bench-out/colour-quick"]),
+    step("paper", 0.3, QUICK_RUN, "bench_paper.py", "--quick"),
+    step("tradeoff", 0.2, QUICK_RUN, "bench_tradeoff.py", "--quick", "--scenes",
+         "corner-96x128-sparse", "--workdir", "bench-out/tradeoff-quick"),
+    step("target", 0.15, QUICK_RUN, "bench_target.py", "--quick", "--rho", "0.2",
+         "--targets", "0.00392"),
+    step("alternatives", 1.15, QUICK_RUN, "bench_alternatives.py", "--quick", "--sizes",
+         "32x48,48x64", "--colour-sizes", "24x32", "--workdir",
+         "bench-out/alternatives-quick"),
+    step("scale", 0.35, QUICK_RUN, "bench_scale.py", "--max-size", "49152",
+         "--no-compensate", "--workdir", "bench-out/scale-quick"),
+    step("kernels", 0.45, QUICK_RUN, "bench_kernels.py", "--sizes", "48x64", "--repeat",
+         "1"),
+    step("distributed", 0.8, QUICK_RUN, "bench_distributed.py", "--size", "48x64",
+         "--workdir", "bench-out/distributed-quick"),
+    step("out-of-core", 0.1, QUICK_RUN, "bench_out_of_core.py", "--n", "32768",
+         "--memory-limit", "2GiB"),
+    step("store", 0.1, QUICK_RUN, "bench_store.py", "--n", "20000", "--nnz-per-row",
+         "20"),
+    step("colour", 0.3, QUICK_RUN, "bench_colour.py", "--quick", "--workdir",
+         "bench-out/colour-quick"),
 ]
+
+
+def estimate(plan: list[Step]) -> float:
+    """The plan's estimated wall time, minutes."""
+    return sum(s.minutes for s in plan)
+
+
+def describe(plan: list[Step]) -> list[str]:
+    """One line per step (name, estimate, command) and the total: ``--list``."""
+    lines = [f"{s.name:<22} ~{s.minutes:4.1f} min  {shlex.join(s.argv)}" for s in plan]
+    return lines + [f"{'total':<22} ~{estimate(plan):4.1f} min"]
+
+
+def describe_full() -> list[str]:
+    """``--list`` of the full plan: its steps, a first run's scene builds, the own runs."""
+    return (describe(FULL) + [f"(a first run also builds the scenes: ~{FIRST_RUN_BUILDS} "
+                              "min more)", "", "run on their own (--only NAME):"]
+            + describe(OWN_RUNS))
 
 
 def default_paths(quick: bool, out: str | None) -> tuple[Path, Path]:
@@ -144,13 +250,13 @@ def refuse_dirty(results: Path, allow_dirty: bool) -> str | None:
             "(RESULTS.md will then say it is not from a committed state), or --out DIR.")
 
 
-def run_one(name: str, cmd: list[str], out: Path) -> report.Run:
+def run_one(todo: Step, out: Path) -> report.Run:
     """Run one benchmark in a child process, its output shown and kept in ``<name>.txt``."""
-    log = f"{name}.txt"
+    name, log = todo.name, f"{todo.name}.txt"
     (out / f"{name}.json").unlink(missing_ok=True)  # a failed run must not show the old record
-    argv = [sys.executable, str(HERE / cmd[0]), *cmd[1:]]
-    shown = ["python", f"benchmarks/{cmd[0]}", *cmd[1:]]
-    print(f"== {name}: {' '.join(shown)}  (-> {out / log})", flush=True)
+    argv = [sys.executable, str(HERE / todo.argv[0]), *todo.argv[1:]]
+    print(f"== {name}: {' '.join(todo.shown)}  (-> {out / log}; estimated "
+          f"~{todo.minutes:g} min)", flush=True)
     env = {**os.environ, "PYTHONWARNINGS": "ignore", OUT_ENV: str(out), NAME_ENV: name}
     t0 = time.perf_counter()
     with open(out / log, "w") as f:
@@ -161,18 +267,23 @@ def run_one(name: str, cmd: list[str], out: Path) -> report.Run:
             f.write(line)
         proc.wait()
     seconds = time.perf_counter() - t0
-    print(f"== {name}: exit {proc.returncode} after {seconds:.0f} s\n", flush=True)
-    return report.Run(name, shown, proc.returncode, seconds, log)
+    print(f"== {name}: exit {proc.returncode} after {seconds:.0f} s (estimated "
+          f"{60 * todo.minutes:.0f} s)\n", flush=True)
+    return report.Run(name, todo.shown, proc.returncode, seconds, log, 60 * todo.minutes)
 
 
-def select(plan: list, only: str | None) -> list:
+def select(plan: list[Step], only: str | None, others: list[Step] = ()) -> list[Step]:
+    """The steps ``--only`` names (of ``plan``, or of ``others``: the long points run on
+    their own), in the plan's order; the whole plan without ``--only``."""
     if not only:
         return plan
     wanted = set(only.split(","))
-    unknown = wanted - {name for name, _ in plan}
+    known = [s for s in [*plan, *others]]
+    unknown = wanted - {s.name for s in known}
     if unknown:
-        raise SystemExit(f"run_all: not in this plan: {', '.join(sorted(unknown))}")
-    return [c for c in plan if c[0] in wanted]
+        raise SystemExit(f"run_all: not in this plan: {', '.join(sorted(unknown))} "
+                         f"(--list shows the plan)")
+    return [s for s in known if s.name in wanted]
 
 
 def main(argv=None) -> int:
@@ -189,11 +300,11 @@ def main(argv=None) -> int:
                         "(it is marked as such)")
     args = p.parse_args(argv)
     plan = QUICK if args.quick else FULL
+    others = [] if args.quick else OWN_RUNS
     if args.list:
-        for name, cmd in plan:
-            print(f"{name:<14} {' '.join(cmd)}")
+        print("\n".join(describe(plan) if args.quick else describe_full()))
         return 0
-    todo = select(plan, args.only)
+    todo = select(plan, args.only, others)
     out, results = default_paths(args.quick, args.out)
     refusal = refuse_dirty(results, args.allow_dirty)
     if refusal:
@@ -204,20 +315,30 @@ def main(argv=None) -> int:
     if not args.only:  # a whole plan: RESULTS.md shows this run's records and no older ones
         for name in report.load_records(out):
             (out / f"{name}.json").unlink()
-    runs = [r for r in (earlier.runs if earlier else []) if r.name not in dict(todo)]
+    names = {s.name for s in todo}
+    runs = [r for r in (earlier.runs if earlier else []) if r.name not in names]
     kind = ("quick" if args.quick else "full") + (" (part)" if args.only else "")
+    print(f"plan: {len(todo)} benchmark{'' if len(todo) == 1 else 's'}, estimated "
+          f"~{estimate(todo):.0f} min", flush=True)
     t0 = time.perf_counter()
     try:
-        for name, cmd in todo:
+        for i, todo_step in enumerate(todo):
+            order = [s.name for s in plan] + [r.name for r in runs
+                                              if r.name not in {s.name for s in plan}]
+            order += [todo_step.name] if todo_step.name not in order else []
+            left = estimate(todo[i:])
+            print(f"-- {i + 1}/{len(todo)}, {(time.perf_counter() - t0) / 60:.0f} min "
+                  f"so far, ~{left:.0f} min estimated to go", flush=True)
             # saved before and after each run: an interrupted one is reported as such
-            report.Plan(kind, [n for n, _ in plan], runs + [report.Run(
-                name, ["python", f"benchmarks/{cmd[0]}", *cmd[1:]], None,
-                0.0, f"{name}.txt")]).save(out)
-            runs.append(run_one(name, cmd, out))
-            report.Plan(kind, [n for n, _ in plan], runs).save(out)
+            report.Plan(kind, order, runs + [report.Run(
+                todo_step.name, todo_step.shown, None, 0.0, f"{todo_step.name}.txt",
+                60 * todo_step.minutes)]).save(out)
+            runs.append(run_one(todo_step, out))
+            report.Plan(kind, order, runs).save(out)
     finally:  # Ctrl-C too: what did run is reported
         print(f"results: {report.write(out, results)} "
-              f"({time.perf_counter() - t0:.0f} s of benchmarks)", flush=True)
+              f"({time.perf_counter() - t0:.0f} s of benchmarks, "
+              f"~{60 * estimate(todo):.0f} s estimated)", flush=True)
     failed = [r.name for r in runs if r.returncode]
     if failed:
         print("failed: " + ", ".join(failed))

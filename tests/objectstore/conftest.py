@@ -1,6 +1,7 @@
 """A real S3-compatible server for the object-storage tests: moto's server mode
-(:class:`bigT.testing.S3Server`) as its own process on 127.0.0.1, one per test module,
-stopped by its PID. Nothing here reaches any other address: the endpoint is loopback
+(:class:`bigT.testing.S3Server`) as its own process on 127.0.0.1, one for the session
+(each test writes under a prefix of its own; a server takes seconds to start), stopped
+by its PID. Nothing here reaches any other address: the endpoint is loopback
 and ``AWS_ENDPOINT_URL`` points every client (this process, the dask workers) at it."""
 
 from __future__ import annotations
@@ -14,17 +15,26 @@ from bigT.testing import S3Server
 _names = itertools.count()
 
 
-@pytest.fixture(scope="module")
-def s3(tmp_path_factory):
+@pytest.fixture(scope="session")
+def s3_server(tmp_path_factory):
     server = S3Server(tmp_path_factory.mktemp("moto"))
-    mp = pytest.MonkeyPatch()
     try:
-        for key, value in server.env.items():
-            mp.setenv(key, value)
         yield server
     finally:
-        mp.undo()
         server.stop()
+
+
+@pytest.fixture(scope="module")
+def s3(s3_server):
+    """The server, with ``AWS_ENDPOINT_URL`` and its credentials in the environment for
+    the module's tests (and the processes they start) only."""
+    mp = pytest.MonkeyPatch()
+    try:
+        for key, value in s3_server.env.items():
+            mp.setenv(key, value)
+        yield s3_server
+    finally:
+        mp.undo()
 
 
 @pytest.fixture

@@ -163,8 +163,9 @@ class DiskFaultResult:
 
 
 def check_command(inputs: Path, tmp: Path, name: str, error: int,
-                  sample: int) -> DiskFaultResult:
-    """Fail ``name``'s writes with ``error`` at every ``sample``-th kind of mutation."""
+                  sample: int, offset: int = 0) -> DiskFaultResult:
+    """Fail ``name``'s writes with ``error`` at every ``sample``-th kind of mutation,
+    starting at the ``offset``-th (0-based) when there are more than SAMPLE_ABOVE."""
     d = tmp / "run"
     shutil.copytree(inputs, d)
     argv, output = commands(d)[name]
@@ -176,7 +177,7 @@ def check_command(inputs: Path, tmp: Path, name: str, error: int,
     assert status == 0
     points = first_of_each_kind(kinds)
     if len(points) > SAMPLE_ABOVE:
-        points = points[::sample]
+        points = points[offset::sample]
     problems, carried_on = [], 0
     for k in points:
         copy(saved, output)  # every point starts from the same earlier output
