@@ -15,10 +15,19 @@ import os
 os.environ.setdefault("BIGT_IN_MEMORY", "0")
 
 
+#: The suite's largest tests write a few hundred MB at once; a container's /dev/shm is
+#: often 64 MB, where they would fail for want of space, not of correctness.
+TMPFS_MIN_FREE_BYTES = 4 << 30
+
+
 def _tmpfs() -> str | None:
-    """/dev/shm when it is there and writable, else None (pytest's default root)."""
+    """/dev/shm when it is there, writable and has TMPFS_MIN_FREE_BYTES free, else None
+    (pytest's default root)."""
     shm = "/dev/shm"
-    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
+    if not (os.path.isdir(shm) and os.access(shm, os.W_OK)):
+        return None
+    st = os.statvfs(shm)
+    return shm if st.f_bavail * st.f_frsize >= TMPFS_MIN_FREE_BYTES else None
 
 
 # read by pytest when the first temporary directory is made, after this import
