@@ -226,6 +226,10 @@ SCENE_BRACKET_MIN_N = 4_000_000
 #: decoded tile rows of T or A (at most what the process does not hold already); the
 #: rest holds the estimates' vectors (n float64 each) and the products' temporaries.
 SCENE_STATS_CACHE_SHARE = 0.5
+#: Share of the limit the ground truth's cache leaves free besides what the process
+#: holds and the vectors: the products' temporaries and the estimates' work. Filling
+#: the rest exactly put the 4K corner's build at 4.21 GiB under a 4 GiB limit.
+SCENE_STATS_HEADROOM_SHARE = 0.1
 #: Memory a scene build may hold of A and T (default of ``memory_limit``): a matrix
 #: within it is read whole once, a larger one tile row by tile row.
 SCENE_IN_MEMORY_BYTES = 2 << 30

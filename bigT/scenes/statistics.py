@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..schedule.memory import resident_bytes
+from ..schedule.memory import resident_bytes, return_freed_memory
 from ..spectral import SpectralRadius, spectral_radius
 from . import radiosity, stored
 from .colouring import ColourParts
@@ -124,7 +124,8 @@ def _cache_bytes(memory_limit: int, n: int) -> int:
     """Bytes of decoded tile rows the statistics' products may cache: a share of the
     limit, and no more than what the process does not hold already (the build's
     earlier phases leave ~2 GB resident at 4K) besides the vectors."""
-    free = int(memory_limit) - resident_bytes() - STATS_VECTORS * 8 * int(n)
+    free = (int(memory_limit) - resident_bytes() - STATS_VECTORS * 8 * int(n)
+            - int(config.SCENE_STATS_HEADROOM_SHARE * memory_limit))
     return max(0, min(int(config.SCENE_STATS_CACHE_SHARE * memory_limit), free))
 
 
@@ -133,12 +134,12 @@ def _radii_and_bounces(T, A, f, G, memory_limit: int, radius_of_M, lit: np.ndarr
     and the bounce images of the light ``lit`` (f G lit first), T and A each held
     within ``memory_limit`` in turn."""
     n = T.shape[0]
-    cache = _cache_bytes(memory_limit, n)
-    times_T = stored.stored_apply(T, cache)
+    times_T = stored.stored_apply(T, _cache_bytes(memory_limit, n))
     rho_M = radius_of_M(times_T)
     T1 = times_T(np.ones(n))
     del times_T
-    times_A = stored.stored_apply(A, cache)
+    return_freed_memory()  # T's cached tile rows back to the system before A's are read
+    times_A = stored.stored_apply(A, _cache_bytes(memory_limit, n))
     rho_A = _radius(times_A, n)
     b0 = f * (G @ lit if G is not None else lit)
     bounces = radiosity.bounce_images(times_A, b0, config.SCENE_SHARE_MAX_BOUNCES,
