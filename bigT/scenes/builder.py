@@ -323,6 +323,7 @@ def _build_resumable(recipe: _Recipe, preview, progress, t_start) -> Scene:
     else:
         stats = colour_ground_truth_stats(T, A, r.f, r.G, r.colour, r.memory_limit)
     timings["seconds_stats"] = time.perf_counter() - t0
+    return_freed_memory()  # the statistics' cached tile rows, before the preview's figure
     summary = {
         **{k: v for k, v in params.items() if k not in ("tile_size", "albedo_digest")},
         "dtype": str(T.dtype), "nnz_T": int(T.nnz), "nnz_A": int(A.nnz),
