@@ -52,7 +52,7 @@ INVISIBLE_LEVELS = 0.5
 #: ``invert_to_target`` at this relative error of the compensated probe images:
 #: measured by benchmarks/bench_defaults.py to keep the projector image within
 #: INVISIBLE_LEVELS of the exact inverse's on every scene of the benchmarks.
-DEFAULT_TARGET_ERROR = 5e-4
+DEFAULT_TARGET_ERROR = 3e-4
 #: ``invert_to_target``'s power form prunes P_k (the next product's factor) at this
 #: multiple of its prune, and M in the products after the first term at this one.
 #: Measured on the dense 384x512 corner (benchmarks/bench_defaults.py, 4 terms; max
@@ -60,8 +60,8 @@ DEFAULT_TARGET_ERROR = 5e-4
 #: 1e-5 (the README's recommendation before issue #30) 1.26, 3x faster: P_k pruned at
 #: 1e-4 drops entries of one sign, which shifts smooth images; 1e-6, 3e-5, 1e-5 0.13.
 #: The feed threshold sets the image error, the operator threshold most of the saving.
-TARGET_FEED_RATIO = 30.0
-TARGET_OPERATOR_RATIO = 10.0
+TARGET_FEED_RATIO = 15.0
+TARGET_OPERATOR_RATIO = 3.0
 #: Largest condition number of a pixel's 3x3 colour block of F (a colour transport's
 #: first bounce) that the engine inverts; a pixel above it is refused, or left out
 #: with first_bounce="diag-skip-ill". The block's inverse carries the relative error of

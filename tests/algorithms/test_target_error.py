@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 
 import bigT
 from bigT.algorithms.target import (SAFETY, choose_method, decay_rate, first_prune,
-                                    invert_to_target)
+                                    grid_floor, invert_to_target)
 from bigT.cli import main
 from bigT.storage.frames import to_vectors
 from bigT.errors import BigTError
@@ -81,16 +81,21 @@ def test_rerun_on_a_store_that_meets_the_target_computes_nothing(scenes, tmp_pat
 
 def test_first_prune_follows_the_rate_of_the_truncation_curve():
     """Pruned entries are carried by every later bounce (their error adds up like
-    1 / (1 - rho)), so a slower series starts from a smaller prune: the decades of
-    the bench's scenes (rho 0.19, 0.52, 0.89; E = 1/255 and 1e-3)."""
+    1 / (1 - rho)), so a slower series starts from a smaller prune: the 1-3 steps of
+    the bench's scenes (rho 0.19, 0.52, 0.89; E = 1/255 and 1e-3), and of the dense
+    384x512 corner at the default target (rho 0.25 -> 4.5e-6 -> 3e-6)."""
     D = np.ones((10, 2))
     curve = [D * 0.3 * 0.5 ** k for k in range(4)]
     assert decay_rate(curve, D) == pytest.approx(0.5)
     assert decay_rate(curve[:1], D) == pytest.approx(0.3)  # one point: ||M d|| / ||d||
     assert decay_rate([D, D * 1.5], D) == 0.99  # a stalling curve: clamped below 1
-    assert [first_prune(1e-3, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 1e-6, 1e-6]
-    assert [first_prune(TARGET, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 1e-5, 1e-6]
+    assert [first_prune(1e-3, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 3e-6, 1e-6]
+    assert [first_prune(TARGET, r) for r in (0.19, 0.52, 0.89)] == [3e-5, 3e-5, 3e-6]
     assert first_prune(1e-3) == 1e-5  # no rate known: the fastest series' prune
+    assert first_prune(3e-4, 0.255) == 3e-6  # by decades it was 1e-6
+    # the grid's steps print as written (the fingerprint records them)
+    assert [repr(grid_floor(v)) for v in (7.4e-6, 2.9e-6, 3e-6, 1e-5, 9.99e-6)] == [
+        "3e-06", "1e-06", "3e-06", "1e-05", "3e-06"]
 
 
 def test_too_tight_for_float32_is_refused_before_anything_is_written(scenes, tmp_path):
