@@ -49,17 +49,34 @@ DEFAULT_PRUNE = 1e-5
 #: exact inverse's image, up to one level on the pixels that straddle a rounding step.
 INVISIBLE_LEVELS = 0.5
 #: ``bigT invert`` with no series option (no --terms, --prune, --tol, ...) runs
-#: ``invert_to_target`` at this relative error of the compensated probe images:
-#: measured by benchmarks/bench_defaults.py to keep the projector image within
+#: ``invert_to_target`` at this relative error of the compensated probe images. The
+#: probes' error and the projector image's worst 8-bit error go together: on the dense
+#: 384x512 corner, 4 terms (benchmarks/bench_defaults.py), a worst probe of 1.0e-4 to
+#: 1.4e-3 came with 1000 to 1660 times as many levels (9.6e-5: 0.16 level; 3.3e-4:
+#: 0.40; 1.2e-3: 1.26), so the run's stop at SAFETY (0.8) times this target, 2.4e-4,
+#: keeps that image within 0.24-0.40 level, under INVISIBLE_LEVELS; at 5e-4 (before
+#: issue #30's speed goal) a stop at 4e-4 could have reached 0.66. It also skips the
+#: measurement of term 3 there (its truncation part, 9.3e-4, is over MEASURE_WITHIN
+#: times the safe target), a measurement that 5e-4 made and could not stop at.
+#: Measured by benchmarks/bench_defaults.py to keep the projector image within
 #: INVISIBLE_LEVELS of the exact inverse's on every scene of the benchmarks.
 DEFAULT_TARGET_ERROR = 3e-4
 #: ``invert_to_target``'s power form prunes P_k (the next product's factor) at this
 #: multiple of its prune, and M in the products after the first term at this one.
-#: Measured on the dense 384x512 corner (benchmarks/bench_defaults.py, 4 terms; max
-#: error of the projector image in 8-bit levels): prune 1e-5 alone 0.62; 3e-6, 1e-4,
-#: 1e-5 (the README's recommendation before issue #30) 1.26, 3x faster: P_k pruned at
-#: 1e-4 drops entries of one sign, which shifts smooth images; 1e-6, 3e-5, 1e-5 0.13.
-#: The feed threshold sets the image error, the operator threshold most of the saving.
+#: Measured on the dense 384x512 corner (explicit 4-term runs, benchmarks/
+#: bench_defaults.py's measure; prune, feed, operator: multiply-adds, the projector
+#: image's worst error in 8-bit levels): prune 1e-5 alone 1.2e11, 0.62;
+#: 3e-6, 1e-4, 1e-5 (the README's recommendation before issue #30) 1.1e10, 1.26: P_k
+#: pruned at 1e-4 drops entries of one sign, which shifts smooth images (a cliff:
+#: 1e-6, 1e-4, 1e-5 also 1.30); 1e-6, 3e-5, 1e-5 (30x and 10x of a decade prune,
+#: the default before) 2.7e10, 0.13; 3e-6, 3e-5, 1e-5 the same multiply-adds, 0.16,
+#: with a quarter fewer entries in X (3.3e7 against 4.5e7: cheaper merges, writes and
+#: measurements); 3e-6, 5e-5, 1e-5 2.2e10, 0.13; 3e-6, 3e-5, 2e-5 2.2e10, 0.23;
+#: 3e-6, 3e-5, 3e-5 1.9e10, 0.40; 1e-5, 3e-5, 1e-5 2.7e10, 0.38 (the prune's error
+#: is not carried by a bounce). The feed and the operator thresholds set the error
+#: of the terms after the first, the prune that of X itself. With the prune on
+#: 1-3 steps (3e-6 there, target.PRUNE_GRID), 15x and 3x give 3e-6, 4.5e-5, 9e-6,
+#: below the feed's cliff by 2x.
 TARGET_FEED_RATIO = 15.0
 TARGET_OPERATOR_RATIO = 3.0
 #: Largest condition number of a pixel's 3x3 colour block of F (a colour transport's

@@ -31,7 +31,10 @@ Without pruning, I - T T_k^-1 = M^(k+1) (M = I - T F^-1), so the truncation part
 the error of T_k^-1 on the probes, ||M^(k+1) d|| / ||d||, is computed before any term
 by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper than a
 sparse product): it gives the number of terms the series needs
-(:func:`truncation_curve`). After each term the measured residual r_k = (I - T X_k) d
+(:func:`predicted_curve`: the last point, which the curve's last ratio puts under the
+goal, is counted before it is computed, and computed only if a term measured needs
+it). With no memory limit T's tiles stay in the tile cache through the engine's run,
+so that a measurement does not read T again. After each term the measured residual r_k = (I - T X_k) d
 minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k for the power form:
 docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
 is seen at the first term measured (by term 4 in a long series) and the run restarts
@@ -46,9 +49,9 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
 * thresholds: the power form prunes P_k, the next product's factor, at
   config.TARGET_FEED_RATIO times the prune, and M in the products after the first term
   at config.TARGET_OPERATOR_RATIO times it (:func:`first_thresholds`; on the dense
-  384x512 corner, 4 terms, prune 1e-6 so fed and pruned does 4.4x fewer
-  multiply-adds than prune 1e-5 alone, at a fifth of its image error:
-  benchmarks/bench_defaults.py); a restart scales the three together. A store ``out``
+  384x512 corner, 4 terms, prune 3e-6 so fed and pruned does 5x fewer multiply-adds
+  than prune 1e-5 alone, at a fraction of its image error: the measurements are
+  config's comments); a restart scales the three together. A store ``out``
   already holding an inverse of T starts from the setting it records.
 * prune: the largest step of PRUNE_GRID (1, 3 times a power of ten) <= target (1 - r) /
   PRUNE_RATIO, with r the rate at which
@@ -329,15 +332,30 @@ def truncation_curve(products: _Products, D: np.ndarray, goal: float,
     -------
     list of ndarray, each (n, k): element k is M^(k+1) D.
     """
+    return _curve(products, D, goal, max_terms)[0]
+
+
+def predicted_curve(products: _Products, D: np.ndarray, goal: float,
+                    max_terms: int) -> tuple[list[np.ndarray], int]:
+    """(:func:`truncation_curve` short of its last point, the terms the unpruned
+    series needs): the point that its last step's ratio puts below ``goal`` is
+    counted, not computed (one streamed product with T fewer; a term measured
+    computes it when it needs it, :func:`_power`)."""
+    return _curve(products, D, goal, max_terms, extrapolate=True)
+
+
+def _curve(products, D, goal, max_terms, extrapolate=False):
     powers = [products.M(D)]
-    last = _rel(powers[-1], D).max()
-    while len(powers) <= max_terms and last > goal:
+    worst = [float(_rel(powers[-1], D).max())]
+    while len(powers) <= max_terms and worst[-1] > goal:
+        if extrapolate and len(worst) >= 2 and worst[-1] ** 2 / worst[-2] <= goal:
+            return powers, len(powers)  # M^(len+1) D predicted below the goal
         powers.append(products.M(powers[-1]))
-        now = _rel(powers[-1], D).max()
-        if now >= last:
+        now = float(_rel(powers[-1], D).max())
+        if now >= worst[-1]:
             break  # stalled: the engine's divergence check decides
-        last = now
-    return powers
+        worst.append(now)
+    return powers, len(powers) - 1
 
 
 def _power(products: _Products, powers: list[np.ndarray], k: int,
@@ -594,8 +612,8 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
     try:
         D = probe_vectors(T, fb.active, seed)
         limit = MAX_TERMS if max_terms is None else int(max_terms)
-        powers = truncation_curve(products, D, SAFETY * target * (1 - PRUNE_SHARE), limit)
-        predicted = len(powers) - 1
+        powers, predicted = predicted_curve(products, D,
+                                            SAFETY * target * (1 - PRUNE_SHARE), limit)
         cap = min(limit, predicted + EXTRA_TERMS) if max_terms is None else limit
         recorded = None if overwrite or method is not None or prune is not None \
             else recorded_setting(T, fb, out)

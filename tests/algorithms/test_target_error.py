@@ -12,7 +12,8 @@ from scipy.ndimage import gaussian_filter
 
 import bigT
 from bigT.algorithms.target import (SAFETY, choose_method, decay_rate, first_prune,
-                                    grid_floor, invert_to_target)
+                                    grid_floor, invert_to_target, predicted_curve,
+                                    truncation_curve)
 from bigT.cli import main
 from bigT.storage.frames import to_vectors
 from bigT.errors import BigTError
@@ -172,3 +173,25 @@ def test_in_memory_search_writes_only_the_terms_it_measures(scenes, tmp_path, mo
     measured = {m.term for a in mem.attempts for m in a.terms}
     # term 0 is never handed over: the engine asks whether it is read, like any term
     assert written - {0} == measured and len(written - {0}) < mem.terms
+
+
+def test_the_curve_counts_its_last_point_without_computing_it():
+    """The truncation curve of a geometric series (M = I / 2): the point that the last
+    step's ratio puts below the goal is counted, not computed, so the count is the
+    full curve's with one product fewer."""
+    class Halving:
+        calls = 0
+
+        def M(self, V):
+            Halving.calls += 1
+            return 0.5 * V
+
+    D = np.ones((6, 3))
+    full = truncation_curve(Halving(), D, 0.1, 200)
+    assert [float(np.linalg.norm(P[:, 0]) / np.linalg.norm(D[:, 0])) for P in full] == [
+        0.5, 0.25, 0.125, 0.0625]
+    Halving.calls = 0
+    powers, predicted = predicted_curve(Halving(), D, 0.1, 200)
+    assert predicted == len(full) - 1 == 3 and Halving.calls == 3 == len(powers)
+    assert predicted_curve(Halving(), D, 0.1, 2)[1] == 2  # the cap bounds the count
+    assert predicted_curve(Halving(), D, 0.6, 200)[1] == 0  # M d meets it: F^-1 alone
