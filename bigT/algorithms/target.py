@@ -22,8 +22,7 @@ measured costs two streamed products for all probes together: Y = X D, then
 T [Y, clip(s Y)] (clip(s Y) only for the probes whose X d leaves [0, 1]). The engine
 runs once per (method, prune) and hands each term over as it is published
 (``on_term``); a term is measured where the target may be met (the truncation part
-within MEASURE_WITHIN of it), at terms 4, 8, 16, ... and at
-every Newton-Schulz step.
+within MEASURE_WITHIN of it), at terms 4, 8, 16, ... and at every Newton-Schulz step.
 
 Decomposing the error
 ---------------------
@@ -34,8 +33,8 @@ sparse product): it gives the number of terms the series needs
 (:func:`predicted_curve`: the last point, which the curve's last ratio puts under the
 goal, is counted before it is computed, and computed only if a term measured needs
 it). With no memory limit T's tiles stay in the tile cache through the engine's run,
-so that a measurement does not read T again. After each term the measured residual r_k = (I - T X_k) d
-minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k for the power form:
+so that a measurement does not read T again. After each term the measured residual
+r_k = (I - T X_k) d minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k for the power form:
 docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
 is seen at the first term measured (by term 4 in a long series) and the run restarts
 with a smaller one instead of running into the floor.
@@ -53,10 +52,10 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
   than prune 1e-5 alone, at a fraction of its image error: the measurements are
   config's comments); a restart scales the three together. A store ``out``
   already holding an inverse of T starts from the setting it records.
-* prune: the largest step of PRUNE_GRID (1, 3 times a power of ten) <= target (1 - r) /
-  PRUNE_RATIO, with r the rate at which
-  the truncation curve falls per term (about rho(M)): pruned entries are carried by
-  every later bounce, so their error adds up like 1 / (1 - r). Restart with a smaller
+* prune: the largest step of PRUNE_GRID (1, 3 times a power of ten) <= target (1 - r)
+  / PRUNE_RATIO, with r the rate at which the truncation curve falls per term (about
+  rho(M)): pruned entries are carried by every later bounce, so their error adds up
+  like 1 / (1 - r). Restart with a smaller
   step (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
   part exceeds PRUNE_SHARE * SAFETY * target, or the series is exhausted or stalls
   above the target; at most MAX_RESTARTS restarts.
