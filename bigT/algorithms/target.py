@@ -34,8 +34,8 @@ sparse product): it gives the number of terms the series needs
 goal, is counted before it is computed, and computed only if a term measured needs
 it). With no memory limit T's tiles stay in the tile cache through the engine's run,
 so that a measurement does not read T again. After each term the measured residual
-r_k = (I - T X_k) d minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k for the power form:
-docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
+r_k = (I - T X_k) d minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k
+for the power form: docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
 is seen at the first term measured (by term 4 in a long series) and the run restarts
 with a smaller one instead of running into the floor.
 
@@ -406,7 +406,8 @@ def first_prune(target: float, rate: float = 0.0) -> float:
 
 def grid_floor(value: float) -> float:
     """The largest m 10^e <= ``value`` with m in PRUNE_GRID (1, 3: 7.4e-6 -> 3e-06,
-    2.9e-6 -> 1e-06), as a float that prints as written (3e-06, not 3.0000000000000004e-06)."""
+    2.9e-6 -> 1e-06), as a float that prints as written (3e-06, not
+    3.0000000000000004e-06)."""
     exponent = math.floor(math.log10(value) + 1e-9)
     mantissa = max(m for m in PRUNE_GRID if m <= value / 10.0 ** exponent * (1 + 1e-9))
     return float(f"{mantissa:g}e{exponent}")
