@@ -62,9 +62,9 @@ INVISIBLE_LEVELS = 0.5
 #: INVISIBLE_LEVELS of the exact inverse's on the scenes of the benchmarks (worst
 #: 8-bit error; issue #30's run): 96x128 corner sparse 0.18, dense 0.13, Cornell box
 #: 0.31 (a restart, 7 terms), hemispheres 0.10, convex and flat 0 (F^-1 alone);
-#: 192x256 corner sparse 0.19, dense 0.12 (its other scenes not measured yet); dense
-#: 384x512 corner 0.11 (the fixed run of what the default chose, 3e-6, 4.5e-5, 9e-6,
-#: 4 terms: the same inverse). There a whole ``bigT invert`` process with no option
+#: 192x256 corner sparse 0.19, dense 0.12, Cornell box 0.25 (a restart, 7 terms),
+#: hemispheres 0.09 (a restart, 5 terms), convex and flat 0; dense 384x512 corner 0.11
+#: (3e-6, 4.5e-5, 9e-6, 4 terms). There a whole ``bigT invert`` process with no option
 #: took, run interleaved with the one before (5e-4, decade prunes, 30x and 10x) and with
 #: ``--terms 4 --prune 1e-5`` on a shared 2-core machine (load 6-9), 31.9-32.8 s of
 #: CPU against 39.6-48.9 and 82.6-86.6 (2.6x fewer than the latter); wall 35-57 s
