@@ -49,19 +49,45 @@ DEFAULT_PRUNE = 1e-5
 #: exact inverse's image, up to one level on the pixels that straddle a rounding step.
 INVISIBLE_LEVELS = 0.5
 #: ``bigT invert`` with no series option (no --terms, --prune, --tol, ...) runs
-#: ``invert_to_target`` at this relative error of the compensated probe images:
-#: measured by benchmarks/bench_defaults.py to keep the projector image within
-#: INVISIBLE_LEVELS of the exact inverse's on every scene of the benchmarks.
-DEFAULT_TARGET_ERROR = 5e-4
+#: ``invert_to_target`` at this relative error of the compensated probe images. The
+#: probes' error and the projector image's worst 8-bit error go together: on the dense
+#: 384x512 corner, 4 terms (benchmarks/bench_defaults.py), a worst probe of 1.0e-4 to
+#: 1.4e-3 came with 1000 to 1660 times as many levels (9.6e-5: 0.16 level; 3.3e-4:
+#: 0.40; 1.2e-3: 1.26), so the run's stop at SAFETY (0.8) times this target, 2.4e-4,
+#: keeps that image within 0.24-0.40 level, under INVISIBLE_LEVELS; at 5e-4 (before
+#: issue #30's speed goal) a stop at 4e-4 could have reached 0.66. It also skips the
+#: measurement of term 3 there (its truncation part, 9.3e-4, is over MEASURE_WITHIN
+#: times the safe target), a measurement that 5e-4 made and could not stop at.
+#: Measured by benchmarks/bench_defaults.py to keep the projector image within
+#: INVISIBLE_LEVELS of the exact inverse's on the scenes of the benchmarks (worst
+#: 8-bit error; issue #30's run): 96x128 corner sparse 0.18, dense 0.13, Cornell box
+#: 0.31 (a restart, 7 terms), hemispheres 0.10, convex and flat 0 (F^-1 alone);
+#: 192x256 corner sparse 0.19, dense 0.12, Cornell box 0.25 (a restart, 7 terms),
+#: hemispheres 0.09 (a restart, 5 terms), convex and flat 0; dense 384x512 corner 0.11
+#: (3e-6, 4.5e-5, 9e-6, 4 terms). There a whole ``bigT invert`` process with no option
+#: took, run interleaved with the one before (5e-4, decade prunes, 30x and 10x) and with
+#: ``--terms 4 --prune 1e-5`` on a shared 2-core machine (load 6-9), 31.9-32.8 s of
+#: CPU against 39.6-48.9 and 82.6-86.6 (2.6x fewer than the latter); wall 35-57 s
+#: against 47-97 and 122-132.
+DEFAULT_TARGET_ERROR = 3e-4
 #: ``invert_to_target``'s power form prunes P_k (the next product's factor) at this
 #: multiple of its prune, and M in the products after the first term at this one.
-#: Measured on the dense 384x512 corner (benchmarks/bench_defaults.py, 4 terms; max
-#: error of the projector image in 8-bit levels): prune 1e-5 alone 0.62; 3e-6, 1e-4,
-#: 1e-5 (the README's recommendation before issue #30) 1.26, 3x faster: P_k pruned at
-#: 1e-4 drops entries of one sign, which shifts smooth images; 1e-6, 3e-5, 1e-5 0.13.
-#: The feed threshold sets the image error, the operator threshold most of the saving.
-TARGET_FEED_RATIO = 30.0
-TARGET_OPERATOR_RATIO = 10.0
+#: Measured on the dense 384x512 corner (explicit 4-term runs, benchmarks/
+#: bench_defaults.py's measure; prune, feed, operator: multiply-adds, the projector
+#: image's worst error in 8-bit levels): prune 1e-5 alone 1.2e11, 0.62;
+#: 3e-6, 1e-4, 1e-5 (the README's recommendation before issue #30) 1.1e10, 1.26: P_k
+#: pruned at 1e-4 drops entries of one sign, which shifts smooth images (a cliff:
+#: 1e-6, 1e-4, 1e-5 also 1.30); 1e-6, 3e-5, 1e-5 (30x and 10x of a decade prune,
+#: the default before) 2.7e10, 0.13; 3e-6, 3e-5, 1e-5 the same multiply-adds, 0.16,
+#: with a quarter fewer entries in X (3.3e7 against 4.5e7: cheaper merges, writes and
+#: measurements); 3e-6, 5e-5, 1e-5 2.2e10, 0.13; 3e-6, 3e-5, 2e-5 2.2e10, 0.23;
+#: 3e-6, 3e-5, 3e-5 1.9e10, 0.40; 1e-5, 3e-5, 1e-5 2.7e10, 0.38 (the prune's error
+#: is not carried by a bounce). The feed and the operator thresholds set the error
+#: of the terms after the first, the prune that of X itself. With the prune on
+#: 1-3 steps (3e-6 there, target.PRUNE_GRID), 15x and 3x give 3e-6, 4.5e-5, 9e-6,
+#: below the feed's cliff by 2x.
+TARGET_FEED_RATIO = 15.0
+TARGET_OPERATOR_RATIO = 3.0
 #: Largest condition number of a pixel's 3x3 colour block of F (a colour transport's
 #: first bounce) that the engine inverts; a pixel above it is refused, or left out
 #: with first_bounce="diag-skip-ill". The block's inverse carries the relative error of

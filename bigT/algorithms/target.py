@@ -19,10 +19,10 @@ also gives the clipped error of each probe scaled so (``clipped_errors``).
 Probes (:func:`probe_images`): a constant image, a smooth gradient and low-pass
 filtered noise, all in [0.2, 0.8], zero on pixels the inverse leaves out. A term
 measured costs two streamed products for all probes together: Y = X D, then
-T [Y, clip(s Y)]. The engine runs once per (method, prune) and hands each term over
-as it is published (``on_term``); a term is measured where the target may be met
-(the truncation part within MEASURE_WITHIN of it), at terms 4, 8, 16, ... and at
-every Newton-Schulz step.
+T [Y, clip(s Y)] (clip(s Y) only for the probes whose X d leaves [0, 1]). The engine
+runs once per (method, prune) and hands each term over as it is published
+(``on_term``); a term is measured where the target may be met (the truncation part
+within MEASURE_WITHIN of it), at terms 4, 8, 16, ... and at every Newton-Schulz step.
 
 Decomposing the error
 ---------------------
@@ -30,9 +30,12 @@ Without pruning, I - T T_k^-1 = M^(k+1) (M = I - T F^-1), so the truncation part
 the error of T_k^-1 on the probes, ||M^(k+1) d|| / ||d||, is computed before any term
 by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper than a
 sparse product): it gives the number of terms the series needs
-(:func:`truncation_curve`). After each term the measured residual r_k = (I - T X_k) d
-minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k for the power form:
-docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
+(:func:`predicted_curve`: the last point, which the curve's last ratio puts under the
+goal, is counted before it is computed, and computed only if a term measured needs
+it). With no memory limit T's tiles stay in the tile cache through the engine's run,
+so that a measurement does not read T again. After each term the measured residual
+r_k = (I - T X_k) d minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k
+for the power form: docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
 is seen at the first term measured (by term 4 in a long series) and the run restarts
 with a smaller one instead of running into the floor.
 
@@ -45,14 +48,15 @@ Rules (constants below, measured by ``benchmarks/bench_target.py``)
 * thresholds: the power form prunes P_k, the next product's factor, at
   config.TARGET_FEED_RATIO times the prune, and M in the products after the first term
   at config.TARGET_OPERATOR_RATIO times it (:func:`first_thresholds`; on the dense
-  384x512 corner, 4 terms, prune 1e-6 so fed and pruned does 4.4x fewer
-  multiply-adds than prune 1e-5 alone, at a fifth of its image error:
-  benchmarks/bench_defaults.py); a restart scales the three together. A store ``out``
+  384x512 corner, 4 terms, prune 3e-6 so fed and pruned does 5x fewer multiply-adds
+  than prune 1e-5 alone, at a fraction of its image error: the measurements are
+  config's comments); a restart scales the three together. A store ``out``
   already holding an inverse of T starts from the setting it records.
-* prune: the largest decade <= target (1 - r) / PRUNE_RATIO, with r the rate at which
-  the truncation curve falls per term (about rho(M)): pruned entries are carried by
-  every later bounce, so their error adds up like 1 / (1 - r). Restart with a smaller
-  decade (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
+* prune: the largest step of PRUNE_GRID (1, 3 times a power of ten) <= target (1 - r)
+  / PRUNE_RATIO, with r the rate at which the truncation curve falls per term (about
+  rho(M)): pruned entries are carried by every later bounce, so their error adds up
+  like 1 / (1 - r). Restart with a smaller
+  step (the pruning part measured, scaled to PRUNE_SHARE of the target) when the pruning
   part exceeds PRUNE_SHARE * SAFETY * target, or the series is exhausted or stalls
   above the target; at most MAX_RESTARTS restarts.
 * terms: at most the truncation curve's count + EXTRA_TERMS (a pruned series may need
@@ -96,8 +100,13 @@ from .stratified import stratified_inverse
 
 #: Stop when the worst probe's error is below SAFETY * target.
 SAFETY = 0.8
-#: The first prune tried: the largest decade <= target (1 - rate) / PRUNE_RATIO.
+#: The first prune tried: the largest step of PRUNE_GRID <= target (1 - rate) /
+#: PRUNE_RATIO.
 PRUNE_RATIO = 50.0
+#: The prune's steps in each decade: 1 and 3 (a step of ~3x, not 10x: on the dense
+#: 384x512 corner at 5e-4, 7.5e-6 became 1e-6 by decades; by 1-3 steps, 3e-6, whose
+#: inverse holds fewer entries at no larger error: benchmarks/bench_defaults.py).
+PRUNE_GRID = (1, 3)
 #: The pruning part must exceed the truncation part this many times to be a floor.
 FLOOR_DOMINANCE = 2.0
 #: The pruning part may take this share of the (safe) target before a restart.
@@ -112,8 +121,11 @@ NS_PRODUCT_SHARE = 0.5
 #: A term is measured once the truncation part alone is within this factor of the
 #: safe target: the pruning part may cancel much of it (M = -|M| alternates in sign;
 #: on the rho = 0.52 Cornell box, term 6 of prune 1e-5 measured 2.97e-3 against a
-#: truncation part of 7.5e-3).
-MEASURE_WITHIN = 4.0
+#: truncation part of 7.5e-3, a factor 2.5). Not more: each term measured costs two
+#: streamed products and, in memory, the term's write (on the dense 384x512 corner at
+#: the default target, term 3's truncation part 9.3e-4 against 3 x 2.4e-4: not
+#: measured; measured, it erred 4.5e-4, above the target, ~2.5 s for nothing).
+MEASURE_WITHIN = 3.0
 
 
 @dataclass(frozen=True)
@@ -274,24 +286,38 @@ class _Products:
     """Streamed products with T and X, sharing one thread runner and T's tile cache
     (the truncation curve passes over T once per term)."""
 
-    def __init__(self, T, fb, workers: int):
+    def __init__(self, T, fb, workers: int, keep_tiles: bool = False):
         self.T, self.fb = T, fb
         self.runner = ThreadRunner(max(1, int(workers)))
+        self.keep_tiles = keep_tiles
 
     def times(self, A, V: np.ndarray, cache: bool = False) -> np.ndarray:
         budget = config.COMPENSATE_CACHE_BYTES if cache else 0
         return np.asarray(stream_matmul(A, V, runner=self.runner, cache_bytes=budget),
                           dtype=np.float64)
 
+    def times_T(self, V: np.ndarray, cache: bool = True) -> np.ndarray:
+        """T V, shape (n, k); T's tiles kept in the tile cache when ``cache`` or
+        ``keep_tiles``."""
+        return self.times(self.T, V, cache=cache or self.keep_tiles)
+
     def M(self, V: np.ndarray, cache: bool = True) -> np.ndarray:
         """M V = V - T F^-1 V on the kept pixels, shape (n, k); T's tiles kept in the
-        tile cache unless ``cache`` is False (between the engine's terms, whose M rows
-        the cache holds under the engine's memory plan)."""
-        return (V - self.times(self.T, self.fb.apply_inverse(V), cache=cache)) \
+        tile cache unless ``cache`` and ``keep_tiles`` are False (between the engine's
+        terms, whose M rows the cache holds under the engine's memory plan)."""
+        return (V - self.times_T(self.fb.apply_inverse(V), cache=cache)) \
             * self.fb.active[:, None]
 
     def close(self) -> None:
         forget_tiles(self.runner, self.T)
+
+
+def keeps_tiles(T, memory_limit) -> bool:
+    """Whether T's tiles stay in the tile cache during the engine's run too: with no
+    memory limit (whose plan is the engine's) and T's CSR arrays within the cache's
+    budget. Else each measurement's products with T re-read T from the store: on the
+    dense 384x512 corner (700 MiB of CSR), ~2 s more per term measured."""
+    return memory_limit is None and T.csr_bytes() <= config.COMPENSATE_CACHE_BYTES
 
 
 def _rel(R: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -308,15 +334,30 @@ def truncation_curve(products: _Products, D: np.ndarray, goal: float,
     -------
     list of ndarray, each (n, k): element k is M^(k+1) D.
     """
+    return _curve(products, D, goal, max_terms)[0]
+
+
+def predicted_curve(products: _Products, D: np.ndarray, goal: float,
+                    max_terms: int) -> tuple[list[np.ndarray], int]:
+    """(:func:`truncation_curve` short of its last point, the terms the unpruned
+    series needs): the point that its last step's ratio puts below ``goal`` is
+    counted, not computed (one streamed product with T fewer; a term measured
+    computes it when it needs it, :func:`_power`)."""
+    return _curve(products, D, goal, max_terms, extrapolate=True)
+
+
+def _curve(products, D, goal, max_terms, extrapolate=False):
     powers = [products.M(D)]
-    last = _rel(powers[-1], D).max()
-    while len(powers) <= max_terms and last > goal:
+    worst = [float(_rel(powers[-1], D).max())]
+    while len(powers) <= max_terms and worst[-1] > goal:
+        if extrapolate and len(worst) >= 2 and worst[-1] ** 2 / worst[-2] <= goal:
+            return powers, len(powers)  # M^(len+1) D predicted below the goal
         powers.append(products.M(powers[-1]))
-        now = _rel(powers[-1], D).max()
-        if now >= last:
+        now = float(_rel(powers[-1], D).max())
+        if now >= worst[-1]:
             break  # stalled: the engine's divergence check decides
-        last = now
-    return powers
+        worst.append(now)
+    return powers, len(powers) - 1
 
 
 def _power(products: _Products, powers: list[np.ndarray], k: int,
@@ -335,11 +376,20 @@ def measure_term(products: _Products, X, D: np.ndarray, truncation: np.ndarray,
     M^(term+1) D, shape (n, k)."""
     Y = products.times(X, D)
     scale = 1.0 / np.maximum(Y.max(axis=0), 1.0)  # X d brought into [.., 1]
-    TY = products.times(products.T, np.hstack([Y, np.clip(Y * scale, 0.0, 1.0)]))
+    Yc = np.clip(Y * scale, 0.0, 1.0)
+    # a probe whose X d already lies in [0, 1] is its own clipped image: its clipped
+    # error is its unclipped one, and T is multiplied by its column once, not twice
+    # (on the dense 384x512 corner every probe: half of the measurement's T product)
+    clips = np.flatnonzero((scale < 1.0) | (Y.min(axis=0) < 0.0))
+    TY = products.times_T(np.hstack([Y, Yc[:, clips]]), cache=False)
     k = D.shape[1]
-    R = (D - TY[:, :k]) * products.fb.active[:, None]
-    clipped = _rel((D * scale - TY[:, k:]) * products.fb.active[:, None], D * scale)
-    return TermErrors(term=term, seconds=seconds, errors=tuple(map(float, _rel(R, D))),
+    active = products.fb.active[:, None]
+    R = (D - TY[:, :k]) * active
+    errors = _rel(R, D)
+    clipped = errors.copy()
+    clipped[clips] = _rel((D[:, clips] * scale[clips] - TY[:, k:]) * active,
+                          D[:, clips] * scale[clips])
+    return TermErrors(term=term, seconds=seconds, errors=tuple(map(float, errors)),
                       truncation=float(_rel(truncation, D).max()),
                       pruning=float(_rel(R - truncation, D).max()),
                       clipped_errors=tuple(map(float, clipped)))
@@ -348,10 +398,19 @@ def measure_term(products: _Products, X, D: np.ndarray, truncation: np.ndarray,
 # --- the choice ------------------------------------------------------------------------
 
 def first_prune(target: float, rate: float = 0.0) -> float:
-    """The largest decade <= target (1 - rate) / PRUNE_RATIO (module docstring);
-    ``rate`` is :func:`decay_rate`'s, in [0, 1)."""
+    """The largest step of PRUNE_GRID <= target (1 - rate) / PRUNE_RATIO (module
+    docstring); ``rate`` is :func:`decay_rate`'s, in [0, 1)."""
     slack = 1.0 - min(max(rate, 0.0), 0.99)
-    return 10.0 ** math.floor(math.log10(target * slack / PRUNE_RATIO) + 1e-9)
+    return grid_floor(target * slack / PRUNE_RATIO)
+
+
+def grid_floor(value: float) -> float:
+    """The largest m 10^e <= ``value`` with m in PRUNE_GRID (1, 3: 7.4e-6 -> 3e-06,
+    2.9e-6 -> 1e-06), as a float that prints as written (3e-06, not
+    3.0000000000000004e-06)."""
+    exponent = math.floor(math.log10(value) + 1e-9)
+    mantissa = max(m for m in PRUNE_GRID if m <= value / 10.0 ** exponent * (1 + 1e-9))
+    return float(f"{mantissa:g}e{exponent}")
 
 
 def first_thresholds(method: str, prune: float) -> Thresholds:
@@ -398,12 +457,12 @@ def choose_method(terms: int) -> tuple[str, str]:
 
 
 def smaller_prune(prune: float, pruning: float, target: float) -> float:
-    """A decade small enough that the pruning part (measured ``pruning`` at ``prune``,
-    roughly proportional to it) takes PRUNE_SHARE / 2 of the safe target; at least
-    one decade smaller."""
+    """A step of PRUNE_GRID small enough that the pruning part (measured ``pruning`` at
+    ``prune``, roughly proportional to it) takes PRUNE_SHARE / 2 of the safe target; at
+    least one step smaller. (By decades, the 96x128 Cornell box at 3e-4 went from 3e-6
+    to 3e-8, its pruning part then 1.9e-5 where 6e-5 was enough.)"""
     want = PRUNE_SHARE * SAFETY * target / 2
-    decades = max(1, math.ceil(math.log10(max(pruning, want) / want)))
-    return float(f"{prune / 10.0 ** decades:.0e}")  # 1e-06, not 1.0000000000000002e-06
+    return min(grid_floor(prune * want / max(pruning, want)), grid_floor(prune / 1.01))
 
 
 def check_target(target: float, dtype) -> None:
@@ -552,12 +611,12 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
     check_target(target, T.dtype)
     fb = resolve_first_bounce(T, first_bounce)
     ctx = _Setting(first_bounce, memory_limit, scheduler, workers, progress, seed)
-    products = _Products(T, fb, workers)
+    products = _Products(T, fb, workers, keep_tiles=keeps_tiles(T, memory_limit))
     try:
         D = probe_vectors(T, fb.active, seed)
         limit = MAX_TERMS if max_terms is None else int(max_terms)
-        powers = truncation_curve(products, D, SAFETY * target * (1 - PRUNE_SHARE), limit)
-        predicted = len(powers) - 1
+        powers, predicted = predicted_curve(products, D,
+                                            SAFETY * target * (1 - PRUNE_SHARE), limit)
         cap = min(limit, predicted + EXTRA_TERMS) if max_terms is None else limit
         recorded = None if overwrite or method is not None or prune is not None \
             else recorded_setting(T, fb, out)

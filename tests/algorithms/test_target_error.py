@@ -12,7 +12,8 @@ from scipy.ndimage import gaussian_filter
 
 import bigT
 from bigT.algorithms.target import (SAFETY, choose_method, decay_rate, first_prune,
-                                    invert_to_target)
+                                    grid_floor, invert_to_target, predicted_curve,
+                                    truncation_curve)
 from bigT.cli import main
 from bigT.storage.frames import to_vectors
 from bigT.errors import BigTError
@@ -81,16 +82,21 @@ def test_rerun_on_a_store_that_meets_the_target_computes_nothing(scenes, tmp_pat
 
 def test_first_prune_follows_the_rate_of_the_truncation_curve():
     """Pruned entries are carried by every later bounce (their error adds up like
-    1 / (1 - rho)), so a slower series starts from a smaller prune: the decades of
-    the bench's scenes (rho 0.19, 0.52, 0.89; E = 1/255 and 1e-3)."""
+    1 / (1 - rho)), so a slower series starts from a smaller prune: the 1-3 steps of
+    the bench's scenes (rho 0.19, 0.52, 0.89; E = 1/255 and 1e-3), and of the dense
+    384x512 corner at the default target (rho 0.25 -> 4.5e-6 -> 3e-6)."""
     D = np.ones((10, 2))
     curve = [D * 0.3 * 0.5 ** k for k in range(4)]
     assert decay_rate(curve, D) == pytest.approx(0.5)
     assert decay_rate(curve[:1], D) == pytest.approx(0.3)  # one point: ||M d|| / ||d||
     assert decay_rate([D, D * 1.5], D) == 0.99  # a stalling curve: clamped below 1
-    assert [first_prune(1e-3, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 1e-6, 1e-6]
-    assert [first_prune(TARGET, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 1e-5, 1e-6]
+    assert [first_prune(1e-3, r) for r in (0.19, 0.52, 0.89)] == [1e-5, 3e-6, 1e-6]
+    assert [first_prune(TARGET, r) for r in (0.19, 0.52, 0.89)] == [3e-5, 3e-5, 3e-6]
     assert first_prune(1e-3) == 1e-5  # no rate known: the fastest series' prune
+    assert first_prune(3e-4, 0.255) == 3e-6  # by decades it was 1e-6
+    # the grid's steps print as written (the fingerprint records them)
+    assert [repr(grid_floor(v)) for v in (7.4e-6, 2.9e-6, 3e-6, 1e-5, 9.99e-6)] == [
+        "3e-06", "1e-06", "3e-06", "1e-05", "3e-06"]
 
 
 def test_too_tight_for_float32_is_refused_before_anything_is_written(scenes, tmp_path):
@@ -167,3 +173,25 @@ def test_in_memory_search_writes_only_the_terms_it_measures(scenes, tmp_path, mo
     measured = {m.term for a in mem.attempts for m in a.terms}
     # term 0 is never handed over: the engine asks whether it is read, like any term
     assert written - {0} == measured and len(written - {0}) < mem.terms
+
+
+def test_the_curve_counts_its_last_point_without_computing_it():
+    """The truncation curve of a geometric series (M = I / 2): the point that the last
+    step's ratio puts below the goal is counted, not computed, so the count is the
+    full curve's with one product fewer."""
+    class Halving:
+        calls = 0
+
+        def M(self, V):
+            Halving.calls += 1
+            return 0.5 * V
+
+    D = np.ones((6, 3))
+    full = truncation_curve(Halving(), D, 0.1, 200)
+    assert [float(np.linalg.norm(P[:, 0]) / np.linalg.norm(D[:, 0])) for P in full] == [
+        0.5, 0.25, 0.125, 0.0625]
+    Halving.calls = 0
+    powers, predicted = predicted_curve(Halving(), D, 0.1, 200)
+    assert predicted == len(full) - 1 == 3 and Halving.calls == 3 == len(powers)
+    assert predicted_curve(Halving(), D, 0.1, 2)[1] == 2  # the cap bounds the count
+    assert predicted_curve(Halving(), D, 0.6, 200)[1] == 0  # M d meets it: F^-1 alone
