@@ -37,7 +37,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
-from ..kernels.row_ranges import prune_rows, row_view, stack_rows, tile_pairs
+from ..kernels.row_ranges import (narrow_columns, prune_rows, row_view, stack_rows,
+                                  tile_pairs)
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -391,7 +392,14 @@ class ResidentPasses:
 
     def _product(self, left: sp.csr_array, right: sp.csr_array, threshold: float,
                  tally) -> sp.csr_array:
-        return blocks.row_product(left, right, threshold, self.threads, tally)
+        """left @ right pruned at ``threshold``, shapes (n, n): on the right factor's
+        columns that hold entries when they are few (:func:`narrow_columns`: the same
+        entries, in less of the kernel's accumulators)."""
+        narrowed = narrow_columns(right, self.threads)
+        if narrowed is None:
+            return blocks.row_product(left, right, threshold, self.threads, tally)
+        product = blocks.row_product(left, narrowed.matrix, threshold, self.threads, tally)
+        return narrowed.widen(product, self.threads)
 
     def _identity(self) -> sp.csr_array:
         return blocks.identity_rows(0, self.layout.n, self.layout.n, self.layout.fb.active,

@@ -152,3 +152,11 @@ def add_diag_scaled_into_internal(a_indptr, a_indices, a_data, d, b_indptr, b_in
                 out_j[pos] = j
                 out_v[pos] = scratch[0]
                 pos += 1
+
+
+@njit(nogil=True, cache=True)
+def relabel_internal(indices, labels, p0, p1, out):
+    """out[p] = labels[indices[p]] for entries ``p0:p1`` (``out`` may be ``indices``:
+    each entry is read before it is written)."""
+    for p in range(p0, p1):
+        out[p] = labels[indices[p]]
