@@ -37,8 +37,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
-from ..kernels.row_ranges import (narrow_columns, prune_rows, row_view, stack_rows,
-                                  tile_pairs)
+from ..kernels.row_ranges import (narrow_columns, prune_rows, restrict_to_used_rows,
+                                  row_view, stack_rows, tile_pairs)
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -394,7 +394,12 @@ class ResidentPasses:
                  tally) -> sp.csr_array:
         """left @ right pruned at ``threshold``, shapes (n, n): on the right factor's
         columns that hold entries when they are few (:func:`narrow_columns`: the same
-        entries, in less of the kernel's accumulators)."""
+        entries, in less of the kernel's accumulators), with the left factor's entries
+        that meet an empty row of the right one left out when they are many
+        (:func:`restrict_to_used_rows`)."""
+        restricted = restrict_to_used_rows(left, right, self.threads)
+        if restricted is not None:
+            left = restricted
         narrowed = narrow_columns(right, self.threads)
         if narrowed is None:
             return blocks.row_product(left, right, threshold, self.threads, tally)

@@ -199,3 +199,31 @@ def test_narrow_columns_leaves_a_wide_factor(monkeypatch):
     n = 200
     used = np.arange(int(NARROW_MAX_FRACTION * n) + 1)
     assert narrow_columns(_sparse_columns(n, used, 0.9, 8), 1) is None
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_restricted_left_factor_gives_the_same_product(monkeypatch, threads):
+    """restrict_to_used_rows keeps exactly left's entries over right's nonempty rows
+    (dense reference), and the product with them is the product with left, bit for
+    bit."""
+    from bigT import config
+    from bigT.kernels import spgemm
+    from bigT.kernels.row_ranges import restrict_to_used_rows
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)
+    n = 240
+    left = _random(n, n, 0.1, 9)
+    left.has_canonical_format = True
+    right = _random(n, n, 0.1, 10, empty_rows=range(30, 220))
+    got = restrict_to_used_rows(left, right, threads)
+    used = np.diff(right.indptr) > 0
+    np.testing.assert_array_equal(got.toarray(), left.toarray() * used[None, :])
+    assert got.has_canonical_format
+    direct = spgemm(left, right, threshold=0.01, n_threads=threads)
+    restricted = spgemm(got, right, threshold=0.01, n_threads=threads)
+    np.testing.assert_array_equal(restricted.indptr, direct.indptr)
+    np.testing.assert_array_equal(restricted.indices, direct.indices)
+    np.testing.assert_array_equal(restricted.data, direct.data)
+    # most entries meeting a nonempty row: nothing to gain, left as it is
+    assert restrict_to_used_rows(left, _random(n, n, 0.1, 11, empty_rows=range(5)),
+                                 threads) is None
