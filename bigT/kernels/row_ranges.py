@@ -9,6 +9,11 @@ into row ranges of equal entries and run each range on the shared thread pool, i
 passes (each row's entries counted, then written at their place in arrays of the
 result's size), so that no buffer as long as the operands is filled and copied out.
 Every row of their results is the one-thread wrapper's row, bit for bit.
+
+The in-memory products also shrink what the kernel walks over without changing a sum:
+:func:`narrow_columns` renumbers the right factor's columns to those holding entries
+(the kernel's accumulators span its columns), :func:`restrict_to_used_rows` leaves out
+the left factor's entries over empty rows of the right one.
 """
 
 from __future__ import annotations
@@ -185,10 +190,11 @@ def restrict_to_used_rows(left: sp.csr_array, right: sp.csr_array,
     (or left is small, or not canonical).
 
     Why: the product kernel visits every entry of the left factor, whether or not its
-    row of the right factor is empty; the corner's later terms multiply M's 2.2*10^7
-    entries with a right factor of 10^5 entries on a few thousand rows (term 4: 7*10^7
-    multiply-adds in 0.5-0.75 s, most of it visiting M). The entries left out add
-    nothing to any sum, so the product is the same, bit for bit.
+    row of the right factor is empty; the dense 384x512 corner's terms 3 and 4 multiply
+    M's 2.2*10^7 entries with right factors whose nonempty rows meet only 35% and 14%
+    of them (term 4: 7*10^7 multiply-adds, 0.16-0.22 s on 2 threads, 0.11-0.17 s
+    restricted). The entries left out add nothing to any sum, so the product is the
+    same, bit for bit.
 
     Returns
     -------
