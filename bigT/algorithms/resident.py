@@ -84,16 +84,19 @@ class ResidentMatrices:
         return self.layout.n
 
     def _make_M(self) -> sp.csr_array:
-        """M, shape (n, n), sorted: each tile row of T read and made into M's rows as a
-        task makes them (:func:`bigT.schedule.blocks.m_rows`), ``threads`` tile rows
-        at once (a read decodes, checks and joins the row's tiles, mostly in numpy and
-        numba, which let go of the interpreter), then the rows stacked (one copy)."""
+        """M, shape (n, n), sorted: each tile row of T made into M's rows as a task makes
+        them (:func:`bigT.schedule.blocks.m_rows`), ``threads`` tile rows at once, then
+        the rows stacked (one copy). T's rows are those the run set-up read for F
+        (``layout.T_rows``, each let go of once made into M's), else read here (a read
+        decodes, checks and joins the row's tiles, mostly in numpy and numba, which let
+        go of the interpreter)."""
         lay = self.layout
         finv = lay.fb.finv.astype(self.dtype)
+        T_row = lay.T.get_tile_row if lay.T_rows is None else lay.T_rows.take
 
         def m_block(i: int) -> sp.csr_array:  # T's tile row i (its tiling, not X's)
             start, stop = lay.T.tile_row_range(i)
-            return blocks.m_rows(T_rows=lay.T.get_tile_row(i), start=start, finv=finv,
+            return blocks.m_rows(T_rows=T_row(i), start=start, finv=finv,
                                  active_rows=lay.fb.active[start:stop],
                                  zero_diagonal=lay.fb.zero_diagonal)
 
