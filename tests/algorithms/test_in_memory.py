@@ -167,15 +167,15 @@ def test_a_term_is_published_once_the_interval_has_passed(tmp_path, make_store, 
     real_finish = engine.InverseEngine._finish_term
 
     def finish_a_second_later(self, k, *args, **kwargs):
-        clock["now"] += 2.0  # each term takes 2 s
+        clock["now"] += 0.4 * engine.PUBLISH_INTERVAL_SECONDS  # each term takes 0.4 of it
         return real_finish(self, k, *args, **kwargs)
 
     monkeypatch.setattr(engine.InverseEngine, "_finish_term", finish_a_second_later)
     written = written_terms(monkeypatch)
     bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=6, prune=1e-6, in_memory=True,
                             progress=False)
-    # 5 s (the interval) passed before term 3 (at 6 s) and again before term 6 (at 12
-    # s): terms 2 and 5 published then; term 6 is the last
+    # the interval passed before term 3 (at 1.2 of it) and again before term 6 (at 2.4):
+    # terms 2 and 5 published then; term 6 is the last
     assert sorted(set(written)) == ["t0002", "t0005", "t0006"]
 
 
