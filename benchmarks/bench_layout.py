@@ -35,6 +35,7 @@ import json, os, resource, sys, time
 from pathlib import Path
 t_import = time.perf_counter()
 import bigT
+bigT.stratified_inverse  # bigT imports its subpackages on first use: what the run loads
 t_import = time.perf_counter() - t_import
 
 T, out, terms, prune, feed, operator, per_term = sys.argv[1:8]
