@@ -57,11 +57,15 @@ from .settings import SeriesSettings
 from .probes import ProbedResidual
 
 #: In memory, a term the run goes past is still published when this many seconds have
-#: passed since the last term published: what a crash may cost again. The others are
-#: not written (their records are kept): at n = 1000..5120 writing and publishing a
-#: term durably (2 stores, ~75 fsyncs) costs more than its product (issue #30). 0: every
-#: term written and published as it is computed.
-PUBLISH_INTERVAL_SECONDS = 5.0
+#: passed since the last term published: what a crash may cost again (at most this and
+#: one term), so that a long run's progress is durable. The others are not written
+#: (their records are kept): at n = 1000..5120 writing and publishing a term durably
+#: (2 stores, ~75 fsyncs) costs more than its product, and on the dense 384x512 corner
+#: (~10 s for 4 terms) an intermediate term's write took 1.1 s, 10 % of the run, at the
+#: 5 s this was (issue #30). At 30 s, a run that short publishes only its last term, and
+#: a long one spends at most ~4 % of its time on intermediate writes of that size. 0:
+#: every term written and published as it is computed.
+PUBLISH_INTERVAL_SECONDS = 30.0
 
 
 class InverseEngine:

@@ -108,15 +108,16 @@ class FirstBounce:
         return self.inverse.rows(start, stop, dtype)
 
 
-def _empty_rows_and_cols(T, candidates: np.ndarray) -> np.ndarray:
+def _empty_rows_and_cols(T, candidates: np.ndarray, rows=None) -> np.ndarray:
     """Which of ``candidates`` have an all-zero row and column in T (one streaming pass
-    over the tile rows, run only when the diagonal has zeros)."""
+    over the tile rows, ``rows`` where they are held, run only when the diagonal has
+    zeros)."""
     n = T.shape[0]
     row_nz = np.zeros(n, dtype=bool)
     col_nz = np.zeros(n, dtype=bool)
     for i in range(T.grid[0]):
         a, _ = T.tile_row_range(i)
-        r = sp.csr_array(T.get_tile_row(i))
+        r = sp.csr_array(T.get_tile_row(i) if rows is None else rows[i])
         r.eliminate_zeros()
         row_nz[a:a + r.shape[0]] = np.diff(r.indptr) > 0
         col_nz[np.unique(r.indices)] = True
@@ -206,7 +207,8 @@ def _check_reciprocal(f: np.ndarray, active: np.ndarray, dtype, what: str, path,
 
 
 def resolve_first_bounce(T, spec="diag") -> FirstBounce:
-    """Turn ``first_bounce=`` into F.
+    """Turn ``first_bounce=`` into F (:func:`first_bounce_of_rows`, T's entries read
+    from its store).
 
     Parameters
     ----------
@@ -238,14 +240,25 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     ShapeMismatchError
         A vector (or blocks) of the wrong shape.
     """
+    return first_bounce_of_rows(T, spec, None)
+
+
+def first_bounce_of_rows(T, spec, rows) -> FirstBounce:
+    """:func:`resolve_first_bounce`, T's diagonal (blocks) and, where the diagonal has
+    zeros, its empty rows and columns taken from ``rows`` when given: T's tile rows
+    already read (``rows[i]`` is ``T.get_tile_row(i)``, read on first use; the
+    in-memory path makes M from the same rows), else read from T's store (its diagonal
+    tiles, for the diagonal). The same F either way; a ``spec`` file is loaded first, so
+    that its errors come before T is read."""
     n = T.shape[0]
     source = None  # the --first-bounce file, named in the errors about its vector
     if isinstance(spec, (str, os.PathLike)) and str(spec) not in NAMED_FIRST_BOUNCES:
         source = os.fspath(spec)
         spec = load_first_bounce(source)
     if getattr(T, "channels", 1) != 1:
-        return _resolve_colour(T, spec, source)
-    d = np.asarray(T.diagonal(output_order="matrix"), dtype=np.float64)
+        return _resolve_colour(T, spec, source, rows)
+    d = np.asarray(T.diagonal(output_order="matrix") if rows is None
+                   else _diagonal_of_rows(T, rows), dtype=np.float64)
     if isinstance(spec, str):
         kind = spec
         f = d.copy() if kind != "identity" else np.ones(n)
@@ -258,7 +271,7 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
         raise InvalidMatrixError(f"T's diagonal has {len(bad)} NaN entries, the first at "
                                  f"{name(bad[0])}", getattr(T, "path", None))
     zero_diag = np.flatnonzero(d == 0)
-    excluded = _empty_rows_and_cols(T, zero_diag) if len(zero_diag) else zero_diag
+    excluded = _empty_rows_and_cols(T, zero_diag, rows) if len(zero_diag) else zero_diag
     active = np.ones(n, dtype=bool)
     active[excluded] = False
     what, where = (("T's diagonal", getattr(T, "path", None)) if kind != "vector"
@@ -273,13 +286,29 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     return FirstBounce(kind, f, finv, active, int(len(excluded)), digest)
 
 
-def _resolve_colour(T, spec, source) -> FirstBounce:
+def _diagonal_of_rows(T, rows) -> np.ndarray:
+    """T's main diagonal in its stored order, shape (min(shape),), T's dtype, from its
+    tile rows ``rows`` (global columns): what ``T.diagonal(output_order="matrix")``
+    reads from the store."""
+    n = min(T.shape)
+    out = np.zeros(n, dtype=T.dtype)
+    for i in range(T.grid[0]):
+        start, _ = T.tile_row_range(i)
+        if start >= n:
+            break
+        d = rows[i].diagonal(k=start)  # entries (r, start + r)
+        out[start:start + d.size] = d
+    return out
+
+
+def _resolve_colour(T, spec, source, rows=None) -> FirstBounce:
     """:func:`resolve_first_bounce` for a colour T (3 channels): F block-diagonal, one
-    3x3 block per pixel, inverted per pixel after its condition number is checked."""
+    3x3 block per pixel, inverted per pixel after its condition number is checked
+    (T's diagonal blocks from its tile rows ``rows`` when given)."""
     b = int(T.channels)
     m = T.shape[0] // b
     path = getattr(T, "path", None)
-    d = stored_diagonal_blocks(T)
+    d = stored_diagonal_blocks(T, rows)
     if np.isnan(d).any():
         p = int(np.flatnonzero(np.isnan(d).any(axis=(1, 2)))[0])
         raise InvalidMatrixError(f"T's diagonal blocks hold NaN entries, the first at "
@@ -292,7 +321,7 @@ def _resolve_colour(T, spec, source) -> FirstBounce:
         F = _as_blocks(spec, m, b, source)
         order = getattr(T, "pixel_order", None)
         F = F if order is None else F[order.pixel_permutation]
-    lit = _lit_pixels(T, d, b)
+    lit = _lit_pixels(T, d, b, rows)
     ill = np.zeros(m, dtype=bool)
     if kind != "identity":
         cond = np.full(m, np.inf)
@@ -312,7 +341,7 @@ def _resolve_colour(T, spec, source) -> FirstBounce:
                        int(m - active_pixels.sum()), digest, int(ill.sum()))
 
 
-def _lit_pixels(T, d: np.ndarray, b: int) -> np.ndarray:
+def _lit_pixels(T, d: np.ndarray, b: int, rows=None) -> np.ndarray:
     """(m,) bool: the pixels kept; a pixel whose diagonal block is zero and whose b rows
     and b columns of T are all zero is unlit (left out, as a grey zero diagonal is)."""
     zero = np.flatnonzero(~d.any(axis=(1, 2)))
@@ -320,7 +349,7 @@ def _lit_pixels(T, d: np.ndarray, b: int) -> np.ndarray:
     if len(zero):
         values = (b * zero[:, None] + np.arange(b)).ravel()
         empty = np.zeros(T.shape[0], dtype=bool)
-        empty[_empty_rows_and_cols(T, values)] = True
+        empty[_empty_rows_and_cols(T, values, rows)] = True
         lit[zero[empty[values].reshape(-1, b).all(axis=1)]] = False
     return lit
 
@@ -345,16 +374,19 @@ def _pixel_name(T, p: int) -> str:
     return "pixel (%d, %d)" % divmod(int(order.pixel_permutation[p]), order.image_shape[1])
 
 
-def stored_diagonal_blocks(A) -> np.ndarray:
+def stored_diagonal_blocks(A, rows=None) -> np.ndarray:
     """The b x b diagonal blocks of a colour store A (b = ``A.channels``), (n/b, b, b)
     float64 in A's stored order, from its diagonal tiles only (a tile size that is a
-    multiple of b keeps every block inside one); of the matrix A represents, L S_pp R,
-    for a factored store (``A.mixing``)."""
+    multiple of b keeps every block inside one), or from its tile rows ``rows``
+    (``rows[i]`` is ``A.get_tile_row(i)``) when given; of the matrix A represents,
+    L S_pp R, for a factored store (``A.mixing``)."""
     b = int(A.channels)
     out = np.zeros((A.shape[0] // b, b, b))
     for i in range(min(A.grid)):
         a, stop = A.tile_row_range(i)
-        out[a // b:stop // b] = diagonal_blocks(A.get_tile(i, i), 0, b)
+        # a tile row holds global columns: its blocks start at its first row's pixel
+        out[a // b:stop // b] = (diagonal_blocks(A.get_tile(i, i), 0, b) if rows is None
+                                 else diagonal_blocks(rows[i], a, b))
     return mixed_blocks(getattr(A, "mixing", None), out)
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..schedule.spec import BlockStats
 from .matvecs import MatVecs
-from .residual import estimate_residual, residual_probes
+from .residual import residual_of_probes, residual_probes
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,6 +86,6 @@ class ProbedResidual:
                 XZ = self.matvecs.apply_X(X, Z)
             return XZ
 
-        relative, absolute = estimate_residual(self.matvecs.apply_M, apply_X,
-                                               self.matvecs.layout.fb, seed=self.seed)
+        relative, absolute = residual_of_probes(self.matvecs.apply_M, apply_X,
+                                                self.matvecs.layout.fb, self.Z)
         return TermResidual(relative, absolute, XZ, started)

@@ -37,7 +37,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
-from ..kernels.row_ranges import prune_rows, row_view, stack_rows, tile_pairs
+from ..kernels.row_ranges import (narrow_columns, prune_rows, restrict_to_used_rows,
+                                  row_view, stack_rows, tile_pairs)
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -83,16 +84,19 @@ class ResidentMatrices:
         return self.layout.n
 
     def _make_M(self) -> sp.csr_array:
-        """M, shape (n, n), sorted: each tile row of T read and made into M's rows as a
-        task makes them (:func:`bigT.schedule.blocks.m_rows`), ``threads`` tile rows
-        at once (a read decodes, checks and joins the row's tiles, mostly in numpy and
-        numba, which let go of the interpreter), then the rows stacked (one copy)."""
+        """M, shape (n, n), sorted: each tile row of T made into M's rows as a task makes
+        them (:func:`bigT.schedule.blocks.m_rows`), ``threads`` tile rows at once, then
+        the rows stacked (one copy). T's rows are those the run set-up read for F
+        (``layout.T_rows``, each let go of once made into M's), else read here (a read
+        decodes, checks and joins the row's tiles, mostly in numpy and numba, which let
+        go of the interpreter)."""
         lay = self.layout
         finv = lay.fb.finv.astype(self.dtype)
+        T_row = lay.T.get_tile_row if lay.T_rows is None else lay.T_rows.take
 
         def m_block(i: int) -> sp.csr_array:  # T's tile row i (its tiling, not X's)
             start, stop = lay.T.tile_row_range(i)
-            return blocks.m_rows(T_rows=lay.T.get_tile_row(i), start=start, finv=finv,
+            return blocks.m_rows(T_rows=T_row(i), start=start, finv=finv,
                                  active_rows=lay.fb.active[start:stop],
                                  zero_diagonal=lay.fb.zero_diagonal)
 
@@ -391,7 +395,19 @@ class ResidentPasses:
 
     def _product(self, left: sp.csr_array, right: sp.csr_array, threshold: float,
                  tally) -> sp.csr_array:
-        return blocks.row_product(left, right, threshold, self.threads, tally)
+        """left @ right pruned at ``threshold``, shapes (n, n): on the right factor's
+        columns that hold entries when they are few (:func:`narrow_columns`: the same
+        entries, in less of the kernel's accumulators), with the left factor's entries
+        that meet an empty row of the right one left out when they are many
+        (:func:`restrict_to_used_rows`)."""
+        restricted = restrict_to_used_rows(left, right, self.threads)
+        if restricted is not None:
+            left = restricted
+        narrowed = narrow_columns(right, self.threads)
+        if narrowed is None:
+            return blocks.row_product(left, right, threshold, self.threads, tally)
+        product = blocks.row_product(left, narrowed.matrix, threshold, self.threads, tally)
+        return narrowed.widen(product, self.threads)
 
     def _identity(self) -> sp.csr_array:
         return blocks.identity_rows(0, self.layout.n, self.layout.n, self.layout.fb.active,

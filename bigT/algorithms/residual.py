@@ -46,10 +46,15 @@ def estimate_residual(apply_M, apply_X, fb: FirstBounce, probes=None,
     (float, float)
         Relative (absolute / sqrt(number of kept pixels)) and absolute.
     """
+    return residual_of_probes(apply_M, apply_X, fb, residual_probes(fb, probes, seed))
+
+
+def residual_of_probes(apply_M, apply_X, fb: FirstBounce, Z: np.ndarray) -> tuple[float, float]:
+    """:func:`estimate_residual` with its probes given, Z of shape (n, p) (the engine
+    makes them once per run: :mod:`.probes`)."""
     n_act = int(fb.active.sum())
     if n_act == 0:
         return 0.0, 0.0
-    Z = residual_probes(fb, probes, seed)
     p = Z.shape[1]
     U = fb.apply(apply_X(Z))
     R = Z - (U - apply_M(U))  # T (X z) = u - M u with u = F X z, on the kept pixels

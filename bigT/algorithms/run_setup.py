@@ -4,12 +4,15 @@ fingerprint, and the term stores' tile size (chosen by the run that made the sto
 recorded, kept on resume so that a resumed run cuts the same row blocks).
 
 What :func:`open_run` returns, a :class:`RunLayout`, is fixed for the whole run: every
-other piece of the engine reads it.
+other piece of the engine reads it. In memory, T is read once (:class:`TileRows`): its
+diagonal, for F, comes from the same tile rows M is made from.
 """
 
 from __future__ import annotations
 
 import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,10 +24,55 @@ from ..schedule.spec import MemoryPolicy
 from ..storage import BlockCSR, InverseStore
 from .fingerprint import inverse_fingerprint
 from .engine_path import PathChoice, choose_path
-from .first_bounce import FirstBounce, resolve_first_bounce
+from .first_bounce import FirstBounce, first_bounce_of_rows
 from .methods import SeriesMethod
 from .records import SeriesRecord
 from .settings import SeriesSettings
+
+
+class TileRows:
+    """T's tile rows read whole, once, for the in-memory path: F's diagonal is taken
+    from them (:func:`.first_bounce.first_bounce_of_rows`), then M is made from them
+    (:class:`.resident.ResidentMatrices`), each row let go of as its rows of M are made
+    (:meth:`take`), so that T is held whole only until M is.
+
+    Parameters
+    ----------
+    T : BlockCSR, shape (n, n)
+    threads : int
+        Tile rows read at once (a read decodes, checks and joins the row's tiles,
+        mostly in numpy and numba, which let go of the interpreter).
+
+    The rows are read on first use: an error found before (a ``first_bounce`` file
+    that does not load) costs no read of T.
+    """
+
+    def __init__(self, T: BlockCSR, threads: int):
+        self.T, self.threads = T, max(1, int(threads))
+        self._rows: list | None = None
+        self._reading = threading.Lock()  # M's threads may ask first: one read
+
+    def __len__(self) -> int:
+        return int(self.T.grid[0])
+
+    def __getitem__(self, i: int):
+        """Tile row ``i``, csr_array of shape (rows_i, n), global columns (as
+        ``T.get_tile_row(i)``); read again if taken already."""
+        row = self._read()[i]
+        return self.T.get_tile_row(i) if row is None else row
+
+    def take(self, i: int):
+        """Tile row ``i``, no longer held here."""
+        row = self[i]
+        self._read()[i] = None
+        return row
+
+    def _read(self) -> list:
+        with self._reading:
+            if self._rows is None:
+                with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-T") as pool:
+                    self._rows = list(pool.map(self.T.get_tile_row, range(len(self))))
+        return self._rows
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,6 +99,9 @@ class RunLayout:
         finished, the run discards it.
     path : PathChoice
         In memory or out of core (:mod:`.engine_path`), and why.
+    T_rows : TileRows or None
+        In memory, T's tile rows F was taken from, for M to be made from (then let
+        go of); None out of core.
     """
 
     T: BlockCSR
@@ -62,6 +113,7 @@ class RunLayout:
     kernel_threads: int
     created: bool
     path: PathChoice = PathChoice(False, "out of core")
+    T_rows: TileRows | None = None
 
     @property
     def n(self) -> int:
@@ -91,15 +143,19 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     when it holds the same fingerprint; its writer lock taken); ``in_memory`` as
     :func:`.engine_path.choose_path`'s.
 
-    Raises what :func:`resolve_first_bounce`, :meth:`InverseStore.open_or_create` and
-    the runner's path check raise (before anything is written where they can).
+    Raises what :func:`.first_bounce.resolve_first_bounce`,
+    :meth:`InverseStore.open_or_create` and the runner's path check raise (before
+    anything is written where they can).
     """
     T_path = _tasks_path(T, runner, settings.progress)
-    fb = resolve_first_bounce(T, first_bounce)
+    channels = int(getattr(T, "channels", 1))  # F's block size (FirstBounce.channels)
     policy = MemoryPolicy(memory_limit, runner.threads, T.shape[1],
-                          max_row_nnz(T) * fb.channels)
+                          max_row_nnz(T) * channels)
     plans = runner.plans(policy)
-    path = choose_path(in_memory, runner, T, fb.channels, next(iter(plans.values())))
+    path = choose_path(in_memory, runner, T, channels, next(iter(plans.values())))
+    # in memory, T is read whole for M: F's diagonal is taken from the same rows
+    T_rows = TileRows(T, runner.threads) if path.in_memory else None
+    fb = first_bounce_of_rows(T, first_bounce, T_rows)
     created = not store.path.exists() or settings.overwrite
     params = inverse_fingerprint(T, fb, settings.thresholds, series.name)
     record = SeriesRecord.from_stored(
@@ -115,7 +171,7 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     n_blocks = -(-T.shape[0] // record.tile_size)
     kernel_threads = 1 if n_blocks >= runner.threads else runner.idle_kernel_threads
     return RunLayout(T, T_path, fb, policy, plans, record.tile_size, kernel_threads,
-                     created, path), record
+                     created, path, T_rows), record
 
 
 def _tasks_path(T, runner, progress: bool) -> str:

@@ -152,3 +152,37 @@ def add_diag_scaled_into_internal(a_indptr, a_indices, a_data, d, b_indptr, b_in
                 out_j[pos] = j
                 out_v[pos] = scratch[0]
                 pos += 1
+
+
+@njit(nogil=True, cache=True)
+def relabel_internal(indices, labels, p0, p1, out):
+    """out[p] = labels[indices[p]] for entries ``p0:p1`` (``out`` may be ``indices``:
+    each entry is read before it is written)."""
+    for p in range(p0, p1):
+        out[p] = labels[indices[p]]
+
+
+@njit(nogil=True, cache=True)
+def kept_by_column_internal(indptr, indices, keep, r0, r1, out):
+    """out[i] = the entries of row i whose column c has ``keep[c]``, for rows
+    ``r0:r1``."""
+    for i in range(r0, r1):
+        kept = 0
+        for p in range(indptr[i], indptr[i + 1]):
+            if keep[indices[p]]:
+                kept += 1
+        out[i] = kept
+
+
+@njit(nogil=True, cache=True)
+def select_by_column_into_internal(indptr, indices, data, keep, r0, r1, out_p, out_j,
+                                   out_v):
+    """Rows ``r0:r1`` of the entries ``kept_by_column_internal`` counts, written at
+    their place in the result's arrays (row pointer ``out_p`` known), in row order."""
+    for i in range(r0, r1):
+        pos = out_p[i]
+        for p in range(indptr[i], indptr[i + 1]):
+            if keep[indices[p]]:
+                out_j[pos] = indices[p]
+                out_v[pos] = data[p]
+                pos += 1

@@ -167,15 +167,15 @@ def test_a_term_is_published_once_the_interval_has_passed(tmp_path, make_store, 
     real_finish = engine.InverseEngine._finish_term
 
     def finish_a_second_later(self, k, *args, **kwargs):
-        clock["now"] += 2.0  # each term takes 2 s
+        clock["now"] += 0.4 * engine.PUBLISH_INTERVAL_SECONDS  # each term takes 0.4 of it
         return real_finish(self, k, *args, **kwargs)
 
     monkeypatch.setattr(engine.InverseEngine, "_finish_term", finish_a_second_later)
     written = written_terms(monkeypatch)
     bigT.stratified_inverse(T, tmp_path / "X.zarr", terms=6, prune=1e-6, in_memory=True,
                             progress=False)
-    # 5 s (the interval) passed before term 3 (at 6 s) and again before term 6 (at 12
-    # s): terms 2 and 5 published then; term 6 is the last
+    # the interval passed before term 3 (at 1.2 of it) and again before term 6 (at 2.4):
+    # terms 2 and 5 published then; term 6 is the last
     assert sorted(set(written)) == ["t0002", "t0005", "t0006"]
 
 
@@ -274,3 +274,29 @@ def test_colour_general_path_same_as_out_of_core(tmp_path, method):
     np.testing.assert_allclose(X_mem, X_ooc, rtol=1e-6, atol=1e-12 * np.abs(X_ooc).max())
     want = dense_colour_stratified(A, 3)
     np.testing.assert_allclose(X_mem, want, rtol=0, atol=1e-10 * np.abs(want).max())
+
+
+def test_products_on_few_columns_same_as_out_of_core(tmp_path, make_store, monkeypatch):
+    """T lit on a third of its patches (the dense corner's shape: most rows and columns
+    empty) through the numba kernels: the in-memory products run on the right factor's
+    narrowed columns (bigT.kernels.row_ranges.narrow_columns) and give the out-of-core
+    path's X and entries."""
+    from bigT import config
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)  # the kernels, not numpy
+    lit = np.sort(np.random.default_rng(4).choice(120, 40, replace=False))
+    A = np.zeros((120, 120))
+    A[np.ix_(lit, lit)] = random_dominant(40, seed=5, density=0.4, margin=0.8)
+    narrowed = []
+    real = resident.narrow_columns
+    monkeypatch.setattr(resident, "narrow_columns",
+                        lambda B, t: narrowed.append(real(B, t)) or narrowed[-1])
+    T = make_store(A, tile_size=16)
+    X_mem, X_ooc, mem, ooc = both_paths(tmp_path, T, terms=4, method="power",
+                                        **METHOD_OPTIONS["power"])
+    assert any(nc is not None for nc in narrowed)
+    np.testing.assert_allclose(X_mem, X_ooc, rtol=1e-6, atol=1e-6 * np.abs(X_ooc).max())
+    assert [(h.term, h.nnz_P, h.nnz_X) for h in mem.history] == [
+        (h.term, h.nnz_P, h.nnz_X) for h in ooc.history]
+    np.testing.assert_allclose(X_mem[np.ix_(lit, lit)],
+                               np.linalg.inv(A[np.ix_(lit, lit)]), atol=0.05)

@@ -144,3 +144,86 @@ def test_prune_rows_is_prune(threads, dtype):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
     dense = A.toarray()
     np.testing.assert_array_equal(got.toarray(), np.where(np.abs(dense) >= 0.25, dense, 0))
+
+
+def _sparse_columns(n, used_cols, density, seed):
+    """An (n, n) matrix whose entries lie in ``used_cols`` only, sorted rows."""
+    rng = np.random.default_rng(seed)
+    A = sp.random_array((n, len(used_cols)), density=density, format="csr", rng=rng)
+    A.data -= 0.5
+    wide = sp.csr_array((A.data, np.asarray(used_cols)[A.indices], A.indptr), shape=(n, n))
+    wide.sort_indices()
+    return wide
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_narrowed_product_equals_scipy_product(monkeypatch, threads):
+    """left @ narrowed, widened, is scipy's left @ right entry for entry (same pattern
+    at threshold 0, values to rounding), and a pruned one keeps the same entries as the
+    product on the original columns."""
+    from bigT import config
+    from bigT.kernels import spgemm
+    from bigT.kernels.row_ranges import narrow_columns
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)  # the numba paths
+    n = 300
+    used = np.sort(np.random.default_rng(5).choice(n, 40, replace=False))
+    right = _sparse_columns(n, used, 0.2, 6)
+    left = _random(n, n, 0.05, 7)
+    narrowed = narrow_columns(right, threads)
+    assert narrowed is not None
+    np.testing.assert_array_equal(narrowed.columns, np.unique(right.indices))
+    np.testing.assert_array_equal(narrowed.matrix.toarray(), right.toarray()[:, used])
+    got = narrowed.widen(spgemm(left, narrowed.matrix, n_threads=threads), threads)
+    want = sp.csr_array(left @ right)
+    want.eliminate_zeros()
+    want.sort_indices()
+    assert got.shape == (n, n) and got.has_sorted_indices
+    np.testing.assert_array_equal(got.indptr, want.indptr)
+    np.testing.assert_array_equal(got.indices, want.indices)
+    np.testing.assert_allclose(got.toarray(), (left.toarray() @ right.toarray()), atol=1e-12)
+    pruned = narrowed.widen(spgemm(left, narrowed.matrix, threshold=0.05, n_threads=threads),
+                            threads)
+    direct = spgemm(left, right, threshold=0.05, n_threads=threads)
+    np.testing.assert_array_equal(pruned.indptr, direct.indptr)
+    np.testing.assert_array_equal(pruned.indices, direct.indices)
+    np.testing.assert_array_equal(pruned.data, direct.data)
+
+
+def test_narrow_columns_leaves_a_wide_factor(monkeypatch):
+    """A factor using more than NARROW_MAX_FRACTION of its columns is not narrowed."""
+    from bigT import config
+    from bigT.kernels.row_ranges import NARROW_MAX_FRACTION, narrow_columns
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)
+    n = 200
+    used = np.arange(int(NARROW_MAX_FRACTION * n) + 1)
+    assert narrow_columns(_sparse_columns(n, used, 0.9, 8), 1) is None
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_restricted_left_factor_gives_the_same_product(monkeypatch, threads):
+    """restrict_to_used_rows keeps exactly left's entries over right's nonempty rows
+    (dense reference), and the product with them is the product with left, bit for
+    bit."""
+    from bigT import config
+    from bigT.kernels import spgemm
+    from bigT.kernels.row_ranges import restrict_to_used_rows
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)
+    n = 240
+    left = _random(n, n, 0.1, 9)
+    left.has_canonical_format = True
+    right = _random(n, n, 0.1, 10, empty_rows=range(30, 220))
+    got = restrict_to_used_rows(left, right, threads)
+    used = np.diff(right.indptr) > 0
+    np.testing.assert_array_equal(got.toarray(), left.toarray() * used[None, :])
+    assert got.has_canonical_format
+    direct = spgemm(left, right, threshold=0.01, n_threads=threads)
+    restricted = spgemm(got, right, threshold=0.01, n_threads=threads)
+    np.testing.assert_array_equal(restricted.indptr, direct.indptr)
+    np.testing.assert_array_equal(restricted.indices, direct.indices)
+    np.testing.assert_array_equal(restricted.data, direct.data)
+    # most entries meeting a nonempty row: nothing to gain, left as it is
+    assert restrict_to_used_rows(left, _random(n, n, 0.1, 11, empty_rows=range(5)),
+                                 threads) is None
