@@ -607,7 +607,7 @@ def fig6(res: Results, plan: Plan, work: Path) -> None:
                                 progress=False, **cornell_density(H * W))
     T = dense_T(scene.T)
     Td = T.toarray()  # densified outside the timing: numpy's inverse starts from it
-    t_inv, T_inv = best_of(plan.repeats, lambda: np.linalg.inv(Td))
+    t_inv, T_inv = best_of(plan.repeats, lambda A=Td: np.linalg.inv(A))
     del Td
     curves = cornell_curves(scene, T, T_inv, work)
     engine, series = fig6_timings(scene, T, work, plan.repeats)

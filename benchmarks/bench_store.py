@@ -110,7 +110,7 @@ def run_case(case: str, workdir: str, tile_size: int) -> dict:
         else:
             nnz = sp.load_npz(npz if case == "npz_read" else raw).nnz
         seconds = time.perf_counter() - t
-    return {"seconds": seconds, "peak_rss_mb": _rss_mb(), "base_rss_mb": base}
+    return {"seconds": seconds, "peak_rss_mb": _rss_mb(), "base_rss_mb": base, "nnz": nnz}
 
 
 def main(argv=None) -> int:
