@@ -117,7 +117,8 @@ def _empty_rows_and_cols(T, candidates: np.ndarray, rows=None) -> np.ndarray:
     col_nz = np.zeros(n, dtype=bool)
     for i in range(T.grid[0]):
         a, _ = T.tile_row_range(i)
-        r = sp.csr_array(T.get_tile_row(i) if rows is None else rows[i])
+        # a copy: eliminate_zeros works in place, and a held row becomes M's
+        r = sp.csr_array(T.get_tile_row(i) if rows is None else rows[i], copy=True)
         r.eliminate_zeros()
         row_nz[a:a + r.shape[0]] = np.diff(r.indptr) > 0
         col_nz[np.unique(r.indices)] = True

@@ -409,7 +409,10 @@ def grid_floor(value: float) -> float:
     2.9e-6 -> 1e-06), as a float that prints as written (3e-06, not
     3.0000000000000004e-06)."""
     exponent = math.floor(math.log10(value) + 1e-9)
-    mantissa = max(m for m in PRUNE_GRID if m <= value / 10.0 ** exponent * (1 + 1e-9))
+    ratio = value / 10.0 ** exponent * (1 + 1e-9)
+    if ratio < PRUNE_GRID[0]:  # the log's tolerance rounded up across a power of ten
+        exponent, ratio = exponent - 1, ratio * 10.0
+    mantissa = max(m for m in PRUNE_GRID if m <= ratio)
     return float(f"{mantissa:g}e{exponent}")
 
 

@@ -97,6 +97,14 @@ def test_first_prune_follows_the_rate_of_the_truncation_curve():
     # the grid's steps print as written (the fingerprint records them)
     assert [repr(grid_floor(v)) for v in (7.4e-6, 2.9e-6, 3e-6, 1e-5, 9.99e-6)] == [
         "3e-06", "1e-06", "3e-06", "1e-05", "3e-06"]
+    # a hair under a power of ten, where the log's tolerance rounds the exponent up
+    # (this raised "max() arg is an empty sequence")
+    for e in range(-9, 0):
+        for eps in (1.5e-9, 5e-10, 1e-12, 0.0, -1e-12, -5e-10):
+            v = 10.0 ** e * (1 - eps)
+            got = grid_floor(v)
+            assert got <= v * (1 + 1e-9) and got * 3.4 > v, (v, got)
+    assert grid_floor(1e-5 * (1 - 1.5e-9)) == 3e-6
 
 
 def test_too_tight_for_float32_is_refused_before_anything_is_written(scenes, tmp_path):

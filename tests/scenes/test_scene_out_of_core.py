@@ -171,7 +171,8 @@ def test_the_statistics_cache_what_the_process_does_not_hold_already():
     assert statistics._cache_bytes(big, 1000) == int(config.SCENE_STATS_CACHE_SHARE * big)
     assert statistics._cache_bytes(resident_bytes() // 2, 1000) == 0  # held already
     held = resident_bytes()
-    limit = held + (64 << 20)  # 64 MiB to spare, less the vectors, the headroom, drift
+    # 64 MiB to spare beyond the headroom (a share of the limit), less the vectors, drift
+    limit = int((held + (64 << 20)) / (1 - config.SCENE_STATS_HEADROOM_SHARE))
     got = statistics._cache_bytes(limit, 1000)
     headroom = int(config.SCENE_STATS_HEADROOM_SHARE * limit)
     assert 0 < got <= limit - held - statistics.STATS_VECTORS * 8 * 1000 - headroom + (8 << 20)
