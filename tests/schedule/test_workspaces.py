@@ -31,7 +31,7 @@ def test_a_matvec_pass_lets_the_product_workspaces_go(tmp_path, monkeypatch):
 
     monkeypatch.setattr(worker.TaskContext, "cache_budget", counted_budget)
     bigT.stratified_inverse(store, tmp_path / "X.zarr", terms=3, prune=0.0,
-                            in_memory=False, progress=False, memory_limit="1GiB")
+                            in_memory=False, progress=False)
     assert idle, "no mat-vec of M ran"
     assert max(b for b, _ in idle) >= 1, "no product left a workspace idle before a mat-vec"
     assert all(a == 0 for _, a in idle)
