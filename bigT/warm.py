@@ -18,11 +18,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from . import config, scenes
 from .algorithms import stratified_inverse
 from .compensation import compensate
 from .compensation.resident import load_resident
+from .kernels import row_ranges
 from .storage import open as open_store
 
 
@@ -54,6 +56,24 @@ def _exercise(tmp: Path, dtype: str) -> None:
     load_resident(open_store(X), precision="float16").matmul(np.ones(scene.T.shape[1], np.float32))
 
 
+def _exercise_narrowed_product(dtype: str) -> None:
+    """The kernels of a product on few lit patches (``row_ranges.narrow_columns``,
+    ``restrict_to_used_rows``, ``NarrowedColumns.widen``), which the toy scene above
+    never calls: every patch of a 12x16 corner is lit."""
+    rng = np.random.default_rng(0)
+    left = sp.random_array((64, 64), density=0.3, format="csr", dtype=dtype, rng=rng)
+    right = sp.random_array((64, 64), density=0.3, format="csr", dtype=dtype, rng=rng)
+    every_fourth = sp.diags_array((np.arange(64) % 4 == 0).astype(dtype))
+    right = sp.csr_array(every_fourth @ right @ every_fourth)  # few rows and columns used
+    for matrix in (left, right):
+        matrix.indices = matrix.indices.astype(np.int32)
+        matrix.indptr = matrix.indptr.astype(np.int32)
+        matrix.sum_duplicates()
+    row_ranges.restrict_to_used_rows(left, right, 2)
+    narrowed = row_ranges.narrow_columns(right, 2)
+    narrowed.widen(sp.csr_array(left @ narrowed.matrix), 2)
+
+
 def warm() -> float:
     """Compile (or load from the cache) every kernel a first run needs; returns the
     seconds it took."""
@@ -61,6 +81,7 @@ def warm() -> float:
     with tempfile.TemporaryDirectory(prefix="bigT-warm-") as tmp, _numba_for_everything():
         for dtype in ("float32", "float64"):
             _exercise(Path(tmp), dtype)
+            _exercise_narrowed_product(dtype)
     return time.perf_counter() - t0
 
 
