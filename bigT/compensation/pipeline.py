@@ -35,6 +35,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
+from .. import config
 from .realtime import StreamReport
 
 #: Threads that decode and encode frames: the cores, at most 4 (beyond that the
@@ -43,6 +44,15 @@ CODEC_THREADS = max(2, min(4, os.cpu_count() or 1))
 #: Frames decoded ahead of the batch being read, and frames handed to the encoders and
 #: not yet written, each at most, per codec thread: enough to keep every one busy.
 FRAMES_IN_FLIGHT_PER_THREAD = 2
+#: Cores the products leave to the codecs while a pool decodes and encodes beside them
+#: (unless ``config.KERNEL_THREADS`` says how many threads the products take). The
+#: product with X in memory is bound by memory bandwidth: on the 2-core machine of the
+#: benchmarks, one 384x512 frame's takes 23 ms of CPU on one thread but 34-44 ms on two
+#: (17-22 ms of wall time, the cores stalling on the same memory), while the codecs are
+#: compute-bound (zlib) and run at full speed beside it. So one thread for the
+#: products and the other core for the codecs does the same frames for ~45 ms of CPU
+#: instead of ~52 (benchmarks/bench_video.py, the folder rows).
+CODEC_CORES = 1
 
 
 class CodecPool:
@@ -71,6 +81,14 @@ class CodecPool:
     def frames_in_flight(self) -> int:
         """Frames decoded ahead, or encoded behind, at most by default."""
         return FRAMES_IN_FLIGHT_PER_THREAD * self.threads
+
+    def product_threads(self, default: int) -> int:
+        """The threads the products take beside this pool: ``default`` (one per core,
+        or ``config.KERNEL_THREADS``) less :data:`CODEC_CORES` when the products' count
+        was not chosen by the user, at least one."""
+        if config.KERNEL_THREADS is not None:
+            return int(default)
+        return max(1, min(int(default), (os.cpu_count() or 1) - CODEC_CORES))
 
     def submit(self, fn: Callable, *args) -> Future:
         if self._executor is None:
@@ -226,5 +244,5 @@ def with_encoding_times(stream: StreamReport, frames: list[EncodedFrame],
                                service=stream.service + own)
 
 
-__all__ = ["CODEC_THREADS", "FRAMES_IN_FLIGHT_PER_THREAD", "CodecPool", "decoded_ahead", "EncodedBehind",
+__all__ = ["CODEC_CORES", "CODEC_THREADS", "FRAMES_IN_FLIGHT_PER_THREAD", "CodecPool", "decoded_ahead", "EncodedBehind",
            "EncodedFrame", "with_encoding_times"]
