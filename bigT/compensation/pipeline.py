@@ -47,11 +47,12 @@ FRAMES_IN_FLIGHT_PER_THREAD = 2
 #: Cores the products leave to the codecs while a pool decodes and encodes beside them
 #: (unless ``config.KERNEL_THREADS`` says how many threads the products take). The
 #: product with X in memory is bound by memory bandwidth: on the 2-core machine of the
-#: benchmarks, one 384x512 frame's takes 23 ms of CPU on one thread but 34-44 ms on two
-#: (17-22 ms of wall time, the cores stalling on the same memory), while the codecs are
-#: compute-bound (zlib) and run at full speed beside it. So one thread for the
-#: products and the other core for the codecs does the same frames for ~45 ms of CPU
-#: instead of ~52 (benchmarks/bench_video.py, the folder rows).
+#: benchmarks, one 384x512 frame's (23 M entries) takes 23 ms of CPU on one thread but
+#: 34-44 ms on two (17-22 ms of wall time: the cores stall on the same memory), while
+#: the codecs are compute-bound (zlib, ~15 ms a frame) and run at full speed beside
+#: it. One thread for the products and the other core for the codecs did the folder of
+#: benchmarks/bench_video.py for 44-45 ms of CPU a frame instead of 57-60 (the same
+#: run, interleaved, a loaded machine), the frames identical.
 CODEC_CORES = 1
 
 
