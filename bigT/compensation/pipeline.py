@@ -1,10 +1,11 @@
 """Image codecs beside the products: a folder's frames decoded ahead and the projector's
 frames encoded behind, on a small pool of threads.
 
-With X in memory, one 384x512 frame's product takes ~10 ms on two cores, but decoding
-its 16-bit PNG takes ~5 ms and encoding the result ~15-25 ms: one reader and one writer
-thread (:func:`~bigT.compensation.realtime.run_stream`) leave the codecs, not the
-products, setting the pace at batch 1. The decoders and encoders release the GIL
+With X in memory, one 384x512 frame's product (the dense corner's 4-term X, 23 M
+entries) takes ~23 ms on one core, decoding its 16-bit PNG ~2 ms and encoding the
+result ~13 ms (zlib level 1): one reader and one writer thread
+(:func:`~bigT.compensation.realtime.run_stream`) would leave the codecs beside the
+products on the critical path at batch 1. The decoders and encoders release the GIL
 (Pillow's and OpenCV's zlib), so here several frames are decoded and encoded at once:
 
 * :func:`decoded_ahead` reads the frames of an :class:`~bigT.images.ImageSource` on the
@@ -14,9 +15,12 @@ products, setting the pace at batch 1. The decoders and encoders release the GIL
   (:data:`FRAMES_IN_FLIGHT_PER_THREAD` a codec thread).
 
 Both keep at most a few frames in flight, so memory stays bounded whatever the length
-of the folder. Each frame keeps its file name, and each file is written whole or not at
-all (:func:`bigT.atomic.atomic_output`): an interrupted run leaves complete files only
-(not necessarily a prefix of the folder: frames finish out of order). An error names
+of the folder; the products leave a core to the codecs (:data:`CODEC_CORES`). Each
+frame keeps its file name, and each file is written whole or not at all
+(:func:`bigT.atomic.atomic_output`, fsynced before its rename; the folder fsynced once
+when the run closes, :meth:`bigT.images.ImageSink.synced_once`): an interrupted run, or
+a power cut, leaves complete files only (not necessarily a prefix of the folder: frames
+finish out of order). An error names
 its frame's file, as the sequential path's does; the first one (in frame order) is
 raised, and the frames not yet started are dropped.
 """
