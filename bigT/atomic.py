@@ -155,14 +155,32 @@ def _as_output_error(exc: OSError, path: Path, what: str) -> Exception:
     return OutputError(f"cannot write {what}: {reason}; nothing was replaced", path)
 
 
+def remove_dead_writers_files(folder: str | os.PathLike, suffix: str) -> None:
+    """Delete the temporary files (of any name) with ``suffix`` that writers killed
+    before their rename left in ``folder``: what :func:`atomic_output` does for its
+    own file, once for a folder of many (``clean=False`` then)."""
+    for entry in dead_writers_siblings(Path(os.fspath(folder)), f"tmp{suffix}"):
+        with contextlib.suppress(OSError):
+            entry.unlink()
+
+
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike, what: str = "the output") -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike, what: str = "the output", *, clean: bool = True,
+                  sync_folder: bool = True) -> Iterator[Path]:
     """Write a file through a temporary sibling, then rename it into place.
 
     Parameters
     ----------
     path : the destination file; its folder is created when missing.
     what : words for the error messages ("the exported matrix").
+    clean : delete the temporary siblings of ``path`` that killed writers left. False
+        where the caller cleans the folder once for many files
+        (:func:`remove_dead_writers_files`): each scan reads the whole folder.
+    sync_folder : fsync the folder after the rename, which makes the rename itself
+        durable. False where the caller fsyncs the folder once after many files
+        (:func:`fsync_dir`): the file is still fsynced before its rename, so after a
+        power cut it is whole or absent, never torn; only its presence waits for the
+        caller's fsync.
 
     Yields
     ------
@@ -180,14 +198,16 @@ def atomic_output(path: str | os.PathLike, what: str = "the output") -> Iterator
     tmp = temporary_file_sibling(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _remove_dead_writers_files(path)
+        if clean:
+            _remove_dead_writers_files(path)
         yield tmp
         if not tmp.is_file() or tmp.stat().st_size == 0:
             raise OutputError(f"writing {what} produced no data; nothing was replaced", path)
         _fsync_path(tmp)
         os.replace(tmp, path)
-        with contextlib.suppress(OSError):  # the rename's durability; not on every FS
-            _fsync_path(path.parent, directory=True)
+        if sync_folder:
+            with contextlib.suppress(OSError):  # the rename's durability; not on every FS
+                _fsync_path(path.parent, directory=True)
     except OSError as exc:
         _discard(tmp)
         raise _as_output_error(exc, path, what) from exc

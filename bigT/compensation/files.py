@@ -310,13 +310,16 @@ class FileCompensation:
         encoding, projection = self.encoding, self.projection
         t0 = time.perf_counter()
         with contextlib.ExitStack() as stack:
+            # the sink first: it closes (a folder's fsync) after the pool's last file
+            write = stack.enter_context(self._sink)
             # image files decoded and encoded on a pool of threads with overlap (a
             # video's are ffmpeg's, in its own processes)
             pool = stack.enter_context(CodecPool()) if overlap and not self.video_in else None
+            if pool is not None:
+                stack.enter_context(comp.products_on(pool.product_threads(comp.threads)))
             batches = (video_batches(self.source, self.batch) if self.video_in
                        else image_batches(self.source, self.batch) if pool is None
                        else decoded_ahead(pool, self.source, self.batch))
-            write = stack.enter_context(self._sink)
             behind = (EncodedBehind(pool, write) if pool is not None and self._sink.images
                       else None)
             if behind is not None:
@@ -327,8 +330,9 @@ class FileCompensation:
                 in_light(batches, encoding, projection), comp,
                 lambda names, frames: write(names, projection.to_values(frames, encoding)),
                 batch=self.batch, overlap=overlap, on_batch=on_batch)
-            if behind is not None:
-                stream = with_encoding_times(stream, behind.finish(), time.perf_counter() - t0)
+            written = behind.finish() if behind is not None else None
+        if written is not None:  # the seconds up to the folder's fsync, on closing
+            stream = with_encoding_times(stream, written, time.perf_counter() - t0)
         return stream
 
     def _entered(self) -> Compensator:
@@ -687,11 +691,14 @@ class _Sink:
         if self._video is not None:
             video = self._video.__enter__()
             return lambda names, frames: video.write(frames)
-        return self._images.write
+        # each frame whole or absent, the folder fsynced once on exit
+        self._synced = self._images.synced_once()
+        return self._synced.__enter__().write
 
     def __exit__(self, *exc):
         if self._video is not None:
             return self._video.__exit__(*exc)
+        self._synced.__exit__(*exc)
         return False
 
 

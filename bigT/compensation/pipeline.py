@@ -1,10 +1,11 @@
 """Image codecs beside the products: a folder's frames decoded ahead and the projector's
 frames encoded behind, on a small pool of threads.
 
-With X in memory, one 384x512 frame's product takes ~10 ms on two cores, but decoding
-its 16-bit PNG takes ~5 ms and encoding the result ~15-25 ms: one reader and one writer
-thread (:func:`~bigT.compensation.realtime.run_stream`) leave the codecs, not the
-products, setting the pace at batch 1. The decoders and encoders release the GIL
+With X in memory, one 384x512 frame's product (the dense corner's 4-term X, 23 M
+entries) takes ~23 ms on one core, decoding its 16-bit PNG ~2 ms and encoding the
+result ~13 ms (zlib level 1): one reader and one writer thread
+(:func:`~bigT.compensation.realtime.run_stream`) would leave the codecs beside the
+products on the critical path at batch 1. The decoders and encoders release the GIL
 (Pillow's and OpenCV's zlib), so here several frames are decoded and encoded at once:
 
 * :func:`decoded_ahead` reads the frames of an :class:`~bigT.images.ImageSource` on the
@@ -14,9 +15,12 @@ products, setting the pace at batch 1. The decoders and encoders release the GIL
   (:data:`FRAMES_IN_FLIGHT_PER_THREAD` a codec thread).
 
 Both keep at most a few frames in flight, so memory stays bounded whatever the length
-of the folder. Each frame keeps its file name, and each file is written whole or not at
-all (:func:`bigT.atomic.atomic_output`): an interrupted run leaves complete files only
-(not necessarily a prefix of the folder: frames finish out of order). An error names
+of the folder; the products leave a core to the codecs (:data:`CODEC_CORES`). Each
+frame keeps its file name, and each file is written whole or not at all
+(:func:`bigT.atomic.atomic_output`, fsynced before its rename; the folder fsynced once
+when the run closes, :meth:`bigT.images.ImageSink.synced_once`): an interrupted run, or
+a power cut, leaves complete files only (not necessarily a prefix of the folder: frames
+finish out of order). An error names
 its frame's file, as the sequential path's does; the first one (in frame order) is
 raised, and the frames not yet started are dropped.
 """
@@ -35,6 +39,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
+from .. import config
 from .realtime import StreamReport
 
 #: Threads that decode and encode frames: the cores, at most 4 (beyond that the
@@ -43,6 +48,16 @@ CODEC_THREADS = max(2, min(4, os.cpu_count() or 1))
 #: Frames decoded ahead of the batch being read, and frames handed to the encoders and
 #: not yet written, each at most, per codec thread: enough to keep every one busy.
 FRAMES_IN_FLIGHT_PER_THREAD = 2
+#: Cores the products leave to the codecs while a pool decodes and encodes beside them
+#: (unless ``config.KERNEL_THREADS`` says how many threads the products take). The
+#: product with X in memory is bound by memory bandwidth: on the 2-core machine of the
+#: benchmarks, one 384x512 frame's (23 M entries) takes 23 ms of CPU on one thread but
+#: 34-44 ms on two (17-22 ms of wall time: the cores stall on the same memory), while
+#: the codecs are compute-bound (zlib, ~15 ms a frame) and run at full speed beside
+#: it. One thread for the products and the other core for the codecs did the folder of
+#: benchmarks/bench_video.py for 44-45 ms of CPU a frame instead of 57-60 (the same
+#: run, interleaved, a loaded machine), the frames identical.
+CODEC_CORES = 1
 
 
 class CodecPool:
@@ -71,6 +86,14 @@ class CodecPool:
     def frames_in_flight(self) -> int:
         """Frames decoded ahead, or encoded behind, at most by default."""
         return FRAMES_IN_FLIGHT_PER_THREAD * self.threads
+
+    def product_threads(self, default: int) -> int:
+        """The threads the products take beside this pool: ``default`` (one per core,
+        or ``config.KERNEL_THREADS``) less :data:`CODEC_CORES` when the products' count
+        was not chosen by the user, at least one."""
+        if config.KERNEL_THREADS is not None:
+            return int(default)
+        return max(1, min(int(default), (os.cpu_count() or 1) - CODEC_CORES))
 
     def submit(self, fn: Callable, *args) -> Future:
         if self._executor is None:
@@ -226,5 +249,5 @@ def with_encoding_times(stream: StreamReport, frames: list[EncodedFrame],
                                service=stream.service + own)
 
 
-__all__ = ["CODEC_THREADS", "FRAMES_IN_FLIGHT_PER_THREAD", "CodecPool", "decoded_ahead", "EncodedBehind",
+__all__ = ["CODEC_CORES", "CODEC_THREADS", "FRAMES_IN_FLIGHT_PER_THREAD", "CodecPool", "decoded_ahead", "EncodedBehind",
            "EncodedFrame", "with_encoding_times"]

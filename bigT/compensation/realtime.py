@@ -18,6 +18,7 @@ writing it (queueing included); :class:`StreamReport` keeps them all.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import queue
@@ -161,6 +162,18 @@ class Compensator:
                                              n_threads=threads)
         self.report.add_clipped(Y, self.clip, self.order.channels, below, above, out.size)
         return out
+
+    @contextlib.contextmanager
+    def products_on(self, threads: int) -> Iterator[None]:
+        """Within: the products (and the pixel gathers and scatters) on ``threads``
+        threads (at least one). Their rows are split among the threads, each row summed
+        whole by one: the frames are the same whatever the count."""
+        before = self.threads
+        self.threads = max(1, int(threads))
+        try:
+            yield
+        finally:
+            self.threads = before
 
     def _batch_buffers(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The (n, k) float32 batch and product of :meth:`compensate_codes`, kept from

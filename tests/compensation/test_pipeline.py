@@ -200,3 +200,92 @@ def test_an_interrupted_run_leaves_complete_files_only(grey, tmp_path, monkeypat
     assert {f.name for f in left} <= {f"frame{i:03d}.png" for i in range(4)}
     for f in left:
         read_image(f)
+
+
+def test_each_frame_is_fsynced_before_its_rename_and_the_folder_once_after_the_last(
+        grey, tmp_path, monkeypatch):
+    """Crash safety at one fsync of the folder per run: every frame's file is flushed
+    before the rename that publishes it (whole or absent after a power cut), and the
+    folder once, after the last rename (each rename durable when the run returns)."""
+    import os
+
+    X, folder, _ = grey
+    out = tmp_path / "out"
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def replace(src, dst, **kw):
+        events.append(("rename", os.path.realpath(src), os.path.realpath(dst)))
+        return real_replace(src, dst, **kw)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    compensate_files(X, folder, out, batch=1)
+    renames = [e for e in events if e[0] == "rename" and os.path.dirname(e[2]) == str(out)]
+    assert len(renames) == FRAMES
+    for _, tmp, _dst in renames:  # the file flushed before it is published
+        flushed = events.index(("fsync", tmp))
+        assert flushed < events.index(("rename", tmp, _dst))
+    folder_syncs = [k for k, e in enumerate(events) if e == ("fsync", str(out.resolve()))]
+    assert len(folder_syncs) == 1, "the folder is fsynced once, not once per frame"
+    assert folder_syncs[0] > max(events.index(r) for r in renames)
+
+
+def test_killed_writers_files_are_cleaned_once_per_folder(grey, tmp_path, monkeypatch):
+    """A temporary file a killed run left is deleted, by one scan of the output folder
+    for the run (a scan per frame reads the whole folder each time: quadratic)."""
+    from bigT import atomic
+
+    X, folder, _ = grey
+    out = tmp_path / "out"
+    out.mkdir()
+    litter = out / ".frame001.999999999@{}.0badc0de.tmp.png".format(atomic._host_tag())
+    litter.write_bytes(b"half a frame")
+    scans = []
+    real = atomic.dead_writers_siblings
+    monkeypatch.setattr(atomic, "dead_writers_siblings",
+                        lambda *a, **k: scans.append(a) or real(*a, **k))
+    compensate_files(X, folder, out, batch=1)
+    assert not litter.exists()
+    assert len(scans) == 1
+    assert sorted(p.name for p in out.iterdir()) == [f"frame{i:03d}.png" for i in range(FRAMES)]
+
+
+def test_the_products_leave_a_core_to_the_codecs(grey, tmp_path, monkeypatch):
+    """With the codecs on a pool, the products take the cores less one (unless the
+    user set config.KERNEL_THREADS), and the compensator's own count comes back after
+    the run; the frames are the same whatever the count (rows are split, never a sum)."""
+    from bigT import config
+    from bigT.compensation import pipeline, realtime
+
+    pool = CodecPool(2)
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 8)
+    assert pool.product_threads(8) == 7
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 2)
+    assert pool.product_threads(2) == 1
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 1)
+    assert pool.product_threads(1) == 1
+    monkeypatch.setattr(config, "KERNEL_THREADS", 2)
+    assert pool.product_threads(2) == 2
+    monkeypatch.setattr(config, "KERNEL_THREADS", None)
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 4)
+
+    X, folder, _ = grey
+    seen = []
+    compute = realtime.Compensator.__call__
+    monkeypatch.setattr(realtime.Compensator, "__call__",
+                        lambda self, frames: seen.append(self.threads) or compute(self, frames))
+    with FileCompensation(X, folder, tmp_path / "pooled", batch=1) as job:
+        job.compensator.threads = 4
+        job.run()
+        assert set(seen) == {3} and job.compensator.threads == 4
+        seen.clear()
+        with FileCompensation(X, folder, tmp_path / "serial", batch=1) as serial:
+            serial.compensator.threads = 4
+            serial.run(overlap=False)
+        assert set(seen) == {4}
+    assert _files(tmp_path / "pooled") == _files(tmp_path / "serial")
