@@ -28,12 +28,15 @@ Decomposing the error
 ---------------------
 Without pruning, I - T T_k^-1 = M^(k+1) (M = I - T F^-1), so the truncation part of
 the error of T_k^-1 on the probes, ||M^(k+1) d|| / ||d||, is computed before any term
-by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper than a
-sparse product): it gives the number of terms the series needs
-(:func:`predicted_curve`: the last point, which the curve's last ratio puts under the
-goal, is counted before it is computed, and computed only if a term measured needs
-it). With no memory limit T's tiles stay in the tile cache through the engine's run,
-so that a measurement does not read T again. After each term the measured residual
+by k+1 products with T (matrix-free, a pass over T each, far cheaper than a sparse
+product): it gives the number of terms the series needs (:func:`predicted_curve`:
+the last point, which the curve's last ratio puts under the goal, is counted before
+it is computed, and computed only if a term measured needs it). With no memory limit
+(and T within the tile cache's budget) T's tile rows are read once and held through
+the search (:func:`held_rows`): F, the curve, the measurements and every attempt's M
+in the engine are taken from them; else T is streamed from its store. The engine
+estimates no residual of its own (``on_term.needs_residual``): the probes' errors
+decide, and the terms' records hold none. After each term the measured residual
 r_k = (I - T X_k) d minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k
 for the power form: docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
 is seen at the first term measured (by term 4 in a long series) and the run restarts
@@ -86,6 +89,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from .. import config
 from ..errors import BigTError
@@ -298,6 +302,13 @@ class _Products:
         self.keep_tiles = keep_tiles
 
     def times(self, A, V: np.ndarray, cache: bool = False) -> np.ndarray:
+        """A V, shape (n, k) float64: A a store, streamed; or a matrix held in memory
+        (the engine's X, ``on_term``'s ``X=``), in the streamed product's precision
+        (float32 for float32 entries), the same numbers."""
+        if sp.issparse(A):
+            dtype = np.result_type(A.dtype, np.float32)
+            return spmm_dense(A, np.ascontiguousarray(V, dtype=dtype),
+                              n_threads=self.threads).astype(np.float64, copy=False)
         budget = config.COMPENSATE_CACHE_BYTES if cache else 0
         return np.asarray(stream_matmul(A, V, runner=self.runner, cache_bytes=budget),
                           dtype=np.float64)
@@ -538,9 +549,10 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
     """
     measured: list[TermErrors] = []
 
-    def measure(held: int, during_run: bool = True) -> None:
-        # during the engine's run, the curve's extensions leave the tile cache alone
-        measured.append(measure_term(products, open_store(out), D,
+    def measure(held: int, during_run: bool = True, X=None) -> None:
+        # during the engine's run, the curve's extensions leave the tile cache alone;
+        # X: the term's X the engine holds in memory (else read from the store)
+        measured.append(measure_term(products, open_store(out) if X is None else X, D,
                                      _power(products, powers, held, cache=not during_run),
                                      held, time.perf_counter() - t0))
 
@@ -551,10 +563,10 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
             worth[k] = _worth_measuring(method, k, products, powers, D, target)
         return worth[k]
 
-    def on_term(record) -> str | None:
+    def on_term(record, X=None) -> str | None:
         if not reads_term(record.term):
             return None
-        measure(record.term)
+        measure(record.term, X=X)
         return _verdict(measured[-1], target)[0] or None
 
     # the engine writes only the terms measured (in memory; out of core, every term)
@@ -562,6 +574,8 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
     # the probes' errors decide: the engine's own residual estimate (an M product per
     # term) is not made
     on_term.needs_residual = False
+    # in memory, the engine hands over the X it holds: not read back from the store
+    on_term.takes_X = True
 
     # term 0 (F^-1, nothing pruned) is never handed over (its error ||M d|| / ||d|| is
     # known); it is measured only as the held term of a cap of 0

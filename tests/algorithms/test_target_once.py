@@ -1,15 +1,17 @@
 """``invert_to_target`` does its own work once: T's tile rows read once for F, the
 truncation curve, the measurements and every attempt's M (no diagonal read, no
-streamed product with T), the engine's per-term residual estimate left out (the
-probes' errors decide), and all of it without changing a number: the same choices,
-the same measured errors and the same X, bit for bit, as the search streaming T.
-No wall-clock assertions."""
+streamed product with T), in memory the engine's X measured as held (not read back
+from the store), the engine's per-term residual estimate left out (the probes' errors
+decide), and all of it without changing a number: the same choices, the same measured
+errors and the same X, bit for bit, as the search streaming T and X. No wall-clock
+assertions."""
 
 import numpy as np
 import pytest
 
 import bigT
 from bigT.algorithms import target
+from bigT.algorithms.engine import InverseEngine
 from bigT.algorithms.engine_path import ENVIRONMENT
 from bigT.algorithms.probes import ProbedResidual
 from bigT.algorithms.run_setup import TileRows
@@ -44,14 +46,17 @@ def test_the_search_reads_T_once_and_changes_no_number(scene, tmp_path, monkeypa
                                                        in_memory, prune):
     T = scene.T
     monkeypatch.setenv(ENVIRONMENT, in_memory)
-    monkeypatch.setattr(target, "held_rows", lambda *args: None)  # as before: streamed
+    # as before: T streamed, X read back from the store
+    monkeypatch.setattr(target, "held_rows", lambda *args: None)
+    monkeypatch.setattr(InverseEngine, "_call_on_term",
+                        lambda self: self.settings.on_term(self.record))
     streamed = target.invert_to_target(T, tmp_path / "streamed.zarr", TARGET, prune=prune)
     monkeypatch.undo()
     monkeypatch.setenv(ENVIRONMENT, in_memory)
 
-    reads, diagonals, streamed_T = [], [], []
+    reads, diagonals, streamed_T, opened = [], [], [], []
     real_row, real_diagonal = BlockCSR.get_tile_row, BlockCSR.diagonal
-    real_stream = target.stream_matmul
+    real_stream, real_open = target.stream_matmul, target.open_store
 
     def counted_row(self, i, columns=None):
         if self.path == T.path:
@@ -69,12 +74,22 @@ def test_the_search_reads_T_once_and_changes_no_number(scene, tmp_path, monkeypa
 
     monkeypatch.setattr(BlockCSR, "get_tile_row", counted_row)
     monkeypatch.setattr(BlockCSR, "diagonal", counted_diagonal)
+    def counted_open(path, *args, **kwargs):
+        opened.append(path)
+        return real_open(path, *args, **kwargs)
+
     monkeypatch.setattr(target, "stream_matmul", counted_stream)
+    monkeypatch.setattr(target, "open_store", counted_open)
     once = target.invert_to_target(T, tmp_path / "once.zarr", TARGET, prune=prune)
     monkeypatch.undo()
 
     if in_memory == "1":  # out of core, the engine's tasks read T's rows themselves
         assert sorted(reads) == list(range(T.grid[0])) == list(range(6))  # once, in all
+        # every X measured as the engine held it, but an exhausted series' last,
+        # measured after the run
+        assert len(opened) == sum("exhausted" in a.ended for a in once.attempts)
+    else:
+        assert len(opened) == sum(len(a.terms) for a in once.attempts)
     assert not diagonals and not streamed_T
     if prune is not None:
         assert once.restarts  # the engine ran twice on the same rows
