@@ -108,7 +108,9 @@ class InverseEngine:
             self.matvecs = MatVecs(runner, self.layout)
         self.residual = ProbedResidual.for_run(self.matvecs, settings.seed)
         if self.path.in_memory:
-            self.passes = ResidentPasses(matrices, store, settings, self.residual.Z,
+            # without residual estimates no pass multiplies its new entries by the probes
+            probes = self.residual.Z if self._estimates_residual() else None
+            self.passes = ResidentPasses(matrices, store, settings, probes,
                                          runner.threads, self.path.budget, series)
         else:
             self.passes = PassRunner(self.layout, store, runner, settings, self.residual.Z)

@@ -14,6 +14,7 @@ from bigT.algorithms import target
 from bigT.algorithms.engine import InverseEngine
 from bigT.algorithms.engine_path import ENVIRONMENT
 from bigT.algorithms.probes import ProbedResidual
+from bigT.algorithms.resident import ResidentPasses
 from bigT.algorithms.run_setup import TileRows
 from bigT.storage import BlockCSR
 
@@ -128,13 +129,22 @@ def test_no_residual_estimate_in_the_search(scene, tmp_path, monkeypatch, in_mem
         estimates.append(1)
         return real(self, X, XZ)
 
+    probes, real_passes = [], ResidentPasses.__init__
+
+    def passes(self, matrices, store, settings, Z, *args, **kwargs):
+        probes.append(Z)  # in memory: the passes multiply their new entries by Z
+        real_passes(self, matrices, store, settings, Z, *args, **kwargs)
+
     monkeypatch.setattr(ProbedResidual, "estimate", counted)
+    monkeypatch.setattr(ResidentPasses, "__init__", passes)
     fixed = bigT.stratified_inverse(scene.T, tmp_path / "fixed.zarr", terms=2,
                                     progress=False)
     assert len(estimates) == 3 and fixed.history[-1].residual is not None
-    estimates.clear()
+    assert [Z is not None for Z in probes] == ([True] if in_memory == "1" else [])
+    estimates.clear(), probes.clear()
     report = target.invert_to_target(scene.T, tmp_path / "X.zarr", TARGET)
     assert report.met and not estimates
+    assert probes == ([None] * len(report.attempts) if in_memory == "1" else [])
     assert all(h["residual"] is None for h in report.inverse["history"])
     assert bigT.open(tmp_path / "X.zarr").metadata["inverse"]["residual"] is None
 
