@@ -118,7 +118,10 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         (the store holding an earlier term), as a run without ``on_term`` goes past
         a term. An attribute ``needs_residual`` that is false says that it measures
         the terms' errors itself: without ``tol``, no term's residual is estimated
-        (their records hold none) and none is refused for growing.
+        (their records hold none) and none is refused for growing. One with a true
+        ``takes_X`` is called ``on_term(record, X=...)``: in memory the term's X as
+        this process holds it (csr_array, stored order; else None), to multiply
+        with instead of reading ``out``.
     colour_path : {"auto", "general", "global"}
         For a colour T (channels 3; a grey T ignores it): ``"global"`` inverts three
         grey transports between two 3x3 un-mixings when the rig's colour mixing is one
