@@ -54,7 +54,7 @@ from .report import InverseReport
 from .outcome import RunOutcome, inverse_report
 from .run_setup import open_run
 from .settings import SeriesSettings
-from .probes import ProbedResidual
+from .probes import ProbedResidual, TermResidual
 
 #: In memory, a term the run goes past is still published when this many seconds have
 #: passed since the last term published: what a crash may cost again (at most this and
@@ -83,6 +83,9 @@ class InverseEngine:
     memory_limit : int or None
     in_memory : bool or None
         :func:`.engine_path.choose_path`'s (None: chosen from the memory budget).
+    T_rows : TileRows or None
+        T's tile rows a caller holds (:func:`.run_setup.open_run`: F and, in memory,
+        M taken from them instead of reading T again).
 
     It holds what changes during the run, ``record`` (the store's
     :class:`~.records.SeriesRecord`: the term held), ``XZ`` (X Z of that term for
@@ -92,10 +95,11 @@ class InverseEngine:
     """
 
     def __init__(self, T, store: InverseStore, series: SeriesMethod, runner,
-                 settings: SeriesSettings, first_bounce, memory_limit, in_memory=False):
+                 settings: SeriesSettings, first_bounce, memory_limit, in_memory=False,
+                 T_rows=None):
         self.store, self.series, self.runner, self.settings = store, series, runner, settings
         self.layout, self.record = open_run(T, store, series, runner, settings,
-                                            first_bounce, memory_limit, in_memory)
+                                            first_bounce, memory_limit, in_memory, T_rows)
         self.path: PathChoice = self.layout.path
         if self.path.in_memory:
             matrices = ResidentMatrices(self.layout, store, runner.threads)
@@ -104,7 +108,9 @@ class InverseEngine:
             self.matvecs = MatVecs(runner, self.layout)
         self.residual = ProbedResidual.for_run(self.matvecs, settings.seed)
         if self.path.in_memory:
-            self.passes = ResidentPasses(matrices, store, settings, self.residual.Z,
+            # without residual estimates no pass multiplies its new entries by the probes
+            probes = self.residual.Z if self._estimates_residual() else None
+            self.passes = ResidentPasses(matrices, store, settings, probes,
                                          runner.threads, self.path.budget, series)
         else:
             self.passes = PassRunner(self.layout, store, runner, settings, self.residual.Z)
@@ -153,14 +159,14 @@ class InverseEngine:
         computed = False
         if resumed_from is not None and on_term and self.record.term < terms:
             # the term held may already be enough: the callback sees it before any work
-            reason = on_term(self.record)
+            reason = self._call_on_term()
             if reason:
                 return reason
         while self.record.term < terms:
             if self._tol_reached():
                 return f"tol {self.settings.tol:g} reached"
             computed = True
-            reason = self._next_term() or (on_term(self.record) if on_term else None)
+            reason = self._next_term() or (self._call_on_term() if on_term else None)
             if reason:
                 return reason
         if self._tol_reached():
@@ -215,6 +221,32 @@ class InverseEngine:
         return (not self.path.in_memory or self._on_term_reads(k)
                 or k >= self.settings.terms or PUBLISH_INTERVAL_SECONDS <= 0)
 
+    def _estimates_residual(self) -> bool:
+        """Whether each term's residual is estimated (:mod:`.probes`): unless the
+        caller's ``on_term`` measures the terms' errors itself and says so by a false
+        ``needs_residual`` (the target-error search: its probes' errors decide, so the
+        estimate, an M product per term, ~0.2 s each on the dense 384x512 corner, and
+        its refusal of a growing residual are left out; the terms' records then hold
+        no residual), nor ``tol`` asks for it."""
+        on_term = self.settings.on_term
+        return (self.settings.tol is not None or on_term is None
+                or bool(getattr(on_term, "needs_residual", True)))
+
+    def _call_on_term(self) -> str | None:
+        """The caller's ``on_term`` on the term held; one with a true ``takes_X`` also
+        gets ``X=``, the term's X as this process holds it in memory (csr_array,
+        shape (n, n), the stored order; None out of core or where it is not held), to
+        multiply with instead of reading the store (the target-error search: on the
+        dense 384x512 corner, X's 3.4e7 entries read back cost 0.5-1 s a term
+        measured)."""
+        on_term = self.settings.on_term
+        if not getattr(on_term, "takes_X", False):
+            return on_term(self.record)
+        held = None
+        if self.path.in_memory:
+            held = self.passes.matrices.held.get(("X", self.record.term))
+        return on_term(self.record, X=held)
+
     def _on_term_reads(self, k: int) -> bool:
         """Whether the caller's ``on_term`` reads term ``k`` from the store: every term,
         unless the callable says otherwise by its ``reads_term(k)`` (the target-error
@@ -266,7 +298,9 @@ class InverseEngine:
         (benchmarks/bench_tradeoff.py wraps it to measure each term)."""
         # with X Z known the estimate does not read X: in memory it runs while the
         # term's stores are still being written (``finalized`` waits for them)
-        residual = None if XZ is None else self.residual.estimate(None, XZ)
+        estimates = self._estimates_residual()
+        residual = (TermResidual.skipped() if not estimates
+                    else None if XZ is None else self.residual.estimate(None, XZ))
         X = self.passes.finalized.pop((k, "X"), None)
         if X is None:
             X = (open_store(self.store.term_path(k, "X")) if publish
@@ -275,8 +309,9 @@ class InverseEngine:
         if residual is None:
             residual = self.residual.estimate(X, XZ)
         try:
-            refuse_growing_residual(self.record, k, residual.relative, self.settings.force,
-                                    self.store.path)
+            if estimates:
+                refuse_growing_residual(self.record, k, residual.relative,
+                                        self.settings.force, self.store.path)
         except DivergenceError:
             self._publish_held()  # the term the message says the inverse keeps
             raise

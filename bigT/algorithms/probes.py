@@ -24,18 +24,26 @@ class TermResidual:
 
     Attributes
     ----------
-    relative, absolute : float
-        ||I - T X||_F estimated, relative (/ sqrt of the kept pixels) and absolute.
+    relative, absolute : float or None
+        ||I - T X||_F estimated, relative (/ sqrt of the kept pixels) and absolute;
+        None when the run estimates no residual (:meth:`skipped`).
     XZ : ndarray, shape (n, p), or None
-        X Z for the probes (None only where no pixel is kept: nothing was multiplied).
+        X Z for the probes (None where no pixel is kept: nothing was multiplied, or
+        where nothing was estimated).
     started : float
         ``time.perf_counter()`` when the estimate began (its time is reported).
     """
 
-    relative: float
-    absolute: float
+    relative: float | None
+    absolute: float | None
     XZ: np.ndarray | None
     started: float
+
+    @classmethod
+    def skipped(cls) -> TermResidual:
+        """No estimate: a run whose caller measures the terms' errors itself
+        (:meth:`~.engine.InverseEngine._estimates_residual`)."""
+        return cls(None, None, None, time.perf_counter())
 
 
 @dataclass(frozen=True, eq=False)

@@ -221,7 +221,8 @@ class ResidentPasses:
     matrices : ResidentMatrices
     store : InverseStore
     settings : SeriesSettings
-    probes : (n, p) ndarray, the residual probes Z
+    probes : (n, p) ndarray, the residual probes Z, or None where the run estimates no
+        residual (then no pass reports (X_k - X_{k-1}) Z)
     threads : int, threads of the kernels and of the writes
     budget : int, bytes the matrices may take (:meth:`fits`)
     series : SeriesMethod, optional
@@ -445,8 +446,10 @@ class ResidentPasses:
             X = sp.csr_array(X_prev + self._inverse.scale_rows(Q, 0, mats.dtype))
             X.eliminate_zeros()
             X.sort_indices()
-        y = np.zeros((self.layout.n, self.probes.shape[1]), np.float64)
-        if Q.nnz:
+        y = None  # no residual estimated: no probes (the engine's ``needs_residual``)
+        if self.probes is not None:
+            y = np.zeros((self.layout.n, self.probes.shape[1]), np.float64)
+        if Q.nnz and y is not None:
             spmm_dense(Q, self.probes, out=y, n_threads=self.threads)
             y = self._inverse.apply(y, 0)
         return _Result({"P": P, "X": X}, left, right, y, carried_from_P="P" in inputs)

@@ -42,13 +42,19 @@ class TileRows:
     threads : int
         Tile rows read at once (a read decodes, checks and joins the row's tiles,
         mostly in numpy and numba, which let go of the interpreter).
+    keep : bool
+        Rows taken stay held (:meth:`take` is then :meth:`__getitem__`): the caller
+        multiplies with T after the engine made M from them (the target-error search,
+        :mod:`.target`, whose products and every attempt's M so read T once; M is
+        made from them without changing them, :func:`bigT.schedule.blocks.m_rows`).
+        :meth:`release` lets go of them.
 
     The rows are read on first use: an error found before (a ``first_bounce`` file
     that does not load) costs no read of T.
     """
 
-    def __init__(self, T: BlockCSR, threads: int):
-        self.T, self.threads = T, max(1, int(threads))
+    def __init__(self, T: BlockCSR, threads: int, keep: bool = False):
+        self.T, self.threads, self.keep = T, max(1, int(threads)), bool(keep)
         self._rows: list | None = None
         self._reading = threading.Lock()  # M's threads may ask first: one read
 
@@ -62,10 +68,16 @@ class TileRows:
         return self.T.get_tile_row(i) if row is None else row
 
     def take(self, i: int):
-        """Tile row ``i``, no longer held here."""
+        """Tile row ``i``, no longer held here (unless ``keep``)."""
         row = self[i]
-        self._read()[i] = None
+        if not self.keep:
+            self._read()[i] = None
         return row
+
+    def release(self) -> None:
+        """Let go of every row held (read again on the next use)."""
+        with self._reading:
+            self._rows = None
 
     def _read(self) -> list:
         with self._reading:
@@ -138,10 +150,13 @@ class RunLayout:
 
 def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, settings: SeriesSettings,
              first_bounce, memory_limit: int | None,
-             in_memory: bool | None = False) -> tuple[RunLayout, SeriesRecord]:
+             in_memory: bool | None = False,
+             T_rows: TileRows | None = None) -> tuple[RunLayout, SeriesRecord]:
     """The run's layout and the store's record, the store opened (created, or resumed
     when it holds the same fingerprint; its writer lock taken); ``in_memory`` as
-    :func:`.engine_path.choose_path`'s.
+    :func:`.engine_path.choose_path`'s; ``T_rows``, T's tile rows a caller holds
+    (read or to be read), F's diagonal and, in memory, M are taken from instead of
+    reading T again.
 
     Raises what :func:`.first_bounce.resolve_first_bounce`,
     :meth:`InverseStore.open_or_create` and the runner's path check raise (before
@@ -154,8 +169,12 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     plans = runner.plans(policy)
     path = choose_path(in_memory, runner, T, channels, next(iter(plans.values())))
     # in memory, T is read whole for M: F's diagonal is taken from the same rows
-    T_rows = TileRows(T, runner.threads) if path.in_memory else None
+    # (a caller's, when it holds them: then out of core too, as they are read anyway)
+    if T_rows is None and path.in_memory:
+        T_rows = TileRows(T, runner.threads)
     fb = first_bounce_of_rows(T, first_bounce, T_rows)
+    if not path.in_memory:
+        T_rows = None  # the out-of-core tasks read T themselves
     created = not store.path.exists() or settings.overwrite
     params = inverse_fingerprint(T, fb, settings.thresholds, series.name)
     record = SeriesRecord.from_stored(

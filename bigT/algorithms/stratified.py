@@ -51,7 +51,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
                        progress=True, force=False, *, workers=2, seed=0,
                        scheduler=None, overwrite=False, prune_feed=None,
                        prune_operator=None, on_term=None, colour_path="auto",
-                       mixing=None, in_memory=None) -> InverseReport:
+                       mixing=None, in_memory=None, T_rows=None) -> InverseReport:
     """Compute the stratified inverse T_n^-1 = F^-1 sum_{k=0..n} (I - T F^-1)^k
     (paper eq. 13) out of core, term by term, into the store ``out``.
 
@@ -116,7 +116,12 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         says before each term whether it reads that term from ``out``; for a term it
         does not read, a run in memory calls it with the term's record unpublished
         (the store holding an earlier term), as a run without ``on_term`` goes past
-        a term.
+        a term. An attribute ``needs_residual`` that is false says that it measures
+        the terms' errors itself: without ``tol``, no term's residual is estimated
+        (their records hold none) and none is refused for growing. One with a true
+        ``takes_X`` is called ``on_term(record, X=...)``: in memory the term's X as
+        this process holds it (csr_array, stored order; else None), to multiply
+        with instead of reading ``out``.
     colour_path : {"auto", "general", "global"}
         For a colour T (channels 3; a grey T ignores it): ``"global"`` inverts three
         grey transports between two 3x3 un-mixings when the rig's colour mixing is one
@@ -141,6 +146,10 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
         ``on_term`` is given or 5 s passed since the last one published
         (:mod:`bigT.algorithms.engine`), its record kept all the same. The report's
         ``engine_path`` and each term's record say which path ran.
+    T_rows : :class:`~bigT.algorithms.run_setup.TileRows` of ``T``, optional
+        T's tile rows the caller holds: F's diagonal and, in memory, M are taken from
+        them instead of reading T again (:func:`bigT.algorithms.target.invert_to_target`
+        reads T once for its own products and every attempt). A grey T only.
 
     Returns
     -------
@@ -193,7 +202,7 @@ def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
     store = InverseStore(out)
     try:
         engine = InverseEngine(T, store, series, runner, settings, first_bounce, memory_limit,
-                               in_memory)
+                               in_memory, T_rows)
         report = engine.run(t_start)
     finally:
         _let_go(runner, T, out)

@@ -28,12 +28,15 @@ Decomposing the error
 ---------------------
 Without pruning, I - T T_k^-1 = M^(k+1) (M = I - T F^-1), so the truncation part of
 the error of T_k^-1 on the probes, ||M^(k+1) d|| / ||d||, is computed before any term
-by k+1 streamed products with T (matrix-free, a pass over T each, far cheaper than a
-sparse product): it gives the number of terms the series needs
-(:func:`predicted_curve`: the last point, which the curve's last ratio puts under the
-goal, is counted before it is computed, and computed only if a term measured needs
-it). With no memory limit T's tiles stay in the tile cache through the engine's run,
-so that a measurement does not read T again. After each term the measured residual
+by k+1 products with T (matrix-free, a pass over T each, far cheaper than a sparse
+product): it gives the number of terms the series needs (:func:`predicted_curve`:
+the last point, which the curve's last ratio puts under the goal, is counted before
+it is computed, and computed only if a term measured needs it). With no memory limit
+(and T within the tile cache's budget) T's tile rows are read once and held through
+the search (:func:`held_rows`): F, the curve, the measurements and every attempt's M
+in the engine are taken from them; else T is streamed from its store. The engine
+estimates no residual of its own (``on_term.needs_residual``): the probes' errors
+decide, and the terms' records hold none. After each term the measured residual
 r_k = (I - T X_k) d minus M^(k+1) d is exactly what pruning added (M P_n - sum_k D_k
 for the power form: docs/DESIGN.md, "Methods, pruning and carrying"), so a prune too large for the target
 is seen at the first term measured (by term 4 in a long series) and the run restarts
@@ -82,19 +85,23 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from .. import config
 from ..errors import BigTError
+from ..kernels import spmm_dense
 from ..schedule.runner import ThreadRunner
-from ..schedule.stream import forget_tiles, stream_matmul
+from ..schedule.stream import compute_dtype, forget_tiles, stream_matmul
 from ..storage import as_store
 from ..storage import open as open_store
 from ..storage.frames import pixel_order_of, to_vectors
 from .fingerprint import recorded_setting
-from .first_bounce import resolve_first_bounce
+from .first_bounce import first_bounce_of_rows, resolve_first_bounce
+from .run_setup import TileRows
 from .settings import Thresholds
 from .stratified import stratified_inverse
 
@@ -283,23 +290,51 @@ def probe_vectors(T, active: np.ndarray, seed: int = 0) -> np.ndarray:
 # --- streamed products -----------------------------------------------------------------
 
 class _Products:
-    """Streamed products with T and X, sharing one thread runner and T's tile cache
-    (the truncation curve passes over T once per term)."""
+    """Products with T and X, sharing one thread runner: streamed from the stores
+    (T's tiles in the tile cache: the truncation curve passes over T once per term),
+    or, with T's tile rows held (``rows``, :func:`held_rows`), T's from them."""
 
-    def __init__(self, T, fb, workers: int, keep_tiles: bool = False):
-        self.T, self.fb = T, fb
-        self.runner = ThreadRunner(max(1, int(workers)))
+    def __init__(self, T, fb, workers: int, keep_tiles: bool = False,
+                 rows: TileRows | None = None):
+        self.T, self.fb, self.rows = T, fb, rows
+        self.threads = max(1, int(workers))
+        self.runner = ThreadRunner(self.threads)
         self.keep_tiles = keep_tiles
 
     def times(self, A, V: np.ndarray, cache: bool = False) -> np.ndarray:
+        """A V, shape (n, k) float64: A a store, streamed; or a matrix held in memory
+        (the engine's X, ``on_term``'s ``X=``), in the streamed product's precision
+        (float32 for float32 entries), the same numbers."""
+        if sp.issparse(A):
+            dtype = np.result_type(A.dtype, np.float32)
+            return spmm_dense(A, np.ascontiguousarray(V, dtype=dtype),
+                              n_threads=self.threads).astype(np.float64, copy=False)
         budget = config.COMPENSATE_CACHE_BYTES if cache else 0
         return np.asarray(stream_matmul(A, V, runner=self.runner, cache_bytes=budget),
                           dtype=np.float64)
 
     def times_T(self, V: np.ndarray, cache: bool = True) -> np.ndarray:
-        """T V, shape (n, k); T's tiles kept in the tile cache when ``cache`` or
-        ``keep_tiles``."""
+        """T V, shape (n, k): from the rows held, else streamed, T's tiles kept in the
+        tile cache when ``cache`` or ``keep_tiles``."""
+        if self.rows is not None:
+            return self._rows_times(V)
         return self.times(self.T, V, cache=cache or self.keep_tiles)
+
+    def _rows_times(self, V: np.ndarray) -> np.ndarray:
+        """T V from the tile rows held, shape (n, k) float64, a tile row per task; in
+        the streamed product's precision (``compute_dtype(T)``: float32 for a float32
+        T), so that the two give the same numbers and the search the same choices."""
+        dtype = compute_dtype(self.T)
+        V = np.ascontiguousarray(V, dtype=dtype)
+        out = np.zeros((self.T.shape[0], V.shape[1]), dtype)
+
+        def row(i: int) -> None:
+            start, stop = self.T.tile_row_range(i)
+            spmm_dense(self.rows[i], V, out=out[start:stop], n_threads=1)
+
+        with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-target") as pool:
+            list(pool.map(row, range(len(self.rows))))
+        return out.astype(np.float64, copy=False)
 
     def M(self, V: np.ndarray, cache: bool = True) -> np.ndarray:
         """M V = V - T F^-1 V on the kept pixels, shape (n, k); T's tiles kept in the
@@ -310,14 +345,26 @@ class _Products:
 
     def close(self) -> None:
         forget_tiles(self.runner, self.T)
+        if self.rows is not None:
+            self.rows.release()
 
 
 def keeps_tiles(T, memory_limit) -> bool:
-    """Whether T's tiles stay in the tile cache during the engine's run too: with no
-    memory limit (whose plan is the engine's) and T's CSR arrays within the cache's
-    budget. Else each measurement's products with T re-read T from the store: on the
-    dense 384x512 corner (700 MiB of CSR), ~2 s more per term measured."""
+    """Whether T stays in memory during the engine's run too: with no memory limit
+    (whose plan is the engine's) and T's CSR arrays within the tile cache's budget.
+    Else each measurement's products with T re-read T from the store: on the dense
+    384x512 corner (700 MiB of CSR), ~2 s more per term measured."""
     return memory_limit is None and T.csr_bytes() <= config.COMPENSATE_CACHE_BYTES
+
+
+def held_rows(T, memory_limit, workers: int) -> TileRows | None:
+    """T's tile rows, read once and held through the search (None where
+    :func:`keeps_tiles` says T is not kept): F's diagonal, the truncation curve's and
+    the measurements' products with T, and every attempt's M in the engine
+    (``stratified_inverse(T_rows=...)``) are taken from them. Streamed instead, T was
+    read three times on the dense 384x512 corner: its diagonal tiles for F (0.8 s),
+    all of it into the tile cache (1.2 s), and again by the engine for M (1.0 s)."""
+    return TileRows(T, workers, keep=True) if keeps_tiles(T, memory_limit) else None
 
 
 def _rel(R: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -502,9 +549,10 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
     """
     measured: list[TermErrors] = []
 
-    def measure(held: int, during_run: bool = True) -> None:
-        # during the engine's run, the curve's extensions leave the tile cache alone
-        measured.append(measure_term(products, open_store(out), D,
+    def measure(held: int, during_run: bool = True, X=None) -> None:
+        # during the engine's run, the curve's extensions leave the tile cache alone;
+        # X: the term's X the engine holds in memory (else read from the store)
+        measured.append(measure_term(products, open_store(out) if X is None else X, D,
                                      _power(products, powers, held, cache=not during_run),
                                      held, time.perf_counter() - t0))
 
@@ -515,14 +563,19 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
             worth[k] = _worth_measuring(method, k, products, powers, D, target)
         return worth[k]
 
-    def on_term(record) -> str | None:
+    def on_term(record, X=None) -> str | None:
         if not reads_term(record.term):
             return None
-        measure(record.term)
+        measure(record.term, X=X)
         return _verdict(measured[-1], target)[0] or None
 
     # the engine writes only the terms measured (in memory; out of core, every term)
     on_term.reads_term = reads_term
+    # the probes' errors decide: the engine's own residual estimate (an M product per
+    # term) is not made
+    on_term.needs_residual = False
+    # in memory, the engine hands over the X it holds: not read back from the store
+    on_term.takes_X = True
 
     # term 0 (F^-1, nothing pruned) is never handed over (its error ||M d|| / ||d|| is
     # known); it is measured only as the held term of a cap of 0
@@ -530,7 +583,8 @@ def _run_attempt(T, out, method, thresholds: Thresholds, cap, target, ctx, produ
         T, out, terms=cap, prune=thresholds.prune, prune_feed=thresholds.feed,
         prune_operator=thresholds.operator, method=method, first_bounce=ctx.first_bounce,
         memory_limit=ctx.memory_limit, scheduler=ctx.scheduler, workers=ctx.workers,
-        progress=ctx.progress, seed=ctx.seed, overwrite=overwrite, on_term=on_term)
+        progress=ctx.progress, seed=ctx.seed, overwrite=overwrite, on_term=on_term,
+        T_rows=products.rows)
     held = min(report.terms, report.history[-1].term)  # an exhausted series: its last
     if not measured or measured[-1].term != held:  # cap 0, exhausted, or not worth it
         measure(held, during_run=False)
@@ -612,9 +666,12 @@ def invert_to_target(T, out, target: float, *, method: str | None = None,
     t0 = time.perf_counter()
     T = as_store(T, "T")
     check_target(target, T.dtype)
-    fb = resolve_first_bounce(T, first_bounce)
+    rows = held_rows(T, memory_limit, workers)
+    fb = (resolve_first_bounce(T, first_bounce) if rows is None
+          else first_bounce_of_rows(T, first_bounce, rows))
     ctx = _Setting(first_bounce, memory_limit, scheduler, workers, progress, seed)
-    products = _Products(T, fb, workers, keep_tiles=keeps_tiles(T, memory_limit))
+    products = _Products(T, fb, workers, keep_tiles=keeps_tiles(T, memory_limit),
+                         rows=rows)
     try:
         D = probe_vectors(T, fb.active, seed)
         limit = MAX_TERMS if max_terms is None else int(max_terms)
