@@ -32,7 +32,7 @@ by k+1 products with T (matrix-free, a pass over T each, far cheaper than a spar
 product): it gives the number of terms the series needs (:func:`predicted_curve`:
 the last point, which the curve's last ratio puts under the goal, is counted before
 it is computed, and computed only if a term measured needs it). With no memory limit
-(and T within the tile cache's budget) T's tile rows are read once and held through
+(and T within the tile cache's budget, a store of format 2) T's tile rows are read once and held through
 the search (:func:`held_rows`): F, the curve, the measurements and every attempt's M
 in the engine are taken from them; else T is streamed from its store. The engine
 estimates no residual of its own (``on_term.needs_residual``): the probes' errors
@@ -363,8 +363,15 @@ def held_rows(T, memory_limit, workers: int) -> TileRows | None:
     the measurements' products with T, and every attempt's M in the engine
     (``stratified_inverse(T_rows=...)``) are taken from them. Streamed instead, T was
     read three times on the dense 384x512 corner: its diagonal tiles for F (0.8 s),
-    all of it into the tile cache (1.2 s), and again by the engine for M (1.0 s)."""
-    return TileRows(T, workers, keep=True) if keeps_tiles(T, memory_limit) else None
+    all of it into the tile cache (1.2 s), and again by the engine for M (1.0 s).
+
+    None too for a store of format 1 (a group per tile, docs/FORMAT.md): its streamed
+    product sums each row tile by tile, a held row's sums it whole, and in float32 the
+    two round apart (~1e-5 measured): the measured errors, and so the search's choices,
+    would no longer be the streamed search's."""
+    if not keeps_tiles(T, memory_limit) or not getattr(T, "row_layout", True):
+        return None
+    return TileRows(T, workers, keep=True)
 
 
 def _rel(R: np.ndarray, D: np.ndarray) -> np.ndarray:

@@ -166,3 +166,36 @@ def test_an_on_term_without_needs_residual_still_gets_estimates(scene, tmp_path)
     assert all(h.residual is None for h in without.history)
     assert all(h.residual is not None for h in with_tol.history)
     assert _x_data(tmp_path / "a.zarr") == _x_data(tmp_path / "b.zarr")
+
+
+def _format1_builder():
+    """tests/storage/test_row_layout.py's writer of a format-1 store (zarr alone)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "storage" / "test_row_layout.py"
+    spec = importlib.util.spec_from_file_location("_row_layout_builders", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module._format1_store
+
+
+def test_a_format1_T_is_streamed_as_before(scene, tmp_path):
+    """A format-1 T (a group per tile) is multiplied tile by tile when streamed, and
+    in float32 those sums round apart from a held row's summed whole: its rows are not
+    held, so the search's products stay the streamed ones, bit for bit."""
+    A = scene.T.to_scipy()
+    assert A.dtype == np.float32
+    T1 = bigT.open(_format1_builder()(tmp_path / "v1.zarr", A, scene.T.tile_size,
+                                      dtype="float32"))
+    assert not T1.row_layout and target.keeps_tiles(T1, None)
+    assert target.held_rows(T1, None, 2) is None
+    # what holding them would change: the product of the whole rows is not the stream's
+    V = np.random.default_rng(3).random((T1.shape[0], 3))
+    rows = target._Products(T1, None, 2, rows=TileRows(T1, 2, keep=True))
+    plain = target._Products(T1, None, 2)
+    try:
+        assert not np.array_equal(rows.times_T(V), plain.times_T(V))
+    finally:
+        rows.close(), plain.close()
+    assert target.held_rows(scene.T, None, 2) is not None  # format 2: held
