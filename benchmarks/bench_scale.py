@@ -281,6 +281,7 @@ def plot(rows, path: str, own: Sequence[dict] = ()) -> str:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401 (matplotlib.ticker below)
 
     n = [r["n"] for r in rows]
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10.5, 4.4))
@@ -303,10 +304,14 @@ def plot(rows, path: str, own: Sequence[dict] = ()) -> str:
     ax_t.set_title("time" + (" (hollow: own runs)" if own else ""), fontsize=10)
     ax_m.set_ylabel("peak resident memory (GiB)")
     ax_m.set_title("memory" + (" (hollow: own runs)" if own else ""), fontsize=10)
+    # 0.25 ... 8 GiB written plainly, not 6 x 10^0
+    ax_m.yaxis.set_major_locator(matplotlib.ticker.LogLocator(base=2))
+    ax_m.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    ax_m.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     for ax in (ax_t, ax_m):
         ax.set_xlabel("n (projector pixels)")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="lower right")  # the own runs' labels sit top right
     fig.suptitle("bigT: cost against n at ~constant nonzeros per row (2 cores)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
