@@ -46,6 +46,7 @@ DIR --bases local:2,threads`` checks the model on them anywhere. The 16-core run
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -364,7 +365,8 @@ def measure_configs(args, scene: str, work: str, configs) -> dict:
     report)}``; a configuration that fails or outlasts ``--run-timeout`` is left out (the
     model is checked on those that ran). Each report stays beside its X as
     ``X-<label>.zarr.json`` and ``runs.json`` lists them (``--from-reports`` reads it); a
-    later call in the same ``--workdir`` adds to it, skipping the runs it holds."""
+    later ``--measure-only`` call in the same ``--workdir`` adds to it, skipping the runs
+    it holds (a call that reports starts anew: :func:`cluster_model`)."""
     best: dict = {}
     runs = []
     saved = os.path.join(work, "runs.json")
@@ -426,6 +428,10 @@ def cluster_model(args) -> None:
             with open(os.path.join(work, "build.json"), "w") as fh:
                 json.dump(built, fh, default=str)
         warm_up()
+        if not args.measure_only:  # a run that reports measures anew: an earlier call's
+            # runs (another commit, another load) are kept only to resume --measure-only
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(os.path.join(work, "runs.json"))
         best = measure_configs(args, scene, work, configs)
         bandwidth, per_file = store_bandwidth(scene)
         with open(os.path.join(work, "storage.json"), "w") as fh:
@@ -593,7 +599,9 @@ def main(argv=None):
                    help="--cluster-model: the runs the model is built from, each predicting "
                         "the others (the first local:N also gives the N = 1..128 table)")
     p.add_argument("--measure-only", action="store_true",
-                   help="--cluster-model: make the runs, keep their reports, skip the model")
+                   help="--cluster-model: make the runs, keep their reports, skip the model; "
+                        "a later --measure-only call adds the runs this one left undone "
+                        "(without it, every run is made anew)")
     p.add_argument("--from-reports", default=None,
                    help="--cluster-model: the model checked on the runs.json and storage.json "
                         "a --measure-only run left in this folder (another machine's)")
