@@ -828,13 +828,13 @@ def payback_sentences(rows: list[Row], res: Results) -> list[str]:
         if k1 is None and k64 is None:
             continue
         lines.append(f"At {size}, bigT's explicit X, its inverse included, is the fastest way "
-                     f"to compensate {_count(k1)} frames or more at batch 1 and "
-                     f"{_count(k64)} or more at batch 64.")
+                     f"to compensate {_from(k1, 'batch 1')} and {_from(k64, 'batch 64')}.")
     return lines
 
 
-def _count(k) -> str:
-    return "(never)" if k is None else f"{k:.0f}"
+def _from(k, batch: str) -> str:
+    """"1,713 frames or more at batch 64", or "at batch 1 never" (no frame count)."""
+    return f"at {batch} never" if k is None else f"{k:,.0f} frames or more at {batch}"
 
 
 def plot(rows: list[Row], path: Path) -> Path:

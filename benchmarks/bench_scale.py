@@ -46,6 +46,7 @@ DIR --bases local:2,threads`` checks the model on them anywhere. The 16-core run
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -54,6 +55,7 @@ import shutil
 import subprocess
 import sys
 import time
+from typing import Sequence
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -209,49 +211,108 @@ def settings(args) -> str:
     return ", ".join(words)
 
 
-def record_rows(res, rows, args) -> None:
-    """The printed table, handed to RESULTS.md (``_results.Results``)."""
+#: The scale table's columns and the row keys they show (a record's rows are read back
+#: by them: :func:`own_run_rows`).
+TABLE_COLUMNS = [("size", "size"), ("n", "n"), ("T nnz/row", "nnz_T_per_row"),
+                 ("build s", "build_s"), ("build peak GiB", "build_peak_gib"),
+                 ("inverse s", "invert_s"), ("terms s", "term_s"), ("peak GiB", "peak_gib"),
+                 ("X on disk GiB", "X_disk_gib"), ("error", "sampled_error"),
+                 ("residual", "residual"), ("compensate s", "compensate_s"),
+                 ("compensated error", "compensated_error")]
+
+
+def own_run_rows(path: str, measured_here: set[str]) -> tuple[list[dict], str]:
+    """The rows of an earlier ``bench_scale.py`` run's record (its own run at a size the
+    full plan leaves out: full HD, 4K), less the sizes this run measured, each marked
+    with the run's commit and date; and a line saying what was used (or why not).
+
+    Parameters
+    ----------
+    path : a ``scale.json`` record (``_results.Results``) of that run
+    measured_here : sizes ("HxW") this run measured: theirs are not taken
+
+    Returns
+    -------
+    (rows, line) : row dicts with :data:`TABLE_COLUMNS`' keys and ``measured``
+    """
+    if not os.path.exists(path):
+        return [], f"{path}: not found (no own run)"
+    with open(path) as fh:
+        record = json.load(fh)
+    code = record.get("code") or {}
+    when = time.strftime("%Y-%m-%d", time.localtime(record.get("started", 0)))
+    source = (f"own run, {code.get('commit', '?')}"
+              f"{'' if code.get('clean', False) else '+changes'}, {when}")
+    rows = []
+    for table in record.get("tables", []):
+        if table.get("key") != "scale":
+            continue
+        keys = dict(TABLE_COLUMNS)
+        for values in table["rows"]:
+            row = {keys[c]: v for c, v in zip(table["columns"], values) if c in keys}
+            if row.get("size") in measured_here:
+                continue
+            row["term_s"] = [float(t) for t in str(row.get("term_s", "")).split()]
+            rows.append({**row, "measured": source})
+    return rows, f"{path}: {len(rows)} row(s) ({source}: `{record.get('command', '?')}`)"
+
+
+def record_rows(res, rows, args, own_lines: Sequence[str] = ()) -> None:
+    """The printed table, handed to RESULTS.md (``_results.Results``); rows from own
+    runs (``measured`` set) say so in the last column."""
     res.table("scale", f"{args.terms}-term inverse ({settings(args)}, memory limit "
               f"{args.memory_limit}) against n, the corner at ~constant nonzeros per row",
-              ["size", "n", "T nnz/row", "build s", "build peak GiB", "inverse s",
-               "terms s", "peak GiB", "X on disk GiB", "error", "residual",
-               "compensate s", "compensated error"],
-              [[r["size"], r["n"], r["nnz_T_per_row"], r["build_s"], r["build_peak_gib"],
-                r["invert_s"], " ".join(f"{t:.1f}" for t in r["term_s"]), r["peak_gib"],
-                r["X_disk_gib"], r["sampled_error"], r["residual"], r["compensate_s"],
-                r["compensated_error"]] for r in rows],
+              [c for c, _ in TABLE_COLUMNS] + ["measured"],
+              [[" ".join(f"{t:.1f}" for t in r["term_s"]) if key == "term_s" else r[key]
+                for _, key in TABLE_COLUMNS] + [r.get("measured", "this run")]
+               for r in rows],
               note=f"error: against the exact inverse F^-1 (I - A) on {args.sample} "
                    "sampled rows; peak GiB: the inverse's process; compensate: "
-                   "`bigT compensate --simulate` of one image, streamed (time and error).")
+                   "`bigT compensate --simulate` of one image, streamed (time and error). "
+                   "Rows of an own run (full HD and 4K take tens of minutes each, out of "
+                   "the full plan) were measured by that run, with its commit's code: "
+                   + ("; ".join(own_lines) if own_lines else "none given") + ".")
 
 
-def plot(rows, path: str) -> str:
-    """Time (s) and peak memory (GiB) against n, each on its own labelled log axis."""
+def plot(rows, path: str, own: Sequence[dict] = ()) -> str:
+    """Time (s) and peak memory (GiB) against n, each on its own labelled log axis: this
+    run's rows joined (slopes fitted on them), an own run's rows (``own``) as hollow
+    markers of the same colour, labelled with their run."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401 (matplotlib.ticker below)
 
     n = [r["n"] for r in rows]
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10.5, 4.4))
-    for key, label, marker in (("invert_s", "4-term inverse", "o"),
-                               ("build_s", "scene build", "s")):
+    series = ((ax_t, "invert_s", "4-term inverse", "o"), (ax_t, "build_s", "scene build", "s"),
+              (ax_m, "peak_gib", "inverse: peak RSS", "^"),
+              (ax_m, "build_peak_gib", "scene build: peak RSS", "v"))
+    for ax, key, label, marker in series:
         ys = [r[key] for r in rows]
-        ax_t.loglog(n, ys, marker=marker, label=f"{label}, slope {fit_exponent(n, ys):.2f}")
-    ref = [rows[0]["invert_s"] * x / n[0] for x in n]
-    ax_t.loglog(n, ref, "k:", lw=1, label="slope 1 (linear in n)")
+        line, = ax.loglog(n, ys, marker=marker,
+                          label=f"{label}, slope {fit_exponent(n, ys):.2f}")
+        for r in own:
+            ax.loglog([r["n"]], [r[key]], marker=marker, ls="none", mfc="none",
+                      color=line.get_color(), ms=9)
+    for r in own:  # one label per own run's size, beside its inverse time
+        ax_t.annotate(f"{r['size']}: {r['measured']}", (r["n"], r["invert_s"]), fontsize=7,
+                      xytext=(-6, 8), textcoords="offset points", ha="right")
+    ref = [rows[0]["invert_s"] * x / n[0] for x in n + [r["n"] for r in own]]
+    ax_t.loglog(n + [r["n"] for r in own], ref, "k:", lw=1, label="slope 1 (linear in n)")
     ax_t.set_ylabel("wall time (s)")
-    ax_t.set_title("time", fontsize=10)
-    for key, label, marker in (("peak_gib", "inverse: peak RSS", "^"),
-                               ("build_peak_gib", "scene build: peak RSS", "v")):
-        ys = [r[key] for r in rows]
-        ax_m.loglog(n, ys, marker=marker, label=f"{label}, slope {fit_exponent(n, ys):.2f}")
+    ax_t.set_title("time" + (" (hollow: own runs)" if own else ""), fontsize=10)
     ax_m.set_ylabel("peak resident memory (GiB)")
-    ax_m.set_title("memory", fontsize=10)
+    ax_m.set_title("memory" + (" (hollow: own runs)" if own else ""), fontsize=10)
+    # 0.25 ... 8 GiB written plainly, not 6 x 10^0
+    ax_m.yaxis.set_major_locator(matplotlib.ticker.LogLocator(base=2))
+    ax_m.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    ax_m.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     for ax in (ax_t, ax_m):
         ax.set_xlabel("n (projector pixels)")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="lower right")  # the own runs' labels sit top right
     fig.suptitle("bigT: cost against n at ~constant nonzeros per row (2 cores)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -304,7 +365,8 @@ def measure_configs(args, scene: str, work: str, configs) -> dict:
     report)}``; a configuration that fails or outlasts ``--run-timeout`` is left out (the
     model is checked on those that ran). Each report stays beside its X as
     ``X-<label>.zarr.json`` and ``runs.json`` lists them (``--from-reports`` reads it); a
-    later call in the same ``--workdir`` adds to it, skipping the runs it holds."""
+    later ``--measure-only`` call in the same ``--workdir`` adds to it, skipping the runs
+    it holds (a call that reports starts anew: :func:`cluster_model`)."""
     best: dict = {}
     runs = []
     saved = os.path.join(work, "runs.json")
@@ -366,6 +428,10 @@ def cluster_model(args) -> None:
             with open(os.path.join(work, "build.json"), "w") as fh:
                 json.dump(built, fh, default=str)
         warm_up()
+        if not args.measure_only:  # a run that reports measures anew: an earlier call's
+            # runs (another commit, another load) are kept only to resume --measure-only
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(os.path.join(work, "runs.json"))
         best = measure_configs(args, scene, work, configs)
         bandwidth, per_file = store_bandwidth(scene)
         with open(os.path.join(work, "storage.json"), "w") as fh:
@@ -513,6 +579,11 @@ def main(argv=None):
     p.add_argument("--no-compensate", action="store_true")
     p.add_argument("--workdir", default="bench-out/scale")
     p.add_argument("--json", default=None)
+    p.add_argument("--own-runs", default="",
+                   help="comma-separated scale.json records of earlier runs of this script "
+                        "at sizes the run leaves out (full HD, 4K: each its own run, "
+                        "--min-size N --max-size N); their rows join the table and the "
+                        "plot, marked with their commit and date (a missing file is noted)")
     p.add_argument("--cluster-model", action="store_true",
                    help="check the cluster model on threads, local:1 and local:2 and plot "
                         "its predictions (see the module's docstring)")
@@ -528,7 +599,9 @@ def main(argv=None):
                    help="--cluster-model: the runs the model is built from, each predicting "
                         "the others (the first local:N also gives the N = 1..128 table)")
     p.add_argument("--measure-only", action="store_true",
-                   help="--cluster-model: make the runs, keep their reports, skip the model")
+                   help="--cluster-model: make the runs, keep their reports, skip the model; "
+                        "a later --measure-only call adds the runs this one left undone "
+                        "(without it, every run is made anew)")
     p.add_argument("--from-reports", default=None,
                    help="--cluster-model: the model checked on the runs.json and storage.json "
                         "a --measure-only run left in this folder (another machine's)")
@@ -590,7 +663,13 @@ def main(argv=None):
               f"{comp}")
     res = Results(run_name("scale"), "Cost of a 4-term inverse against n",
                   "python benchmarks/bench_scale.py " + " ".join(sys.argv[1:]))
-    record_rows(res, rows, args)
+    own, own_lines = [], []
+    for path in [p for p in args.own_runs.split(",") if p]:
+        taken, line = own_run_rows(path, {r["size"] for r in rows} | {r["size"] for r in own})
+        own += taken
+        own_lines.append(line)
+        print("own run:", line, flush=True)
+    record_rows(res, sorted(rows + own, key=lambda r: r["n"]), args, own_lines)
     if len(rows) > 1:
         exps = exponents(rows)
         print(f"fitted exponent of the inverse's time in n: {exps['time'][0]:.2f}; in nnz(T): "
@@ -598,9 +677,11 @@ def main(argv=None):
               f"of the build's time: {exps['build'][0]:.2f}")
         for key, (value, what) in exps.items():
             res.value(f"exponent:{key}", value, what)
-        print("plot:", plot(rows, str(res.figure_path(f"{res.name}.png"))))
+        print("plot:", plot(rows, str(res.figure_path(f"{res.name}.png")), own))
         res.figure(f"{res.name}.png", "time and peak memory of the 4-term inverse and the "
-                   "scene build against n (log-log, fitted slopes in the legend)")
+                   "scene build against n (log-log, slopes fitted on this run's sizes in "
+                   "the legend; hollow markers: own runs at larger sizes, with their "
+                   "commit and date)")
     res.save()
     if args.json:
         with open(args.json, "w") as f:

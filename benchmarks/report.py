@@ -496,21 +496,31 @@ def _quoted_values(rec: Record, prefix: str) -> list[str]:
 
 
 def summary_scale(rec: Record | None) -> list[str]:
-    """The largest size's time, memory and error, and the fitted exponents."""
+    """The largest size this run measured: its time, memory and error, and the fitted
+    exponents; then each row of an own run (full HD, 4K) with where it comes from."""
     table = rec.table("scale") if rec else None
     if table is None or not table.rows:
         return [f"Scaling of the 4-term inverse with n: {NOT_MEASURED}."]
     rows = _rows(table)
-    last = rows[-1]
+    here = [r for r in rows if r.get("measured", "this run") == "this run"] or rows
+    own = [r for r in rows if r not in here]
+    last = here[-1]
     text = (f"At {last.get('size')} (n = {fmt(last.get('n'))}, "
             f"{fmt(last.get('T nnz/row'))} nonzeros a row) the 4-term inverse took "
             f"{fmt(last.get('inverse s'))} s at {fmt(last.get('peak GiB'))} GiB peak, "
             f"error {fmt(last.get('error'))} against the exact inverse")
     e_t, e_m = rec.value("exponent:time"), rec.value("exponent:peak")
     if e_t is not None:
-        text += (f"; from {rows[0].get('size')} to {last.get('size')} its time grows as "
+        text += (f"; from {here[0].get('size')} to {last.get('size')} its time grows as "
                  f"n^{fmt(e_t)} and its peak memory as n^{fmt(e_m)}")
-    return [text + "."]
+    out = [text + "."]
+    for r in own:
+        out.append(f"At {r.get('size')} (n = {fmt(r.get('n'))}; {r.get('measured')}, not "
+                   f"this run) the 4-term inverse took {fmt(r.get('inverse s'))} s at "
+                   f"{fmt(r.get('peak GiB'))} GiB peak, error {fmt(r.get('error'))}; "
+                   f"its scene build {fmt(r.get('build s'))} s at "
+                   f"{fmt(r.get('build peak GiB'))} GiB.")
+    return out
 
 
 def summary_kernels(rec: Record | None) -> list[str]:

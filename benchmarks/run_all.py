@@ -82,6 +82,8 @@ KERNEL_LOG = ("results/kernels.txt of that run: its 192x256 methods sum to 53 s 
 #: builder and arguments, so each scene (the dense 384x512 corner above all, minutes
 #: to build) is built once for the three.
 GREY_SCENES = "bench-out/tradeoff"
+#: The records of bench_scale's own runs at full HD and 4K (the scale step's comment).
+OWN_SCALE_RUNS = "bench-out/scale-fhd.json,bench-out/scale-4k.json"
 
 #: The full plan (``make bench``, within about an hour on 2 cores: issue #34), in the
 #: order of issue #16: the paper's figures, time against error, the alternatives,
@@ -107,9 +109,13 @@ FULL = [
     step("alternatives", 9.0, RECORDED + " (447 s) and the colour part timed alone "
          "(96x128: 48 s, 2026-11-26; 48x64 about half)", "bench_alternatives.py",
          "--workdir", "bench-out/alternatives"),
-    # the full-HD point (--max-size 2073600, ~40 min) and 4K are run on their own
+    # the full-HD point (~40 min) and 4K (~1 h) are run on their own, each into its own
+    # record, which this step's table and plot take in, marked as such:
+    #   BIGT_BENCH_OUT=bench-out BIGT_BENCH_NAME=scale-4k python benchmarks/bench_scale.py
+    #       --min-size 8294400 --max-size 8294400 --ff-cut 7e-5 --workdir bench-out/scale
+    #   (scale-fhd: --min-size 2073600 --max-size 2073600)
     step("scale", 3.8, RECORDED, "bench_scale.py", "--min-size", "12288", "--max-size",
-         "786432", "--workdir", "bench-out/scale"),
+         "786432", "--workdir", "bench-out/scale", "--own-runs", OWN_SCALE_RUNS),
     step("kernels", 2.3, KERNEL_LOG, "bench_kernels.py", "--sizes", "192x256", "--repeat",
          "2"),
     step("distributed", 1.7, RECORDED, "bench_distributed.py", "--size", "192x256",
