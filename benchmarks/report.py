@@ -659,21 +659,24 @@ def _grouped(rows: list[dict], column: str) -> dict[Any, list[dict]]:
 
 
 def summary_objects(rec: Record | None) -> list[str]:
-    """Object storage against the local directory, per scheduler."""
+    """Object storage against the local directory, per scheduler and engine path (in
+    memory, out of core): each S3 run beside the local run of the same two."""
     table = rec.table("runs") if rec else None
     if table is None:
         return [f"Object storage (S3 on loopback) against a local directory: {NOT_MEASURED}."]
     rows = _rows(table)
-    parts = [f"{fmt(r.get('seconds'))} s with {r.get('scheduler')} ({fmt(r.get('/ local'))}× "
-             f"the local directory's {fmt(_local_seconds(rows, r))} s)"
-             for r in rows if r.get("storage") != "local directory"]
+    parts = [f"{fmt(r.get('seconds'))} s with {r.get('scheduler')}, {r.get('engine path')} "
+             f"({fmt(r.get('/ local'))}× the local directory's {fmt(_local_seconds(rows, r))} "
+             "s)" for r in rows if r.get("storage") != "local directory"]
     return [f"{table.title.split(':')[0]}: S3 on loopback took " + ", ".join(parts) + "."] \
         if parts else []
 
 
 def _local_seconds(rows: list[dict], row: dict) -> Any:
+    """The local directory's seconds with ``row``'s scheduler and engine path."""
     return next((r.get("seconds") for r in rows if r.get("storage") == "local directory"
-                 and r.get("scheduler") == row.get("scheduler")), None)
+                 and r.get("scheduler") == row.get("scheduler")
+                 and r.get("engine path") == row.get("engine path")), None)
 
 
 def summary_cluster_model(rec: Record | None) -> list[str]:

@@ -433,7 +433,9 @@ def test_clusters_in_the_summary(tmp_path, monkeypatch):
     objects = _results.Results("objects", "Object storage: a 4-term inverse, local vs S3")
     objects.table("runs", "Object storage: best of the repeats",
                   ["storage", "scheduler", "engine path", "seconds", "/ local"],
-                  [["local directory", "threads", "in-memory", 2.0, 1.0],
+                  [["local directory", "threads", "out-of-core", 9.0, 1.0],
+                   ["S3 on loopback", "threads", "out-of-core", 18.0, 2.0],
+                   ["local directory", "threads", "in-memory", 2.0, 1.0],
                    ["S3 on loopback", "threads", "in-memory", 2.5, 1.25]])
     objects.save()
     model = _results.Results("cluster-model", "The cluster run")
@@ -459,8 +461,10 @@ def test_clusters_in_the_summary(tmp_path, monkeypatch):
     assert predicted == ("It predicts the inverse at n = 8,294,400 as shared filesystem: "
                          "5,000 s on 1 worker, 600 s at best on 16 workers.")
     objects_line, = report.summary_objects(records["objects"])
-    assert "S3 on loopback took 2.5 s with threads (1.25× the local directory's 2 s)" \
-        in objects_line
+    # each S3 run beside the local run of its scheduler *and* engine path
+    assert ("S3 on loopback took 18 s with threads, out-of-core (2× the local directory's "
+            "9 s), 2.5 s with threads, in-memory (1.25× the local directory's 2 s)."
+            in objects_line)
 
 
 def test_the_payback_against_pardiso_and_the_matrix_free_path(tmp_path, monkeypatch):
