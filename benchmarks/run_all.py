@@ -76,8 +76,8 @@ def step(name: str, minutes: float, basis: str, *argv: str) -> Step:
 
 #: Where the per-step estimates come from (the ``basis`` of each step).
 RECORDED = "the last full run's runs.json (2026-11-24, load ~1.1 at its start)"
-KERNEL_LOG = ("results/kernels.txt of that run: its 192x256 methods sum to 53 s a "
-              "repeat, x2, plus the scene and compilation")
+MEASURED = ("the full run of 2026-11-27 (37ecaa5, load ~1.5, its scenes built): "
+            "results/runs.json")
 #: The grey scenes of tradeoff, inverse-dense and defaults share one folder: the same
 #: builder and arguments, so each scene (the dense 384x512 corner above all, minutes
 #: to build) is built once for the three.
@@ -100,68 +100,64 @@ OWN_SCALE_RUNS = "bench-out/scale-fhd.json,bench-out/scale-4k.json"
 #: 384x512 throughput (alternatives and video measure it), stability's long sweep and
 #: the scenes' build times (scale's table has them).
 FULL = [
-    step("paper", 1.1, RECORDED, "bench_paper.py"),
-    step("tradeoff", 6.7, RECORDED, "bench_tradeoff.py", "--workdir", GREY_SCENES),
+    step("paper", 3.7, MEASURED, "bench_paper.py"),
+    step("tradeoff", 8.8, MEASURED, "bench_tradeoff.py", "--workdir", GREY_SCENES),
     # rho 0.2 at n = 12288, where the runs last seconds, not tenths (fixed costs)
-    step("target-96x128", 1.0, RECORDED, "bench_target.py", "--size", "96x128", "--rho",
+    step("target-96x128", 0.4, MEASURED, "bench_target.py", "--size", "96x128", "--rho",
          "0.2"),
     # grey 48x64 to 384x512, and the colour Cornell box at 48x64 and 96x128 (issue #34)
-    step("alternatives", 9.0, RECORDED + " (447 s) and the colour part timed alone "
-         "(96x128: 48 s, 2026-11-26; 48x64 about half)", "bench_alternatives.py",
+    step("alternatives", 11.3, MEASURED, "bench_alternatives.py",
          "--workdir", "bench-out/alternatives"),
     # the full-HD point (~40 min) and 4K (~1 h) are run on their own, each into its own
     # record, which this step's table and plot take in, marked as such:
     #   BIGT_BENCH_OUT=bench-out BIGT_BENCH_NAME=scale-4k python benchmarks/bench_scale.py
     #       --min-size 8294400 --max-size 8294400 --ff-cut 7e-5 --workdir bench-out/scale
     #   (scale-fhd: --min-size 2073600 --max-size 2073600)
-    step("scale", 3.8, RECORDED, "bench_scale.py", "--min-size", "12288", "--max-size",
+    step("scale", 5.9, MEASURED, "bench_scale.py", "--min-size", "12288", "--max-size",
          "786432", "--workdir", "bench-out/scale", "--own-runs", OWN_SCALE_RUNS),
-    step("kernels", 2.3, KERNEL_LOG, "bench_kernels.py", "--sizes", "192x256", "--repeat",
+    step("kernels", 4.1, MEASURED, "bench_kernels.py", "--sizes", "192x256", "--repeat",
          "2"),
-    step("distributed", 1.7, RECORDED, "bench_distributed.py", "--size", "192x256",
+    step("distributed", 1.6, MEASURED, "bench_distributed.py", "--size", "192x256",
          "--workdir", "bench-out/distributed"),
     # issue #34 (5): the cluster model checked on threads, local:1 and local:2 (192x256),
     # its full-HD and 4K predictions beside them
     step("cluster-model", 3.0, "its own note (6 runs of the 192x256 corner, ~3 min)",
          "bench_scale.py", "--cluster-model", "--workdir", "bench-out/cluster-model"),
-    step("inverse-dense", 1.2, RECORDED, "bench_inverse.py", "--size", "384x512",
+    step("inverse-dense", 2.1, MEASURED, "bench_inverse.py", "--size", "384x512",
          "--density", "dense", "--settings", "power:1e-5,power:3e-6:1e-4,"
          "power:3e-6:1e-4:1e-5,power:3e-6:1e-4:3e-5", "--sample", "2048",
          "--memory-limit", "2GiB", "--workdir", GREY_SCENES),
     # issue #30: today's defaults against the old at equal error, on the six 96x128
     # scenes and the dense 384x512 corner of the timing goal
-    step("defaults", 6.0, "its docstring (96x128: ~3 min) and single runs on the dense "
-         "384x512 corner (old 50-96 s, default 28-60 s, README's 27-50 s, 2026-11-26)",
+    step("defaults", 2.5, MEASURED,
          "bench_defaults.py", "--sizes", "96x128", "--workdir", GREY_SCENES),
-    step("video", 0.6, RECORDED, "bench_video.py", "--out", "bench-out/video"),
+    step("video", 6.3, MEASURED, "bench_video.py", "--out", "bench-out/video"),
     # the colour Cornell box at 384x512 (issue #28's goals): grey vs general vs
     # global-mixing, seen ΔE, video; time against error of both paths at 96x128, at the
     # loosest and tightest prune (the middle decade adds a third of the sweep's time)
-    step("colour", 5.6, "a 384x512 run with its scenes built (268 s, 2026-11-26) and the "
-         "96x128 sweep timed alone (97 s at three prunes)", "bench_colour.py",
+    step("colour", 4.4, MEASURED, "bench_colour.py",
          "--sweep-prunes", "1e-4,1e-6", "--workdir", "bench-out/colour"),
     # issue #29 on the simulated nonlinear rig: T from one exposure against brackets, the
     # seen error with and without the calibrated responses (12x16 and 24x32)
-    step("calibration", 2.5, "a run of its default grids (150 s, 2026-11-26)",
+    step("calibration", 0.8, MEASURED,
          "bench_calibration.py", "--workdir", "bench-out/calibration"),
-    step("compensate", 0.75, RECORDED, "bench_compensate.py", "--skip", "throughput"),
-    step("out-of-core", 0.35, RECORDED, "bench_out_of_core.py", "--n", "393216",
+    step("compensate", 1.0, MEASURED, "bench_compensate.py", "--skip", "throughput"),
+    step("out-of-core", 0.6, MEASURED, "bench_out_of_core.py", "--n", "393216",
          "--memory-limit", "1536MiB"),
-    step("store", 0.2, RECORDED, "bench_store.py"),
+    step("store", 0.2, MEASURED, "bench_store.py"),
     # the store layout's files and bytes per term (the before/after of issue #30 is run
     # on its own with --baseline, an older checkout, at 384x512 and full HD)
-    step("layout", 1.2, "runs of the dense 384x512 corner with its scene built (28-50 s "
-         "each, 2026-11-26), two", "bench_layout.py", "--workdir", "bench-out/layout"),
+    step("layout", 0.4, MEASURED, "bench_layout.py", "--workdir", "bench-out/layout"),
     # whole bigT processes: every help, a warm 4x4
-    step("startup", 0.8, "its cases: 15 helps x 5 at ~0.3 s, the 4x4 x 5 at 1-5 s",
+    step("startup", 0.3, MEASURED,
          "bench_startup.py"),
     # issue #31: local directory against S3 (moto) on loopback, threads and 2 workers;
     # one repeat (six runs of the 192x256 corner)
-    step("objects", 4.5, "a run at 192x256 (206 s a repeat, 2026-11-26) and the scene",
+    step("objects", 2.5, MEASURED,
          "bench_objects.py", "--repeats", "1", "--workdir", "bench-out/objects"),
-    step("acquire", 0.75, RECORDED, "bench_acquire.py", "--grid", "48x64", "--camera",
+    step("acquire", 0.8, MEASURED, "bench_acquire.py", "--grid", "48x64", "--camera",
          "120x160"),
-    step("stability", 0.3, RECORDED, "bench_stability.py", "--quick"),
+    step("stability", 0.1, MEASURED, "bench_stability.py", "--quick"),
 ]
 #: What a first run (no scenes in bench-out/ yet) adds to the full plan's estimate,
 #: minutes: the dense 384x512 corner three times (tradeoff's folder, alternatives',
