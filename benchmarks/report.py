@@ -1075,9 +1075,15 @@ def code_lines(start: CodeState, records: dict[str, Record]) -> list[str]:
     if records and not other and not unknown:
         lines += [f"**Code:** all {len(records)} records were measured with {start.words()}.",
                   ""]
-    if other:
-        lines += ["**Code:** measured with other code than the run started at: "
-                  + "; ".join(f"`{n}` with {c.words()}" for n, c in other.items()) + ".", ""]
+    if other:  # grouped by code: a part run after a full one names two groups, not 17
+        groups: dict[str, list[str]] = {}
+        for name, code in other.items():
+            groups.setdefault(code.words(), []).append(f"`{name}`")
+        here = [f"`{n}`" for n, r in records.items() if r.code == start]
+        lines += ["**Code:** " + "; ".join(
+            [f"{', '.join(here)} measured with {start.words()} (this run)"] * bool(here)
+            + [f"{', '.join(names)} with {words}" for words, names in groups.items()])
+            + ".", ""]
     if unknown:
         lines += [f"**Code:** {len(unknown)} record{'s' if len(unknown) > 1 else ''} "
                   f"({', '.join(unknown)}) do not say which code measured them (older "

@@ -248,6 +248,21 @@ def test_a_clean_run_says_all_records_share_its_commit(out, tmp_path):
     assert "**Measured with" not in md
 
 
+def test_a_part_run_after_a_full_one_names_each_commit_once():
+    start = _results.CodeState("bbbbbbb", True)
+    full = _results.CodeState("aaaaaaa", True)
+
+    def rec(name, code):
+        return report.Record(name, "", "", [], [], {}, [], [], None, None, code)
+
+    records = {n: rec(n, full) for n in ("paper", "tradeoff", "video")}
+    records.update({n: rec(n, start) for n in ("scale", "cluster-model")})
+    line, _ = report.code_lines(start, records)
+    assert line == ("**Code:** `scale`, `cluster-model` measured with commit bbbbbbb, clean "
+                    "tree (this run); `paper`, `tradeoff`, `video` with commit aaaaaaa, clean "
+                    "tree.")
+
+
 def test_an_old_stamp_string_still_reads():
     old = _results.CodeState.from_dict("6fde496+dirty")
     assert old == _results.CodeState("6fde496", False)
