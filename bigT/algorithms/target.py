@@ -85,7 +85,6 @@ from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -94,6 +93,7 @@ import scipy.sparse as sp
 from .. import config
 from ..errors import BigTError
 from ..kernels import spmm_dense
+from ..kernels.threads import run_on_threads
 from ..schedule.runner import ThreadRunner
 from ..schedule.stream import compute_dtype, forget_tiles, stream_matmul
 from ..storage import as_store
@@ -328,12 +328,13 @@ class _Products:
         V = np.ascontiguousarray(V, dtype=dtype)
         out = np.zeros((self.T.shape[0], V.shape[1]), dtype)
 
-        def row(i: int) -> None:
-            start, stop = self.T.tile_row_range(i)
-            spmm_dense(self.rows[i], V, out=out[start:stop], n_threads=1)
+        def tile_rows(first: int, end: int) -> None:
+            for i in range(first, end):
+                start, stop = self.T.tile_row_range(i)
+                spmm_dense(self.rows[i], V, out=out[start:stop], n_threads=1)
 
-        with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-target") as pool:
-            list(pool.map(row, range(len(self.rows))))
+        # the kernels' shared pool, a tile row per task (not a pool made per product)
+        run_on_threads(tile_rows, [(i, i + 1) for i in range(len(self.rows))], self.threads)
         return out.astype(np.float64, copy=False)
 
     def M(self, V: np.ndarray, cache: bool = True) -> np.ndarray:
