@@ -73,9 +73,7 @@ def temporary_file_sibling(path: Path) -> Path:
 def _remove_dead_writers_files(path: Path) -> None:
     """Delete the temporary siblings of ``path`` that writers killed before their
     rename left."""
-    for entry in dead_writers_siblings(path.parent, f"tmp{path.suffix}", name=path.stem):
-        with contextlib.suppress(OSError):
-            entry.unlink()
+    remove_dead_writers_files(path.parent, path.suffix, name=path.stem)
 
 
 def pid_alive(pid: int) -> bool:
@@ -155,11 +153,12 @@ def _as_output_error(exc: OSError, path: Path, what: str) -> Exception:
     return OutputError(f"cannot write {what}: {reason}; nothing was replaced", path)
 
 
-def remove_dead_writers_files(folder: str | os.PathLike, suffix: str) -> None:
-    """Delete the temporary files (of any name) with ``suffix`` that writers killed
-    before their rename left in ``folder``: what :func:`atomic_output` does for its
-    own file, once for a folder of many (``clean=False`` then)."""
-    for entry in dead_writers_siblings(Path(os.fspath(folder)), f"tmp{suffix}"):
+def remove_dead_writers_files(folder: str | os.PathLike, suffix: str,
+                              name: str | None = None) -> None:
+    """Delete the temporary files with ``suffix`` (of ``name`` only, when given) that
+    writers killed before their rename left in ``folder``: what :func:`atomic_output`
+    does for its own file, and once for a folder of many (``clean=False`` then)."""
+    for entry in dead_writers_siblings(Path(os.fspath(folder)), f"tmp{suffix}", name=name):
         with contextlib.suppress(OSError):
             entry.unlink()
 
