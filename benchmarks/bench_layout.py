@@ -12,6 +12,13 @@ the last term's files only.
 
     python benchmarks/bench_layout.py                       # 384x512, this tree only
     python benchmarks/bench_layout.py --baseline /tmp/bigT-old --size 1080x1920
+
+``--baseline-commit REV`` exports ``bigT/`` of a commit of this repository (``git
+archive``) under the work folder and compares with it: ``make bench`` compares with
+2789f82, the last commit that wrote format 1 (a group per tile). ``--scene PATH`` takes
+this tree's T from a store already built by the same recipe (the scale run's full-HD
+corner is the dense preset at 1080x1920) instead of building it again; the baseline
+builds its own, in its own format.
 """
 
 from __future__ import annotations
@@ -94,6 +101,22 @@ def build_scene(size: str, root: Path, label: str, tree: Path) -> Path:
     return path
 
 
+def export_commit(rev: str, root: Path) -> Path:
+    """``bigT/`` of commit ``rev`` of this repository, exported once under ``root``
+    (``git archive``: no worktree, nothing of this checkout touched)."""
+    tree = root / f"tree-{rev}"
+    if not (tree / "bigT" / "__init__.py").exists():
+        shutil.rmtree(tree, ignore_errors=True)
+        tree.mkdir(parents=True)
+        archive = subprocess.run(["git", "-C", str(HERE.parent), "archive", rev, "bigT"],
+                                 capture_output=True, check=False)
+        if archive.returncode:
+            sys.exit(f"--baseline-commit {rev}: git archive failed (a shallow clone lacks "
+                     f"old commits): {archive.stderr.decode().strip()}")
+        subprocess.run(["tar", "-x", "-C", str(tree)], input=archive.stdout, check=True)
+    return tree
+
+
 def run_child(tree: Path, T: Path, out: Path, args) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree)}
     shutil.rmtree(out, ignore_errors=True)  # another format's store is not overwritten
@@ -139,6 +162,12 @@ def main(argv=None) -> None:
     p.add_argument("--prune-operator", type=float, default=1e-5)
     p.add_argument("--baseline", type=Path, default=None,
                    help="an older bigT source tree to compare with (its bigT/ is imported)")
+    p.add_argument("--baseline-commit", default=None, metavar="REV",
+                   help="compare with bigT/ of this commit of the repository (exported "
+                        "with git archive under --workdir), e.g. 2789f82 (format 1)")
+    p.add_argument("--scene", type=Path, default=None,
+                   help="this tree's T, already built by the same recipe (the dense "
+                        "corner of --size), instead of building it")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--whole", action="store_true",
                    help="no per-term callback: the run a user makes (in memory, the terms "
@@ -147,9 +176,17 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     trees = [("this tree", HERE.parent)]
+    if args.baseline is not None and args.baseline_commit is not None:
+        p.error("--baseline and --baseline-commit: give one")
     if args.baseline is not None:
         trees.insert(0, ("baseline", args.baseline.resolve()))
-    scenes = {label: build_scene(args.size, args.workdir, label, tree) for label, tree in trees}
+    if args.baseline_commit is not None:
+        trees.insert(0, (f"baseline {args.baseline_commit}",
+                         export_commit(args.baseline_commit, args.workdir)))
+    if args.scene is not None and not (args.scene / "zarr.json").exists():
+        p.error(f"--scene {args.scene}: not a store (no zarr.json)")
+    scenes = {label: args.scene if label == "this tree" and args.scene is not None
+              else build_scene(args.size, args.workdir, label, tree) for label, tree in trees}
     best: dict[str, dict] = {}
     for _ in range(args.repeats):
         for label, tree in trees:  # interleaved: drift hits both alike

@@ -82,6 +82,9 @@ MEASURED = ("the full run of 2026-11-27 (37ecaa5, load ~1.5, its scenes built): 
 #: builder and arguments, so each scene (the dense 384x512 corner above all, minutes
 #: to build) is built once for the three.
 GREY_SCENES = "bench-out/tradeoff"
+#: The last commit whose stores are format 1 (a group of three arrays per tile): the
+#: layout's baseline.
+LAST_FORMAT_1 = "2789f82"
 #: The records of bench_scale's own runs at full HD and 4K (the scale step's comment).
 OWN_SCALE_RUNS = "bench-out/scale-fhd.json,bench-out/scale-4k.json"
 
@@ -145,9 +148,11 @@ FULL = [
     step("out-of-core", 0.6, MEASURED, "bench_out_of_core.py", "--n", "393216",
          "--memory-limit", "1536MiB"),
     step("store", 0.2, MEASURED, "bench_store.py"),
-    # the store layout's files and bytes per term (the before/after of issue #30 is run
-    # on its own with --baseline, an older checkout, at 384x512 and full HD)
-    step("layout", 0.4, MEASURED, "bench_layout.py", "--workdir", "bench-out/layout"),
+    # the store layout's seconds, files and bytes per term against 2789f82, the last
+    # commit that wrote format 1 (a group per tile); at full HD: the own run layout-fhd
+    step("layout", 1.3, "two runs of each tree at ~12 and ~20 s, and the imports",
+         "bench_layout.py", "--baseline-commit", LAST_FORMAT_1, "--workdir",
+         "bench-out/layout"),
     # whole bigT processes: every help, a warm 4x4
     step("startup", 0.3, MEASURED,
          "bench_startup.py"),
@@ -160,11 +165,11 @@ FULL = [
     step("stability", 0.1, MEASURED, "bench_stability.py", "--quick"),
 ]
 #: What a first run (no scenes in bench-out/ yet) adds to the full plan's estimate,
-#: minutes: the dense 384x512 corner three times (tradeoff's folder, alternatives',
-#: layout's; ~2 min each idle, 8 under load), tradeoff's other scenes (~3), the colour
-#: Cornell boxes of 384x512 (grey and colour, 5.5), the scale ladder's and the 192x256
+#: minutes: the dense 384x512 corner four times (tradeoff's folder, alternatives',
+#: layout's in both formats; ~2 min each idle, 8 under load), tradeoff's other scenes
+#: (~3), the colour Cornell boxes of 384x512 (grey and colour, 5.5), the scale ladder's and the 192x256
 #: scenes of the scheduler runs (~3).
-FIRST_RUN_BUILDS = 18
+FIRST_RUN_BUILDS = 20
 #: Long points run on their own (``--only NAME``, into the same results: RESULTS.md
 #: marks their records as from their own run), out of the full plan to keep it within
 #: the hour: each answers what a step of the full plan answers at another size or
@@ -181,6 +186,12 @@ OWN_RUNS = [
     step("kernels-96x128", 1.8, "results/kernels.txt of the last full run (26 s a "
          "repeat, 3 repeats)", "bench_kernels.py", "--sizes", "96x128"),
     step("reliability", 4.6, RECORDED, "bench_reliability.py", "--quick"),
+    # the layout at full HD: T of the scale step's own full-HD run (the dense preset at
+    # 1080x1920) for this tree; the baseline builds its own in format 1 (~15 min)
+    step("layout-fhd", 20.0, "its own run's build and inverses", "bench_layout.py",
+         "--size", "1080x1920", "--repeats", "1", "--baseline-commit", LAST_FORMAT_1,
+         "--scene", "bench-out/scale/corner-1080x1920/T.zarr", "--workdir",
+         "bench-out/layout-fhd"),
 ]
 #: The quick plan, under 5 minutes on 2 cores: the benchmarks the summary quotes, at
 #: small sizes. Video, compensate, inverse, scenes, acquire, stability and reliability
