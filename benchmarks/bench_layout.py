@@ -84,7 +84,7 @@ record = json.loads((Path(out) / "zarr.json").read_text())["attributes"]["bigT_i
 hist = record["history"]
 print(json.dumps({"seconds": total, "import_seconds": t_import, "terms": seen, "history": hist,
                   "residual": record.get("residual"),
-                  "rows": X.grid[0], "version": X.attrs.version,
+                  "rows": X.grid[0], "version": X.attrs.version, "bigT": bigT.__file__,
                   "cpu_seconds": usage.ru_utime + usage.ru_stime,
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
@@ -97,14 +97,16 @@ def build_scene(size: str, root: Path, label: str, tree: Path) -> Path:
     if not (path / "zarr.json").exists():
         subprocess.run([sys.executable, "-m", "bigT.cli", "scene", "corner", "--size", size,
                         "--density", "dense", "-o", str(path.resolve()), "-q"], check=True,
-                       env={**os.environ, "PYTHONPATH": str(tree)}, cwd=root)
+                       env={**os.environ, "PYTHONPATH": str(tree.resolve())}, cwd=root)
     return path
 
 
 def export_commit(rev: str, root: Path) -> Path:
     """``bigT/`` of commit ``rev`` of this repository, exported once under ``root``
     (``git archive``: no worktree, nothing of this checkout touched)."""
-    tree = root / f"tree-{rev}"
+    # absolute: the children run in the work folder, where a relative PYTHONPATH
+    # would miss the tree and import the installed bigT instead
+    tree = (root / f"tree-{rev}").resolve()
     if not (tree / "bigT" / "__init__.py").exists():
         shutil.rmtree(tree, ignore_errors=True)
         tree.mkdir(parents=True)
@@ -118,7 +120,7 @@ def export_commit(rev: str, root: Path) -> Path:
 
 
 def run_child(tree: Path, T: Path, out: Path, args) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(tree)}
+    env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
     shutil.rmtree(out, ignore_errors=True)  # another format's store is not overwritten
     # run from the scratch folder: ``python -c`` puts its working directory first on
     # sys.path, which must not be a bigT tree other than ``tree``
@@ -128,7 +130,11 @@ def run_child(tree: Path, T: Path, out: Path, args) -> dict:
                           env=env, capture_output=True, text=True, cwd=args.workdir)
     if proc.returncode:
         sys.exit(f"{tree}: the inverse failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    run = json.loads(proc.stdout.strip().splitlines()[-1])
+    imported = Path(run["bigT"]).resolve()
+    if not imported.is_relative_to(tree.resolve()):  # the comparison would be with itself
+        sys.exit(f"{tree}: the child imported bigT from {imported}, not from this tree")
+    return run
 
 
 def once_seconds(run: dict) -> float:
