@@ -672,6 +672,40 @@ def summary_objects(rec: Record | None) -> list[str]:
         if parts else []
 
 
+def summary_layout(records: Iterable[Record | None]) -> list[str]:
+    """The store layout against the baseline tree of each layout record (384x512 in
+    the full plan, full HD in its own run): the whole run's seconds and the files a
+    term writes, this tree beside the baseline."""
+    out = []
+    for rec in records:
+        runs, terms = (rec.table("runs"), rec.table("terms")) if rec else (None, None)
+        if runs is None or terms is None:
+            continue
+        by_code = {r.get("code"): r for r in _rows(runs)}
+        base = next((c for c in by_code if c != "this tree"), None)
+        if base is None or "this tree" not in by_code:
+            continue
+        written = {code: [r.get("files written") for r in _rows(terms)
+                          if r.get("code") == code and r.get("files written") is not None]
+                   for code in (base, "this tree")}
+        size = rec.title.rsplit(" of the ", 1)[-1] if rec.title else rec.name
+        out.append(
+            f"Store layout, {size}: the 4-term inverse took {fmt(by_code['this tree'].get('seconds'))}"
+            f" s in format {by_code['this tree'].get('store format')} (this tree) against "
+            f"{fmt(by_code[base].get('seconds'))} s in format {by_code[base].get('store format')}"
+            f" ({base}); a term wrote {_span(written['this tree'])} files against "
+            f"{_span(written[base])}.")
+    return out
+
+
+def _span(values: list) -> str:
+    """"a" or "a-b" of the smallest and largest value (formatted), "–" when none."""
+    if not values:
+        return "–"
+    lo, hi = fmt(min(values)), fmt(max(values))
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
 def _local_seconds(rows: list[dict], row: dict) -> Any:
     """The local directory's seconds with ``row``'s scheduler and engine path."""
     return next((r.get("seconds") for r in rows if r.get("storage") == "local directory"
@@ -853,7 +887,8 @@ def summary(records: dict[str, Record]) -> list[str]:
         ("How it scales", summary_scale(records.get("scale"))
          + summary_distributed(records.get("distributed"))
          + summary_cluster_model(records.get("cluster-model"))
-         + summary_objects(records.get("objects"))),
+         + summary_objects(records.get("objects"))
+         + summary_layout([records.get("layout"), records.get("layout-fhd")])),
         ("Kernels and throughput", summary_kernels(records.get("kernels"))
          + summary_video(records.get("video"))),
         ("Colour", summary_colour(records.get("colour"))

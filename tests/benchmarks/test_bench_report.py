@@ -513,3 +513,28 @@ def test_the_target_table_prints_the_error_reached_beside_its_target():
     assert bench_target.reached({"error": 1.0004e-3, "E": 1e-3, "met": False}) == \
         "0.0010004 (not met)"
     assert bench_target.reached({"error": 2.26e-3, "E": 3.92e-3, "met": True}) == "0.00226"
+
+
+def test_the_layout_sentence_sets_this_tree_beside_its_baseline(tmp_path, monkeypatch):
+    monkeypatch.setenv(_results.OUT_ENV, str(tmp_path))
+    for name, size, seconds in (("layout", "384x512", (18.0, 12.4)),
+                                ("layout-fhd", "1080x1920", (95.8, 66.2))):
+        res = _results.Results(name, f"Store layout: a 4-term inverse of the dense {size} corner")
+        res.table("runs", "Whole run", ["code", "store format", "seconds"],
+                  [["baseline 2789f82", 1, seconds[0]], ["this tree", 2, seconds[1]]])
+        res.table("terms", "Per term", ["code", "term", "seconds", "files", "files written"],
+                  [["baseline 2789f82", 0, 0.4, None, None],
+                   ["baseline 2789f82", 1, 2.4, 1662, 1662],
+                   ["baseline 2789f82", 2, 7.1, 1354, 1046],
+                   ["this tree", 0, 0.3, None, None], ["this tree", 1, 1.5, 354, 354],
+                   ["this tree", 2, 4.7, 354, 354]])
+        res.save()
+    records = report.load_records(tmp_path)
+    small, large = report.summary_layout([records["layout"], records["layout-fhd"], None])
+    assert small == ("Store layout, dense 384x512 corner: the 4-term inverse took 12.4 s in "
+                     "format 2 (this tree) against 18 s in format 1 (baseline 2789f82); a term "
+                     "wrote 354 files against 1,046–1,662.")
+    assert large.startswith("Store layout, dense 1080x1920 corner: the 4-term inverse took "
+                            "66.2 s in format 2")
+    assert report.summary_layout([None]) == []
+    assert any(line == f"- {small}" for line in report.summary(records))
