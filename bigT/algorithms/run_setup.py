@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import sys
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import config
+from ..kernels.threads import map_all, shared_pool
 from ..schedule.memory import MemoryPlan
 from ..schedule.runner import ClusterRunner, worker_path
 from ..schedule.spec import MemoryPolicy
@@ -82,8 +82,8 @@ class TileRows:
     def _read(self) -> list:
         with self._reading:
             if self._rows is None:
-                with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-T") as pool:
-                    self._rows = list(pool.map(self.T.get_tile_row, range(len(self))))
+                self._rows = map_all(shared_pool("T", self.threads), self.T.get_tile_row,
+                                     range(len(self)))
         return self._rows
 
 
