@@ -364,13 +364,15 @@ class InverseStore:
 
     def publish(self, record: InverseRecord, X: BlockCSR, term_metadata: Mapping) -> None:
         """Make term ``record.dir`` the one readers see: X records its own term first
-        (so :meth:`reconcile` can repair a crash after the flip), then the redirect
-        flips to it, then the record is replaced."""
+        (so :meth:`reconcile` can repair a store a crash left flipped and not
+        recorded, as bigT before issue #30 published in two writes), then the redirect
+        flips to it and the record is replaced, in one write of the root's
+        ``zarr.json`` (one durable replace, not two)."""
         self.lock.check_held()  # a writer that lost its lock publishes nothing
         X.update_metadata(inverse=jsonable(term_metadata))
         create_reader_lease(X.path)
-        set_redirect(self.path, f"{term_dir(record.dir)}/X")
-        self.save(record)
+        set_redirect(self.path, f"{term_dir(record.dir)}/X",
+                     attributes={INVERSE_ATTR: record.to_dict()})
 
     def clean(self, keep: set[int]) -> None:
         """Delete term directories other than ``keep`` (left by a crash, or by a reader
