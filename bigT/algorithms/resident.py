@@ -347,12 +347,14 @@ class ResidentPasses:
         self.totals = self.totals.plus(time.perf_counter() - t0, stats, 1)
         return stats
 
-    def write_term(self, k: int, metadata: dict):
+    def write_term(self, k: int, metadata: dict, inverse: dict | None = None):
         """Write the outputs of term ``k``'s passes that :meth:`run` left unwritten
-        into the term's stores; returns its X store, finalized."""
+        into the term's stores; returns its X store, finalized (with ``inverse``, the
+        metadata publishing it records, in the same write:
+        :meth:`bigT.storage.InverseStore.finalize_term_store`)."""
         finalized = self.finalized  # the writes in flight done first: they share its pool
         for p, outputs in self._unwritten.pop(k, []):
-            self._write(k, p, outputs, metadata)
+            self._write(k, p, outputs, metadata, inverse)
         return finalized.pop((k, "X"))
 
     def forget_unwritten(self, before: int) -> None:
@@ -487,7 +489,8 @@ class ResidentPasses:
 
     # --- writing and counting ---------------------------------------------------------
 
-    def _write(self, k: int, p: Pass, outputs: dict, metadata: dict) -> None:
+    def _write(self, k: int, p: Pass, outputs: dict, metadata: dict,
+               inverse: dict | None = None) -> None:
         """Each output of pass ``p`` into its store of term ``k``: created (or the
         rows an interrupted run left kept), its tile rows written, finalized; each
         step for every output at once on the run's threads (a store write waits mostly
@@ -503,7 +506,9 @@ class ResidentPasses:
             rows += [(path, b, outputs[name]) for b in row_blocks(lay.n, lay.tile_size)
                      if b.index not in done]
         map_all(pool, lambda job: _write_row(attrs, *job), rows)
-        stores = map_all(pool, lambda name: self.store.finalize_term_store(k, name), names)
+        extra = {"X": None if inverse is None else {"inverse": inverse}}
+        stores = map_all(pool, lambda name: self.store.finalize_term_store(
+            k, name, extra.get(name)), names)
         self._finalized.update({(k, name): X for name, X in zip(names, stores)})
 
     def _stats(self, p: Pass, result: _Result, tally, seconds: float) -> list[BlockStats]:

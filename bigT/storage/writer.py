@@ -400,10 +400,12 @@ def clean_partial_rows(path, n_rows: int) -> int:
     return gone
 
 
-def finalize_store(path, zstd_level=None) -> BlockCSR:
+def finalize_store(path, zstd_level=None, metadata: dict | None = None) -> BlockCSR:
     """Write the tile index from the row markers on disk, mark the store complete and
     open it: whoever wrote the rows (threads, other processes), only the markers count.
     The index is fsynced before the completion flag (``config.DURABILITY``).
+    ``metadata``, items merged into the store's free metadata in the same write as
+    the flag (a store complete already is opened as it is).
 
     Raises
     ------
@@ -433,7 +435,8 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
                 fsync_tree(path / name)
         if durable() and local:
             fsync_dir(path)  # the arrays' names, before the flag that says they are there
-        write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
+        write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True,
+                                             metadata={**attrs.metadata, **(metadata or {})}))
     except OSError as exc:
         raise (_wrap_oserror(exc, path, "the tile index") or exc) from exc
     return open_store(path)

@@ -368,3 +368,38 @@ def test_publishing_replaces_the_root_once_and_stays_durable(tmp_path, make_stor
     reopened = bigT.open(out)
     assert reopened.metadata["inverse"]["dir"] == report.terms
     np.testing.assert_array_equal(reopened.to_scipy().toarray(), dense(out))
+
+
+def test_a_small_run_fsyncs_what_publishing_needs_once(tmp_path, make_store, monkeypatch):
+    """A run of one tile row that publishes only its last term: its first record is
+    saved with the tile size (one write, not two), X records its term with its
+    completion flag (not rewritten when published) and the flip carries the record.
+    bigT before made 86 fsyncs here and replaced the root's zarr.json 5 times. The
+    store reopens at the last term, equal bit for bit to one whose every term was
+    published."""
+    import os
+
+    A = random_dominant(48, seed=7, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=64)
+    out = tmp_path / "X.zarr"
+    monkeypatch.setattr(engine, "PUBLISH_INTERVAL_SECONDS", 1e9)  # the last term only
+    fsyncs = _counting(monkeypatch, os, "fsync")
+    real_replace, root_writes = os.replace, []
+
+    def replace(src, dst, *args, **kwargs):
+        if os.fspath(dst) == os.fspath(out / "zarr.json"):
+            root_writes.append(src)
+        return real_replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", replace)
+    report = bigT.stratified_inverse(T, out, terms=5, prune=1e-6, in_memory=True,
+                                     progress=False)
+    monkeypatch.undo()
+    assert len(fsyncs) <= 82
+    assert len(root_writes) <= 3  # created (with the tile size), spectral radius, flip
+    assert bigT.open(out).metadata["inverse"]["term"] == report.terms
+    monkeypatch.setattr(engine, "PUBLISH_INTERVAL_SECONDS", 0.0)  # every term
+    every = bigT.stratified_inverse(T, tmp_path / "every.zarr", terms=5, prune=1e-6,
+                                    in_memory=True, progress=False)
+    assert every.terms == report.terms
+    assert np.array_equal(dense(out), dense(tmp_path / "every.zarr"))
