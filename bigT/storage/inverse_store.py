@@ -356,13 +356,18 @@ class InverseStore:
                 old = read_store_attrs(path)
             except StoreError:  # a header that bigT before 0.2 left half written
                 old = None
+            # kept when its header is whole: the root's attributes and the rows group
+            # (a power cut may leave either lost: the header is not fsynced, below)
             if old is not None and (old.shape, old.tile_size, old.dtype, old.version) == (
-                    attrs.shape, attrs.tile_size, attrs.dtype, attrs.version):
+                    attrs.shape, attrs.tile_size, attrs.dtype, attrs.version) and (
+                    path / fmt.ROWS_GROUP / "zarr.json").is_file():
                 clean_partial_rows(path, old.grid[0])
                 _remove_temp_files(path)
                 return path
             remove_tree(path)
-        create_store(path, attrs)
+        # its header's root and name made durable by finalize_store and publish (a
+        # torn or lost header is recreated above): three fsyncs fewer per store
+        create_store(path, attrs, durable_header=False)
         return path
 
     def finalize_term_store(self, k: int, name: str, metadata: dict | None = None) -> BlockCSR:

@@ -135,13 +135,14 @@ def recover_interrupted_replace(path) -> None:
         shutil.rmtree(entry, ignore_errors=True)
 
 
-def write_root_attrs(path: Path, attrs: StoreAttrs) -> None:
+def write_root_attrs(path: Path, attrs: StoreAttrs, sync: bool = True) -> None:
     """Set ``attributes["bigT"]`` of the root ``zarr.json`` of the store at ``path`` to
-    ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`)."""
+    ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`;
+    fsynced unless ``sync`` is False or ``config.DURABILITY`` says none)."""
     meta_path = as_location(path) / "zarr.json"
     meta = fmt.read_json(meta_path) if meta_path.is_file() else fmt.group_json({})
     meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = attrs.to_dict()
-    fmt.write_json(meta_path, meta, durable())
+    fmt.write_json(meta_path, meta, sync and durable())
 
 
 def set_redirect(path, target: str, attributes: dict | None = None) -> None:

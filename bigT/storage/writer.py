@@ -112,9 +112,17 @@ def _validate_block(path: Path, attrs: StoreAttrs, i: int, block) -> sp.csr_arra
     return out
 
 
-def create_store(path, attrs: StoreAttrs) -> None:
+def create_store(path, attrs: StoreAttrs, durable_header: bool = True) -> None:
     """Write the header of an empty store at ``path`` (root and ``rows`` groups):
-    what :func:`write_tile_row` and :func:`finalize_store` need to find."""
+    what :func:`write_tile_row` and :func:`finalize_store` need to find.
+
+    Without ``durable_header`` the root's ``zarr.json`` and the store's name are not
+    fsynced here (the ``rows`` group is): for a store whose owner recreates it when a
+    power cut leaves its header torn or its name lost (an inverse's term stores,
+    :meth:`bigT.storage.InverseStore.prepare_term_store`), and makes its name durable
+    before it publishes it (:func:`set_redirect` fsyncs the term's directory).
+    :func:`finalize_store` replaces the root's ``zarr.json`` durably, after fsyncing
+    the store's directory, either way."""
     path = as_location(path)
     attrs.check_json(path)
     try:
@@ -124,16 +132,16 @@ def create_store(path, attrs: StoreAttrs) -> None:
             # an empty directory to write into (the caller's choice), or a store built
             # aside already (nobody reads it before it is renamed into place)
             path.mkdir(parents=True, exist_ok=True)
-            _write_header(path, attrs)
+            _write_header(path, attrs, durable_header)
             return
         # else built aside and renamed: a crash never leaves a header half written
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = temporary_sibling(path)
         try:
             tmp.mkdir()
-            _write_header(tmp, attrs)
+            _write_header(tmp, attrs, durable_header)
             os.rename(tmp, path)
-            if durable():
+            if durable() and durable_header:
                 fsync_dir(path.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -142,10 +150,10 @@ def create_store(path, attrs: StoreAttrs) -> None:
         raise (_wrap_oserror(exc, path, "the store header") or exc) from exc
 
 
-def _write_header(path: Path, attrs: StoreAttrs) -> None:
+def _write_header(path: Path, attrs: StoreAttrs, durable_header: bool = True) -> None:
     (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
     fmt.write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}), durable())
-    write_root_attrs(path, attrs)
+    write_root_attrs(path, attrs, sync=durable_header)
 
 
 def read_store_attrs(path) -> StoreAttrs:
