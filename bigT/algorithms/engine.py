@@ -47,7 +47,7 @@ from .matvecs import MatVecs
 from .methods import TERM_ZERO, SeriesMethod
 from .passes import PassRunner
 from .resident import ResidentMatrices, ResidentMatVecs, ResidentPasses
-from .publish import (let_go_of_term, publish_held, series_metadata, term_record,
+from .publish import (let_go_of_term, publish_held, series_metadata, term_metadata, term_record,
                       with_term)
 from .records import SeriesRecord
 from .report import InverseReport
@@ -262,7 +262,10 @@ class InverseEngine:
         to do when it is published); the term published before is let go."""
         if not self._held_unpublished:
             return
-        X = self.passes.write_term(self.record.term, self._series_metadata())
+        metadata = self._series_metadata()
+        # X's metadata as publishing records it, written with X (one write less)
+        X = self.passes.write_term(self.record.term, metadata,
+                                   inverse=term_metadata(self.record, metadata))
         self._publish(X)
 
     def _leave_memory_unless_fits(self, held: int) -> None:

@@ -59,13 +59,19 @@ def publish_held(store: InverseStore, record: SeriesRecord, X, metadata: dict) -
     """Publish the term ``record`` holds (the last of its history; its X the store
     ``X``): X's metadata (the series' ``metadata`` and the term's), the redirect, the
     root record. Returns the record now stored."""
+    published = record.replace(dir=record.history[-1].term)
+    store.publish(published.to_stored(), X, term_metadata(record, metadata))
+    return published
+
+
+def term_metadata(record: SeriesRecord, metadata: dict) -> dict:
+    """What X of the term ``record`` holds (the last of its history) records of it
+    once published: the series' ``metadata`` and the term's (its ``inverse``
+    metadata)."""
     term = record.history[-1]
     k = term.term
-    published = record.replace(dir=k)
-    meta = {**metadata, "term": k, "dir": k, "residual": term.residual,
+    return {**metadata, "term": k, "dir": k, "residual": term.residual,
             "residual_abs": term.residual_abs, "record": term.to_dict()}
-    store.publish(published.to_stored(), X, meta)
-    return published
 
 
 def let_go_of_term(store: InverseStore, runner, held: int) -> None:

@@ -30,7 +30,7 @@ term's predicted size does not fit the budget.
 from __future__ import annotations
 
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +39,7 @@ import scipy.sparse as sp
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
 from ..kernels.row_ranges import (narrow_columns, prune_rows, restrict_to_used_rows,
                                   row_view, stack_rows, tile_pairs)
+from ..kernels.threads import map_all, shared_pool
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
 from ..schedule.operators import StoreOperand, largest_row_entries
@@ -100,8 +101,8 @@ class ResidentMatrices:
                                  active_rows=lay.fb.active[start:stop],
                                  zero_diagonal=lay.fb.zero_diagonal)
 
-        with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-M") as pool:
-            M = stack_rows(list(pool.map(m_block, range(lay.T.grid[0]))))
+        M = stack_rows(map_all(shared_pool("M", self.threads), m_block,
+                               range(lay.T.grid[0])))
         M.has_sorted_indices = True
         return M
 
@@ -250,15 +251,17 @@ class ResidentPasses:
         self._finalized: dict[tuple[int, str], object] = {}  # :attr:`finalized`
         self._inverse = BlockDiagonal(self.layout.fb.finv)
         self._f = self.layout.fb.f.astype(matrices.dtype)
-        self._pool: ThreadPoolExecutor | None = None  # made for the first term ahead
         self._next: tuple[str, int, Future] | None = None
+        self._dropped: list[Future] = []  # terms ahead not asked for, waited for by close
         # the outputs of the passes of terms computed and not written, by term
         self._unwritten: dict[int, list[tuple[Pass, dict]]] = {}
-        # the writes' threads, started once per run (a pool per pass costs ~3 ms a thread)
-        self._writers = ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-write")
-        # the passes' writes in flight, one after the other on the thread that drives them
+        # the threads (the process's, started once: ~3 ms a thread, issue #30) of the
+        # writes, of the passes' writes in flight (one after the other on the thread
+        # that drives them, which waits on the writes') and of the term ahead
+        self._writers = shared_pool("write", self.threads)
         self._writing: list[Future] = []
-        self._writer = ThreadPoolExecutor(1, thread_name_prefix="bigT-write-pass")
+        self._writer = shared_pool("write-pass", 1)
+        self._pool = shared_pool("ahead", 1)
 
     @property
     def finalized(self) -> dict[tuple[int, str], object]:
@@ -271,15 +274,20 @@ class ResidentPasses:
         return self._finalized
 
     def close(self) -> None:
-        """Wait for a term computed ahead (its result is dropped) and the writes."""
+        """Wait for a term computed ahead (its result is dropped; not started, it is
+        cancelled) and the writes (each write waits for its own row writes,
+        :func:`~bigT.kernels.threads.map_all`): the pools are the process's, so
+        nothing of this run is left running on them."""
+        if self._next is not None:
+            self._dropped.append(self._next[2])
         self._next = None
+        for future in self._dropped:
+            future.cancel()
+        wait(self._dropped)
+        self._dropped = []
         for future in self._writing:  # their errors, if any, are the engine's to raise
             future.exception()
         self._writing = []
-        for pool in (self._pool, self._writer, self._writers):
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
-        self._pool = None
 
     # --- the engine's questions -------------------------------------------------------
 
@@ -320,6 +328,9 @@ class ResidentPasses:
         if ahead is not None and ahead[:2] == (p.op, k):
             result, tally = ahead[2].result()
         else:
+            if ahead is not None:  # not this pass: dropped (close waits for it)
+                ahead[2].cancel()
+                self._dropped.append(ahead[2])
             tally = blocks.KernelTally()
             result = self._compute(p, self._inputs(p), tally)
         # the outputs of the held term's passes stay until the term after them is made
@@ -336,12 +347,14 @@ class ResidentPasses:
         self.totals = self.totals.plus(time.perf_counter() - t0, stats, 1)
         return stats
 
-    def write_term(self, k: int, metadata: dict):
+    def write_term(self, k: int, metadata: dict, inverse: dict | None = None):
         """Write the outputs of term ``k``'s passes that :meth:`run` left unwritten
-        into the term's stores; returns its X store, finalized."""
+        into the term's stores; returns its X store, finalized (with ``inverse``, the
+        metadata publishing it records, in the same write:
+        :meth:`bigT.storage.InverseStore.finalize_term_store`)."""
         finalized = self.finalized  # the writes in flight done first: they share its pool
         for p, outputs in self._unwritten.pop(k, []):
-            self._write(k, p, outputs, metadata)
+            self._write(k, p, outputs, metadata, inverse)
         return finalized.pop((k, "X"))
 
     def forget_unwritten(self, before: int) -> None:
@@ -376,8 +389,6 @@ class ResidentPasses:
             tally = blocks.KernelTally()
             return self._compute(q, inputs, tally), tally
 
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(1, thread_name_prefix="bigT-ahead")
         self._next = (q.op, k_next, self._pool.submit(compute))
 
     def _input(self, alias: str, name: str, term: int, p: Pass) -> sp.csr_array:
@@ -478,7 +489,8 @@ class ResidentPasses:
 
     # --- writing and counting ---------------------------------------------------------
 
-    def _write(self, k: int, p: Pass, outputs: dict, metadata: dict) -> None:
+    def _write(self, k: int, p: Pass, outputs: dict, metadata: dict,
+               inverse: dict | None = None) -> None:
         """Each output of pass ``p`` into its store of term ``k``: created (or the
         rows an interrupted run left kept), its tile rows written, finalized; each
         step for every output at once on the run's threads (a store write waits mostly
@@ -486,15 +498,17 @@ class ResidentPasses:
         lay = self.layout
         attrs = term_store_attrs(lay, k, metadata)
         names, pool = list(p.outputs), self._writers
-        paths = list(pool.map(lambda name: self.store.prepare_term_store(k, name, attrs),
-                              names))
+        paths = map_all(pool, lambda name: self.store.prepare_term_store(k, name, attrs),
+                        names)
         rows = []
         for name, path in zip(names, paths):
             done = completed_rows(path, lay.n_blocks)
             rows += [(path, b, outputs[name]) for b in row_blocks(lay.n, lay.tile_size)
                      if b.index not in done]
-        list(pool.map(lambda job: _write_row(attrs, *job), rows))
-        stores = pool.map(lambda name: self.store.finalize_term_store(k, name), names)
+        map_all(pool, lambda job: _write_row(attrs, *job), rows)
+        extra = {"X": None if inverse is None else {"inverse": inverse}}
+        stores = map_all(pool, lambda name: self.store.finalize_term_store(
+            k, name, extra.get(name)), names)
         self._finalized.update({(k, name): X for name, X in zip(names, stores)})
 
     def _stats(self, p: Pass, result: _Result, tally, seconds: float) -> list[BlockStats]:

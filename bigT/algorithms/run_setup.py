@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import sys
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import config
+from ..kernels.threads import map_all, shared_pool
 from ..schedule.memory import MemoryPlan
 from ..schedule.runner import ClusterRunner, worker_path
 from ..schedule.spec import MemoryPolicy
@@ -82,8 +82,8 @@ class TileRows:
     def _read(self) -> list:
         with self._reading:
             if self._rows is None:
-                with ThreadPoolExecutor(self.threads, thread_name_prefix="bigT-T") as pool:
-                    self._rows = list(pool.map(self.T.get_tile_row, range(len(self))))
+                self._rows = map_all(shared_pool("T", self.threads), self.T.get_tile_row,
+                                     range(len(self)))
         return self._rows
 
 
@@ -177,14 +177,20 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
         T_rows = None  # the out-of-core tasks read T themselves
     created = not store.path.exists() or settings.overwrite
     params = inverse_fingerprint(T, fb, settings.thresholds, series.name)
+    # in memory, the row blocks are only the units written: T's tiles, the fewest files
+    # (a resumed run keeps the tile size recorded, on either path)
+    ts = (int(T.tile_size) if path.in_memory
+          else choose_tile_size(T.shape[0], T.tile_size, runner.threads, fb.channels))
+
+    def chosen(stored):  # a new store: its tile size recorded in its first record
+        return SeriesRecord.from_stored(stored, store.path).replace(
+            tile_size=ts, excluded_pixels=fb.excluded).to_stored()
+
     record = SeriesRecord.from_stored(
-        store.open_or_create(params, overwrite=settings.overwrite), store.path)
+        store.open_or_create(params, overwrite=settings.overwrite, fresh=chosen),
+        store.path)
     runner.check_paths([str(store.path)])
-    if record.tile_size is None:  # a new store: its tile size chosen now, and recorded
-        # in memory, the row blocks are only the units written: T's tiles, the fewest
-        # files (a resumed run keeps them, on either path)
-        ts = (int(T.tile_size) if path.in_memory
-              else choose_tile_size(T.shape[0], T.tile_size, runner.threads, fb.channels))
+    if record.tile_size is None:  # a record saved without one (a run killed before)
         record = record.replace(tile_size=ts, excluded_pixels=fb.excluded)
         store.save(record.to_stored())
     n_blocks = -(-T.shape[0] // record.tile_size)

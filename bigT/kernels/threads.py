@@ -8,19 +8,40 @@ than n of its tasks at once, however many it submits). Tasks submitted here must
 wait on other tasks of the pool (they are kernels, not drivers), so sharing it cannot
 deadlock. The schedule layer's runner keeps a pool per pass for a different
 reason: shutting it down is how a failed pass waits for its running tasks.
+
+The in-memory engine's few other threads (reading T's tile rows, making M, writing a
+term's stores, the term computed ahead) come from :func:`shared_pool`, one pool per
+name and thread count, kept for the process like the kernels' pool: a small run would
+otherwise start a handful of threads each time (issue #30, ~3 ms a thread under load).
+The same rule holds per name: a task of pool ``name`` never waits on another task of
+pool ``name`` (it may wait on another pool's). :func:`map_all` waits for every task it
+submitted, as leaving a ``with ThreadPoolExecutor`` block did.
 """
 
 from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 from .. import config
 from ..errors import BigTError
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+_NAMED: dict[tuple[str, int], ThreadPoolExecutor] = {}
 _LOCK = threading.Lock()
+
+
+def _forget_pools() -> None:
+    # a forked child has none of its parent's threads: its pools are made anew
+    global _LOCK
+    _POOLS.clear()
+    _NAMED.clear()
+    _LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools)
 
 
 def thread_count(n_threads: int | None = None) -> int:
@@ -43,6 +64,28 @@ def thread_pool(n: int) -> ThreadPoolExecutor:
         if pool is None:
             pool = _POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix="bigT-kernel")
         return pool
+
+
+def shared_pool(name: str, n: int) -> ThreadPoolExecutor:
+    """The process's pool ``name`` of ``n`` threads (threads ``bigT-{name}_i``), made on
+    first use and kept: its threads start once per process, not once per call. A task
+    submitted to it must not wait on another task of the same pool."""
+    n = max(1, int(n))
+    with _LOCK:
+        pool = _NAMED.get((name, n))
+        if pool is None:
+            pool = _NAMED[(name, n)] = ThreadPoolExecutor(n, thread_name_prefix=f"bigT-{name}")
+        return pool
+
+
+def map_all(pool: ThreadPoolExecutor, func, items) -> list:
+    """``func(item)`` for each item on ``pool``, the results in order. Every task has
+    finished when it returns or raises (the first error in item order): a caller
+    that fails cleans up after no task still running, as when it left a pool of its
+    own, ``with ThreadPoolExecutor(...)``, which waited for them."""
+    futures = [pool.submit(func, item) for item in items]
+    wait(futures)
+    return [f.result() for f in futures]
 
 
 def run_on_threads(func, ranges, n_threads: int) -> list:

@@ -24,7 +24,7 @@ import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -224,11 +224,16 @@ class InverseStore:
         root.setdefault("attributes", {})[INVERSE_ATTR] = record.to_dict()
         fmt.write_json(self.path / "zarr.json", root)
 
-    def open_or_create(self, params: Mapping, overwrite: bool = False) -> InverseRecord:
+    def open_or_create(self, params: Mapping, overwrite: bool = False,
+                       fresh: Callable[[InverseRecord], InverseRecord] | None = None
+                       ) -> InverseRecord:
         """The record of the inverse at ``path``: a new one (the directory created), or
         the one held when it was made with the same ``params`` (reconciled). With
         ``overwrite`` an inverse held (of any parameters) is deleted and started anew;
-        anything that is not a bigT inverse store is never deleted.
+        anything that is not a bigT inverse store is never deleted. ``fresh``, given,
+        makes a new record what the caller records first (the term stores' tile
+        size): saved in the same durable write as the record it is given, not a
+        second one.
 
         Raises
         ------
@@ -241,12 +246,12 @@ class InverseStore:
         self.path.mkdir(parents=True, exist_ok=True)
         self.lock.acquire()  # a second writer is refused here, before any change
         try:
-            return self._open_locked(params, overwrite)
+            return self._open_locked(params, overwrite, fresh)
         except BaseException:
             self.lock.release()  # else held as long as the traceback lives
             raise
 
-    def _open_locked(self, params: dict, overwrite: bool) -> InverseRecord:
+    def _open_locked(self, params: dict, overwrite: bool, fresh=None) -> InverseRecord:
         _remove_temp_files(self.path)
         remove_trash(self.path)
         record = self.read_record()
@@ -255,6 +260,7 @@ class InverseStore:
             record = None
         if record is None:  # new, or created by a run killed before its first record
             record = InverseRecord(params)
+            record = record if fresh is None else fresh(record)
             self.save(record)
             return record
         if record.params != params:
@@ -350,27 +356,40 @@ class InverseStore:
                 old = read_store_attrs(path)
             except StoreError:  # a header that bigT before 0.2 left half written
                 old = None
+            # kept when its header is whole: the root's attributes and the rows group
+            # (a power cut may leave either lost: the header is not fsynced, below)
             if old is not None and (old.shape, old.tile_size, old.dtype, old.version) == (
-                    attrs.shape, attrs.tile_size, attrs.dtype, attrs.version):
+                    attrs.shape, attrs.tile_size, attrs.dtype, attrs.version) and (
+                    path / fmt.ROWS_GROUP / "zarr.json").is_file():
                 clean_partial_rows(path, old.grid[0])
                 _remove_temp_files(path)
                 return path
             remove_tree(path)
-        create_store(path, attrs)
+        # its header's root and name made durable by finalize_store and publish (a
+        # torn or lost header is recreated above): three fsyncs fewer per store
+        create_store(path, attrs, durable_header=False)
         return path
 
-    def finalize_term_store(self, k: int, name: str) -> BlockCSR:
-        return finalize_store(self.term_path(k, name))
+    def finalize_term_store(self, k: int, name: str, metadata: dict | None = None) -> BlockCSR:
+        """:func:`finalize_store` of store ``name`` of term ``k``; ``metadata`` merged
+        into its metadata in the same write (X's ``inverse``, known before it is
+        written: :meth:`publish` then leaves X as it is)."""
+        return finalize_store(self.term_path(k, name),
+                              metadata=None if metadata is None else jsonable(metadata))
 
     def publish(self, record: InverseRecord, X: BlockCSR, term_metadata: Mapping) -> None:
         """Make term ``record.dir`` the one readers see: X records its own term first
-        (so :meth:`reconcile` can repair a crash after the flip), then the redirect
-        flips to it, then the record is replaced."""
+        (so :meth:`reconcile` can repair a store a crash left flipped and not
+        recorded, as bigT before issue #30 published in two writes), then the redirect
+        flips to it and the record is replaced, in one write of the root's
+        ``zarr.json`` (one durable replace, not two)."""
         self.lock.check_held()  # a writer that lost its lock publishes nothing
-        X.update_metadata(inverse=jsonable(term_metadata))
+        inverse = jsonable(term_metadata)
+        if X.metadata.get("inverse") != inverse:  # else recorded when X was finalized
+            X.update_metadata(inverse=inverse)
         create_reader_lease(X.path)
-        set_redirect(self.path, f"{term_dir(record.dir)}/X")
-        self.save(record)
+        set_redirect(self.path, f"{term_dir(record.dir)}/X",
+                     attributes={INVERSE_ATTR: record.to_dict()})
 
     def clean(self, keep: set[int]) -> None:
         """Delete term directories other than ``keep`` (left by a crash, or by a reader

@@ -135,16 +135,17 @@ def recover_interrupted_replace(path) -> None:
         shutil.rmtree(entry, ignore_errors=True)
 
 
-def write_root_attrs(path: Path, attrs: StoreAttrs) -> None:
+def write_root_attrs(path: Path, attrs: StoreAttrs, sync: bool = True) -> None:
     """Set ``attributes["bigT"]`` of the root ``zarr.json`` of the store at ``path`` to
-    ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`)."""
+    ``attrs``, keeping any other attributes, atomically (:func:`atomic_write_json`;
+    fsynced unless ``sync`` is False or ``config.DURABILITY`` says none)."""
     meta_path = as_location(path) / "zarr.json"
     meta = fmt.read_json(meta_path) if meta_path.is_file() else fmt.group_json({})
     meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = attrs.to_dict()
-    fmt.write_json(meta_path, meta, durable())
+    fmt.write_json(meta_path, meta, sync and durable())
 
 
-def set_redirect(path, target: str) -> None:
+def set_redirect(path, target: str, attributes: dict | None = None) -> None:
     """Point the versioned store at ``path`` to its sub-store ``target``, atomically.
 
     The inverse engine writes term k into e.g. ``path/terms/k`` with a
@@ -157,6 +158,10 @@ def set_redirect(path, target: str) -> None:
         Root directory (created, with a group zarr.json, when missing).
     target : str
         Relative POSIX path of a complete bigT store inside ``path``.
+    attributes : dict, optional
+        Other attributes of the root set in the same write as the flip (the inverse
+        store's record, :meth:`bigT.storage.InverseStore.publish`): one atomic, durable
+        replace of ``zarr.json`` instead of two, and no state between them to repair.
     """
     root = as_location(path)
     dest = fmt.redirect_target(target, root)
@@ -182,7 +187,10 @@ def set_redirect(path, target: str) -> None:
         raise StoreError("cannot set a redirect: attrs['bigT'] belongs to another format", root)
     bigt.update({"format": fmt.FORMAT_NAME, "version": fmt.FORMAT_VERSION,
                  "redirect": PurePosixPath(target).as_posix()})
-    meta.setdefault("attributes", {})[fmt.ATTRS_KEY] = bigt
+    if attributes and fmt.ATTRS_KEY in attributes:
+        raise ValueError(f"attributes[{fmt.ATTRS_KEY!r}] is the redirect's own")
+    meta.setdefault("attributes", {}).update(attributes or {})
+    meta["attributes"][fmt.ATTRS_KEY] = bigt
     # the target's files were fsynced when it was finalized; the names that lead to it
     # (a term directory made by mkdir) are made durable here, before the flip points
     # at them (config.DURABILITY)

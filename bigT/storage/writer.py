@@ -112,9 +112,17 @@ def _validate_block(path: Path, attrs: StoreAttrs, i: int, block) -> sp.csr_arra
     return out
 
 
-def create_store(path, attrs: StoreAttrs) -> None:
+def create_store(path, attrs: StoreAttrs, durable_header: bool = True) -> None:
     """Write the header of an empty store at ``path`` (root and ``rows`` groups):
-    what :func:`write_tile_row` and :func:`finalize_store` need to find."""
+    what :func:`write_tile_row` and :func:`finalize_store` need to find.
+
+    Without ``durable_header`` the root's ``zarr.json`` and the store's name are not
+    fsynced here (the ``rows`` group is): for a store whose owner recreates it when a
+    power cut leaves its header torn or its name lost (an inverse's term stores,
+    :meth:`bigT.storage.InverseStore.prepare_term_store`), and makes its name durable
+    before it publishes it (:func:`set_redirect` fsyncs the term's directory).
+    :func:`finalize_store` replaces the root's ``zarr.json`` durably, after fsyncing
+    the store's directory, either way."""
     path = as_location(path)
     attrs.check_json(path)
     try:
@@ -124,16 +132,16 @@ def create_store(path, attrs: StoreAttrs) -> None:
             # an empty directory to write into (the caller's choice), or a store built
             # aside already (nobody reads it before it is renamed into place)
             path.mkdir(parents=True, exist_ok=True)
-            _write_header(path, attrs)
+            _write_header(path, attrs, durable_header)
             return
         # else built aside and renamed: a crash never leaves a header half written
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = temporary_sibling(path)
         try:
             tmp.mkdir()
-            _write_header(tmp, attrs)
+            _write_header(tmp, attrs, durable_header)
             os.rename(tmp, path)
-            if durable():
+            if durable() and durable_header:
                 fsync_dir(path.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -142,10 +150,10 @@ def create_store(path, attrs: StoreAttrs) -> None:
         raise (_wrap_oserror(exc, path, "the store header") or exc) from exc
 
 
-def _write_header(path: Path, attrs: StoreAttrs) -> None:
+def _write_header(path: Path, attrs: StoreAttrs, durable_header: bool = True) -> None:
     (path / fmt.ROWS_GROUP).mkdir(exist_ok=True)
     fmt.write_json(path / fmt.ROWS_GROUP / "zarr.json", fmt.group_json({}), durable())
-    write_root_attrs(path, attrs)
+    write_root_attrs(path, attrs, sync=durable_header)
 
 
 def read_store_attrs(path) -> StoreAttrs:
@@ -400,10 +408,12 @@ def clean_partial_rows(path, n_rows: int) -> int:
     return gone
 
 
-def finalize_store(path, zstd_level=None) -> BlockCSR:
+def finalize_store(path, zstd_level=None, metadata: dict | None = None) -> BlockCSR:
     """Write the tile index from the row markers on disk, mark the store complete and
     open it: whoever wrote the rows (threads, other processes), only the markers count.
     The index is fsynced before the completion flag (``config.DURABILITY``).
+    ``metadata``, items merged into the store's free metadata in the same write as
+    the flag (a store complete already is opened as it is).
 
     Raises
     ------
@@ -433,7 +443,8 @@ def finalize_store(path, zstd_level=None) -> BlockCSR:
                 fsync_tree(path / name)
         if durable() and local:
             fsync_dir(path)  # the arrays' names, before the flag that says they are there
-        write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True))
+        write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True,
+                                             metadata={**attrs.metadata, **(metadata or {})}))
     except OSError as exc:
         raise (_wrap_oserror(exc, path, "the tile index") or exc) from exc
     return open_store(path)

@@ -300,3 +300,107 @@ def test_products_on_few_columns_same_as_out_of_core(tmp_path, make_store, monke
         (h.term, h.nnz_P, h.nnz_X) for h in ooc.history]
     np.testing.assert_allclose(X_mem[np.ix_(lit, lit)],
                                np.linalg.inv(A[np.ix_(lit, lit)]), atol=0.05)
+
+
+def _counting(monkeypatch, module, name: str) -> list:
+    """Calls of ``module.name`` recorded (its first argument) while the test runs."""
+    calls, real = [], getattr(module, name)
+
+    def counted(*args, **kwargs):
+        calls.append(args[0] if args else None)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, counted)
+    return calls
+
+
+def test_a_second_small_run_starts_no_thread(tmp_path, make_store, monkeypatch):
+    """Issue #30's fixed costs: the run's pools (T's rows, M, the writes, the term
+    ahead) are the process's, started by the first run, not by each (bigT before
+    started five threads for every run of this size, ~3 ms each under load)."""
+    import threading
+
+    A = random_dominant(96, seed=5, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=32)
+    kwargs = dict(terms=5, prune=1e-6, in_memory=True, progress=False)
+    first = bigT.stratified_inverse(T, tmp_path / "a.zarr", **kwargs)
+    starts = _counting(monkeypatch, threading.Thread, "start")
+    again = bigT.stratified_inverse(T, tmp_path / "b.zarr", **kwargs)
+    assert [t.name for t in starts] == []
+    assert np.array_equal(dense(tmp_path / "a.zarr"), dense(tmp_path / "b.zarr"))
+    assert [h.nnz_X for h in again.history] == [h.nnz_X for h in first.history]
+
+
+def test_publishing_replaces_the_root_once_and_stays_durable(tmp_path, make_store,
+                                                             monkeypatch):
+    """The flip and the record are one durable replace of the root's zarr.json (bigT
+    before wrote it twice, four fsyncs): the published term's files are fsynced before
+    it, the root after it, and the store reopens at the term recorded."""
+    import os
+
+    A = random_dominant(64, seed=6, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=32)
+    out = tmp_path / "X.zarr"
+    events: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def replace(src, dst, *args, **kwargs):
+        events.append(("replace", os.fspath(dst)))
+        return real_replace(src, dst, *args, **kwargs)
+
+    if not os.path.isdir("/proc/self/fd"):
+        pytest.skip("names a descriptor's file through /proc")
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    report = bigT.stratified_inverse(T, out, terms=3, prune=1e-6, in_memory=True,
+                                     progress=False)
+    root_json = str(out / "zarr.json")
+    root_writes = [i for i, e in enumerate(events) if e == ("replace", root_json)]
+    flips = [i for i in root_writes if i > max(
+        j for j, (op, p) in enumerate(events) if op == "fsync" and "/t0" in p)]
+    assert len(flips) == 1  # after the term's files, the root written once
+    assert ("fsync", str(out)) in events[flips[0] + 1:]  # the rename made durable
+    monkeypatch.undo()
+    reopened = bigT.open(out)
+    assert reopened.metadata["inverse"]["dir"] == report.terms
+    np.testing.assert_array_equal(reopened.to_scipy().toarray(), dense(out))
+
+
+def test_a_small_run_fsyncs_what_publishing_needs_once(tmp_path, make_store, monkeypatch):
+    """A run of one tile row that publishes only its last term: its first record is
+    saved with the tile size (one write, not two), X records its term with its
+    completion flag (not rewritten when published), its stores' headers are made
+    durable by their completion and the publish (not each on its own) and the flip
+    carries the record. bigT before made 86 fsyncs here and replaced the root's zarr.json 5 times. The
+    store reopens at the last term, equal bit for bit to one whose every term was
+    published."""
+    import os
+
+    A = random_dominant(48, seed=7, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=64)
+    out = tmp_path / "X.zarr"
+    monkeypatch.setattr(engine, "PUBLISH_INTERVAL_SECONDS", 1e9)  # the last term only
+    fsyncs = _counting(monkeypatch, os, "fsync")
+    real_replace, root_writes = os.replace, []
+
+    def replace(src, dst, *args, **kwargs):
+        if os.fspath(dst) == os.fspath(out / "zarr.json"):
+            root_writes.append(src)
+        return real_replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", replace)
+    report = bigT.stratified_inverse(T, out, terms=5, prune=1e-6, in_memory=True,
+                                     progress=False)
+    monkeypatch.undo()
+    assert len(fsyncs) <= 76
+    assert len(root_writes) <= 3  # created (with the tile size), spectral radius, flip
+    assert bigT.open(out).metadata["inverse"]["term"] == report.terms
+    monkeypatch.setattr(engine, "PUBLISH_INTERVAL_SECONDS", 0.0)  # every term
+    every = bigT.stratified_inverse(T, tmp_path / "every.zarr", terms=5, prune=1e-6,
+                                    in_memory=True, progress=False)
+    assert every.terms == report.terms
+    assert np.array_equal(dense(out), dense(tmp_path / "every.zarr"))

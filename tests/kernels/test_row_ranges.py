@@ -227,3 +227,31 @@ def test_restricted_left_factor_gives_the_same_product(monkeypatch, threads):
     # most entries meeting a nonempty row: nothing to gain, left as it is
     assert restrict_to_used_rows(left, _random(n, n, 0.1, 11, empty_rows=range(5)),
                                  threads) is None
+
+
+def test_shared_pools_are_kept_and_map_all_waits_for_every_task():
+    """:func:`bigT.kernels.threads.shared_pool` hands back the same pool (no thread
+    started twice); :func:`map_all` returns the results in order and, when a task
+    fails, raises only once every other task has finished (as leaving a pool of one's
+    own did)."""
+    import threading
+    import time
+
+    from bigT.kernels.threads import map_all, shared_pool
+
+    pool = shared_pool("test-map-all", 2)
+    assert shared_pool("test-map-all", 2) is pool
+    assert shared_pool("test-map-all", 3) is not pool
+    assert map_all(pool, lambda x: x * x, range(5)) == [0, 1, 4, 9, 16]
+    finished = threading.Event()
+
+    def task(i):
+        if i == 0:
+            raise ValueError("first")
+        time.sleep(0.2)
+        finished.set()
+        return i
+
+    with pytest.raises(ValueError, match="first"):
+        map_all(pool, task, range(2))
+    assert finished.is_set()

@@ -305,3 +305,46 @@ def test_the_command_line_chooses_the_durability_for_its_run(
                  "--durability", level]) == 0
     assert any(e.op == "fsync" for e in recorded) == fsyncs
     assert config.DURABILITY == "full"  # for this run only
+
+
+@needs_proc_fds
+@pytest.mark.parametrize("lost", ["rows group", "root zarr.json", "torn root zarr.json"])
+def test_a_term_stores_header_is_left_to_finalize_and_remade_when_a_power_cut_loses_it(
+        tmp_path, recorded, lost):
+    """An inverse's term store is created without fsyncing its root zarr.json or its
+    name (issue #30: three fsyncs fewer per store; finalize_store and the publish make
+    them durable). What a power cut may then leave (the rows group or the root's
+    attributes lost, or the root torn) is made anew by the next run's prepare, and the
+    store it finalizes reads back whole, its root flushed before it is complete."""
+    from bigT.storage import InverseStore, finalize_store, read_store_attrs, write_tile_row
+
+    A = _matrix()
+    attrs = read_store_attrs(from_scipy(A, tmp_path / "A.zarr", tile_size=16).path).replace(
+        complete=False, nnz=0)
+    inverse = InverseStore(tmp_path / "X.zarr")
+    inverse.open_or_create({"T": "some"})
+    recorded.clear()
+    path = inverse.prepare_term_store(1, "X", attrs).resolve()
+    # built aside: only the rows group's zarr.json and its folder flushed (bigT before
+    # flushed the root's zarr.json, the folder built aside and the term's folder too)
+    flushed = [Path(e.path) for e in recorded if e.op == "fsync"]
+    assert len(flushed) == 2
+    assert {p.name if p.name == "rows" else p.parent.name for p in flushed} == {"rows"}
+    write_tile_row(path, attrs, 0, A[:16])
+    if lost == "rows group":
+        (path / "rows" / "zarr.json").unlink()
+    elif lost == "root zarr.json":
+        (path / "zarr.json").unlink()
+    else:
+        (path / "zarr.json").write_bytes(b"")
+    assert inverse.prepare_term_store(1, "X", attrs).resolve() == path
+    assert not (path / "rows" / "0").exists()  # made anew: nothing of the old kept
+    for i in range(3):
+        write_tile_row(path, attrs, i, A[16 * i:16 * (i + 1)])
+    recorded.clear()
+    X = finalize_store(path)
+    flag = _last(recorded, lambda e: e.op == "rename" and e.dest == str(path / "zarr.json"),
+                 "completion flag")
+    assert any(e.op == "fsync" and e.path == str(path) for e in recorded[:flag])
+    np.testing.assert_array_equal(X.to_scipy().toarray(), A.toarray())
+    inverse.close()
