@@ -688,9 +688,9 @@ def summary_layout(records: Iterable[Record | None]) -> list[str]:
         written = {code: [r.get("files written") for r in _rows(terms)
                           if r.get("code") == code and r.get("files written") is not None]
                    for code in (base, "this tree")}
-        size = rec.title.rsplit(" of the ", 1)[-1] if rec.title else rec.name
+        what = rec.title.split(": ", 1)[-1] if rec.title else rec.name  # its size, terms
         out.append(
-            f"Store layout, {size}: the 4-term inverse took {fmt(by_code['this tree'].get('seconds'))}"
+            f"Store layout, {what}: {fmt(by_code['this tree'].get('seconds'))}"
             f" s in format {by_code['this tree'].get('store format')} (this tree) against "
             f"{fmt(by_code[base].get('seconds'))} s in format {by_code[base].get('store format')}"
             f" ({base}); a term wrote {_span(written['this tree'])} files against "

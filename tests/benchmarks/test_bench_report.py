@@ -531,10 +531,10 @@ def test_the_layout_sentence_sets_this_tree_beside_its_baseline(tmp_path, monkey
         res.save()
     records = report.load_records(tmp_path)
     small, large = report.summary_layout([records["layout"], records["layout-fhd"], None])
-    assert small == ("Store layout, dense 384x512 corner: the 4-term inverse took 12.4 s in "
+    assert small == ("Store layout, a 4-term inverse of the dense 384x512 corner: 12.4 s in "
                      "format 2 (this tree) against 18 s in format 1 (baseline 2789f82); a term "
                      "wrote 354 files against 1,046–1,662.")
-    assert large.startswith("Store layout, dense 1080x1920 corner: the 4-term inverse took "
+    assert large.startswith("Store layout, a 4-term inverse of the dense 1080x1920 corner: "
                             "66.2 s in format 2")
     assert report.summary_layout([None]) == []
     assert any(line == f"- {small}" for line in report.summary(records))
