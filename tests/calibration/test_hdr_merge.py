@@ -173,3 +173,23 @@ def test_recovery_refuses_what_it_cannot_fit():
         recover_camera_response([d.astype(np.uint16) for d in dim], [0.1, 0.2])
     with pytest.raises(CalibrationError, match="unknown response recovery 'mitsunaga'"):
         recover_camera_response(dim, [0.1, 0.2], "mitsunaga")
+
+
+def test_a_recovered_table_keeps_its_shape_when_the_fit_leaves_code_0_free():
+    """Debevec's fit weighs code 0 by zero: with few samples it came back at 20x the
+    top (measured on the simulated rig). A running maximum carried that across every
+    code (T's error 0.79); the weighted isotonic fit pools it with the low codes only
+    (the defaults, 200 samples and lambda 50, keep the fit from leaving it free)."""
+    from bigT.calibration.hdr import _monotone
+
+    truth = (np.arange(256) / 255.0) ** 2.2
+    fitted = truth.copy()
+    fitted[:4] = [20.8, 18.5, 16.6, 14.8]  # the free end, as OpenCV returned it
+    fitted[100:103] = fitted[100:103][::-1]  # and a small dip a fit may leave
+    table = _monotone(fitted[:, None])[:, 0]
+    assert np.all(np.diff(table) >= 0) and table.min() >= 0
+    # the free end pooled with the codes up to where the curve reaches its mean (~0.09,
+    # as measured on the rig), the curve above that untouched
+    assert np.abs(table - truth).max() < 0.1
+    np.testing.assert_allclose(table[110:], truth[110:], rtol=1e-12)
+    assert np.abs(np.maximum.accumulate(fitted) - truth).max() > 1  # the old way
