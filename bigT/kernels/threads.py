@@ -27,7 +27,6 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from .. import config
 from ..errors import BigTError
 
-_POOLS: dict[int, ThreadPoolExecutor] = {}
 _NAMED: dict[tuple[str, int], ThreadPoolExecutor] = {}
 _LOCK = threading.Lock()
 
@@ -35,7 +34,6 @@ _LOCK = threading.Lock()
 def _forget_pools() -> None:
     # a forked child has none of its parent's threads: its pools are made anew
     global _LOCK
-    _POOLS.clear()
     _NAMED.clear()
     _LOCK = threading.Lock()
 
@@ -58,12 +56,8 @@ def thread_count(n_threads: int | None = None) -> int:
 
 
 def thread_pool(n: int) -> ThreadPoolExecutor:
-    """The shared pool of ``n`` threads (made on first use, kept for the process)."""
-    with _LOCK:
-        pool = _POOLS.get(n)
-        if pool is None:
-            pool = _POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix="bigT-kernel")
-        return pool
+    """The kernels' shared pool of ``n`` threads (:func:`shared_pool` ``"kernel"``)."""
+    return shared_pool("kernel", n)
 
 
 def shared_pool(name: str, n: int) -> ThreadPoolExecutor:
