@@ -215,3 +215,36 @@ def test_a_failed_pass_returns_only_after_its_other_tasks(monkeypatch):
     with pytest.raises(RuntimeError, match="task 0 failed"):
         ThreadRunner(2).map(spec, row_blocks(2, 1), {})
     assert finished == [1]
+
+
+def test_every_task_gets_the_pass_inputs_themselves_and_the_bar_counts_blocks(monkeypatch):
+    """The spec and the shared arrays go into the graph once, untraversed: each task
+    receives those very objects (not copies dask rebuilt), and the progress bar advances
+    once per block, not for the two input nodes."""
+    from bigT.schedule import runner as runner_module
+
+    seen, ticks = [], []
+
+    class Bar:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def update(self, n=1):
+            ticks.append(n)
+
+    def fake_run_block(spec, block, shared):
+        seen.append((spec, shared))
+        return block.index
+
+    monkeypatch.setattr(runner_module, "run_block", fake_run_block)
+    monkeypatch.setattr(runner_module, "_bar", lambda *a, **k: Bar())
+    monkeypatch.setattr(runner_module.CostLedger, "record", lambda *a, **k: None)
+    spec = PassSpec(op="test", term=0, task=None, T="", first_bounce="", zero_diagonal=(),
+                    n=5, block_rows=1, dtype="float64", memory=None)
+    shared = {"V": np.arange(5.0)}
+    assert ThreadRunner(2).map(spec, row_blocks(5, 1), shared) == [0, 1, 2, 3, 4]
+    assert len(seen) == 5 and all(s is spec and sh is shared for s, sh in seen)
+    assert sum(ticks) == 5
