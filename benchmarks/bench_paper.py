@@ -12,8 +12,10 @@ each measured claim beside the paper's (reported, never asserted).
 * Fig. 6(a) across sizes (issue #30): T_7^-1 by the whole ``bigT.stratified_inverse``
   call (its automatic path, in memory where M and the terms fit, and out of core)
   against the same pruned series in plain scipy, on wall-corner scenes of n = 1000,
-  2000, 5120, 20480 and 100000 (full HD with ``--sweep-max 2073600``), interleaved,
-  best of the plan's repeats (of up to 5 where the rounds are short: n = 1000, 2000).
+  2000, 5120, 20480 and 100000 (full HD with ``--sweep-max 2073600``; its own run,
+  ``--only sweep --sweep-min 2073600 --sweep-max 2073600 --sweep-scenes bench-out/scale``,
+  reuses bench_scale's full-HD scene), interleaved, best of the plan's repeats (of up to
+  5 where the rounds are short: n = 1000, 2000; one where a round takes minutes).
 * Fig. 9, a wall corner of 38x51 = 1938 pixels (``bigT.scenes.corner``, exact, so T is
   dense like the paper's brute-force capture): RMSE of T_n^-1 against
   ``numpy.linalg.pinv(T)`` for the paper's 1..4 bounces (and 5).
@@ -59,6 +61,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -629,19 +632,25 @@ def fig6(res: Results, plan: Plan, work: Path) -> None:
 SWEEP_SIZES = [(25, 40), (40, 50), (64, 80), (128, 160), (250, 400), (1080, 1920)]
 
 
-def sweep_scene(H: int, W: int, work: Path):
+def sweep_scene(H: int, W: int, work: Path, scenes: Path | None = None):
     """The wall corner at H x W with bench_scale's densities (about 80 entries per row
-    of T at every size; the Cornell box's form factors take O(n^2) to build)."""
+    of T at every size; the Cornell box's form factors take O(n^2) to build); with
+    ``scenes``, bench_scale's own build of it (``scenes/corner-HxW/T.zarr``, the same
+    scene: full HD takes 15 min to build) where there is one."""
     from bench_scale import density_for
 
+    built = None if scenes is None else scenes / f"corner-{H}x{W}" / "T.zarr"
+    if built is not None and (built / "zarr.json").exists():
+        return SimpleNamespace(T=bigT.open(built))
     cut, threshold = density_for(H * W)
     return bigT.scenes.corner((H, W), work / f"sweep-{H * W}.zarr", ff_cut=cut,
                               threshold=threshold, preview=False, progress=False)
 
 
 #: The size sweep's rounds where they are short: up to SHORT_ROUNDS while the rounds so
-#: far took under SHORT_SECONDS in all.
-SHORT_ROUNDS, SHORT_SECONDS = 5, 2.0
+#: far took under SHORT_SECONDS in all; where one round takes over LONG_SECONDS (full
+#: HD: ~10 min, most of it the scipy series), that round alone.
+SHORT_ROUNDS, SHORT_SECONDS, LONG_SECONDS = 5, 2.0, 120.0
 
 
 def sweep_row(scene, work: Path, repeats: int) -> list:
@@ -659,8 +668,13 @@ def sweep_row(scene, work: Path, repeats: int) -> list:
                                   and time.perf_counter() - started < SHORT_SECONDS):
         auto.append(timed_inverse(scene.T, work / f"sweep-X-{n}.zarr", DEFAULT_PRUNE))
         plain.append(best_of(1, lambda: scipy_series(T, CORNELL_TERMS, DEFAULT_PRUNE)))
-        ooc.append(timed_inverse(scene.T, work / f"sweep-ooc-{n}.zarr", DEFAULT_PRUNE,
-                                 in_memory=False))
+        if auto[-1][1].engine_path == "in-memory":
+            ooc.append(timed_inverse(scene.T, work / f"sweep-ooc-{n}.zarr", DEFAULT_PRUNE,
+                                     in_memory=False))
+        else:  # the automatic path ran out of core itself
+            ooc.append(auto[-1])
+        if time.perf_counter() - started > LONG_SECONDS:
+            break
     (t_auto, report), (t_ooc, _) = min(auto, key=lambda r: r[0]), min(ooc, key=lambda r: r[0])
     t_plain, (X_plain, _) = min(plain, key=lambda r: r[0])
     X = dense_T(bigT.open(report.path))
@@ -670,13 +684,14 @@ def sweep_row(scene, work: Path, repeats: int) -> list:
             apart]
 
 
-def size_sweep(res: Results, plan: Plan, work: Path, max_n: int) -> None:
+def size_sweep(res: Results, plan: Plan, work: Path, max_n: int, min_n: int = 0,
+               scenes: Path | None = None) -> None:
     """Fig. 6(a)'s timing from n = 1000 up: the whole ``bigT.stratified_inverse`` call
     against the same pruned series in plain scipy (the issue's goal: never slower)."""
     rows = []
-    for H, W in [s for s in SWEEP_SIZES if s[0] * s[1] <= max_n]:
+    for H, W in [s for s in SWEEP_SIZES if min_n <= s[0] * s[1] <= max_n]:
         with stage(f"size sweep n = {H * W}"):
-            scene = sweep_scene(H, W, work)
+            scene = sweep_scene(H, W, work, scenes)
             rows.append(sweep_row(scene, work, plan.repeats))
             shutil.rmtree(work / f"sweep-{H * W}.zarr", ignore_errors=True)
         res.value(f"sweep:scipy_over_engine:{H * W}", rows[-1][6],
@@ -689,7 +704,9 @@ def size_sweep(res: Results, plan: Plan, work: Path, max_n: int) -> None:
                   "||X - X_scipy||_F / ||X_scipy||_F"], rows,
                  note=f"prune {DEFAULT_PRUNE:g}, {CORNELL_TERMS} terms, F = diag T; best of "
                       f"{plan.repeats} (of up to {SHORT_ROUNDS} where the rounds so far took "
-                      f"under {SHORT_SECONDS:g} s), the three interleaved; the engine reads T from and "
+                      f"under {SHORT_SECONDS:g} s; one where a round took over "
+                      f"{LONG_SECONDS:g} s), the three interleaved (an automatic path that "
+                      "ran out of core is the out-of-core time too); the engine reads T from and "
                       "writes every term to its stores (float32) and estimates rho(M) and a "
                       "residual per term, the scipy series (float64) does neither; load "
                       f"average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
@@ -897,6 +914,12 @@ def main(argv=None) -> None:
     p.add_argument("--sweep-max", type=int, default=None,
                    help="largest n of the size sweep (default 5120 with --quick, else "
                         "100000; 2073600 adds full HD)")
+    p.add_argument("--sweep-min", type=int, default=0,
+                   help="smallest n of the size sweep (2073600 with --sweep-max 2073600: "
+                        "full HD alone, an own run)")
+    p.add_argument("--sweep-scenes", type=Path, default=None,
+                   help="bench_scale's work folder: its corner-HxW/T.zarr builds are the "
+                        "sweep's scenes where they exist (e.g. bench-out/scale)")
     args = p.parse_args(argv)
     parts = args.only or PARTS
     plan = QUICK if args.quick else FULL
@@ -916,7 +939,8 @@ def main(argv=None) -> None:
                 fig6(res, plan, work)
         if "sweep" in parts:
             with stage("size sweep"):
-                size_sweep(res, plan, work, args.sweep_max or (5120 if args.quick else 100_000))
+                size_sweep(res, plan, work, args.sweep_max or (5120 if args.quick else 100_000),
+                           args.sweep_min, args.sweep_scenes)
         if "corner" in parts:
             with stage("Figs. 9-10"):
                 corner = corner_run(plan, work)

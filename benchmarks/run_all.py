@@ -188,6 +188,11 @@ OWN_RUNS = [
     step("reliability", 4.6, RECORDED, "bench_reliability.py", "--quick"),
     # the layout at full HD: T of the scale step's own full-HD run (the dense preset at
     # 1080x1920) for this tree; the baseline builds its own in format 1 (~15 min)
+    # issue #30's size sweep at full HD (n = 2073600): the engine against the plain
+    # scipy series (~10 min, most of it scipy's), on the scale step's full-HD scene
+    step("paper-fhd", 15.0, "its own run (one round: engine ~2 min, scipy ~10 min)",
+         "bench_paper.py", "--only", "sweep", "--sweep-min", "2073600", "--sweep-max",
+         "2073600", "--sweep-scenes", "bench-out/scale"),
     step("layout-fhd", 20.0, "its own run's build and inverses", "bench_layout.py",
          "--size", "1080x1920", "--repeats", "1", "--baseline-commit", LAST_FORMAT_1,
          "--scene", "bench-out/scale/corner-1080x1920/T.zarr", "--workdir",
