@@ -142,6 +142,20 @@ def check_image(image: np.ndarray, path="<array>", shape: Sequence[int] | None =
 def _checked_image(image: np.ndarray, path, shape, channels, dtype) -> np.ndarray:
     """:func:`check_image`'s image in ``dtype`` (float64 or float32): a float32 one holds
     the float64 one's values cast, bit for bit, with the same errors."""
+    image = _grey_or_rgb(image, path, channels)
+    if np.dtype(dtype) != np.float64 and image.dtype.kind in "ub":
+        return _checked_shape(_to_unit(image, path, dtype), path, shape)  # codes: finite
+    image = _to_unit(image, path)
+    if not np.isfinite(image).all():
+        bad = int(np.size(image) - np.count_nonzero(np.isfinite(image)))
+        raise ImageError(f"{bad} value(s) are NaN or Inf" if image.ndim == 3
+                         else f"{bad} pixel(s) are NaN or Inf", path)
+    return _checked_shape(image.astype(dtype, copy=False), path, shape)
+
+
+def _grey_or_rgb(image: np.ndarray, path, channels) -> np.ndarray:
+    """``image`` as (H, W) or (H, W, 3), its values as they are (an opaque alpha channel
+    dropped, (H, W, 1) squeezed), checked against ``channels`` (1, 3 or None: any)."""
     image = _without_alpha(np.asarray(image), path)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
@@ -153,14 +167,7 @@ def _checked_image(image: np.ndarray, path, shape, channels, dtype) -> np.ndarra
                          f"array of shape {image.shape}", path)
     if channels is not None:
         check_channels(image.shape, channels, path)
-    if np.dtype(dtype) != np.float64 and image.dtype.kind in "ub":
-        return _checked_shape(_to_unit(image, path, dtype), path, shape)  # codes: finite
-    image = _to_unit(image, path)
-    if not np.isfinite(image).all():
-        bad = int(np.size(image) - np.count_nonzero(np.isfinite(image)))
-        raise ImageError(f"{bad} value(s) are NaN or Inf" if image.ndim == 3
-                         else f"{bad} pixel(s) are NaN or Inf", path)
-    return _checked_shape(image.astype(dtype, copy=False), path, shape)
+    return image
 
 
 def _checked_shape(image: np.ndarray, path, shape) -> np.ndarray:
@@ -386,14 +393,31 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, bits: int | None 
         pixels = _quantised(image, bits)
     else:
         raise ImageError(f"unknown image format {suffix!r} (use {', '.join(IMAGE_SUFFIXES)})", path)
+    if suffix == ".png":
+        return write_png_codes(path, pixels, clean=clean, sync_folder=sync_folder)
     with atomic_output(path, "the image", clean=clean, sync_folder=sync_folder) as tmp:
         if suffix == ".npy":
             with open(tmp, "wb") as f:  # given a name, numpy appends ".npy" to ".NPY"
                 np.save(f, pixels)
-        elif suffix == ".png":
-            Path(tmp).write_bytes(encode_png(pixels, path))
         else:
             _iio_call("imwrite", tmp, pixels)
+    return path
+
+
+def write_png_codes(path: str | os.PathLike, codes: np.ndarray, *, clean: bool = True,
+                    sync_folder: bool = True) -> Path:
+    """Write one PNG of integer codes as they are (:func:`write_image`'s PNG of the
+    values ``codes / top``, byte for byte).
+
+    Parameters
+    ----------
+    path : destination (a ``.png``); its folder is created when missing.
+    codes : ndarray, shape (H, W) or (H, W, 3), uint8 or uint16
+    clean, sync_folder : as :func:`write_image`'s
+    """
+    path = Path(path)
+    with atomic_output(path, "the image", clean=clean, sync_folder=sync_folder) as tmp:
+        Path(tmp).write_bytes(encode_png(codes, path))
     return path
 
 
@@ -554,6 +578,27 @@ def _read_deep_colour_png(path: Path) -> np.ndarray:
     return np.frombuffer(raw, "<u2").reshape(H, W, samples).astype(np.uint16)
 
 
+#: PNG colour types whose samples are the image's values themselves: grey and RGB
+#: (a palette's are indices, an alpha channel must be checked and dropped).
+_PLAIN_PNG_TYPES = (0, 2)
+
+
+def png_code_dtype(files: Sequence[Path]) -> np.dtype | None:
+    """The integer type (uint8 or uint16) every one of ``files`` holds its values in,
+    when each is a grey or RGB PNG of that depth (from their headers, 26 bytes each);
+    None otherwise (a palette, an alpha channel, 1 to 4 bits, another format, depths
+    that differ): then only the float frames give their values."""
+    depths = set()
+    for f in files:
+        header = _png_header(Path(f)) if Path(f).suffix.lower() == ".png" else None
+        if header is None or header[0] not in (8, 16) or header[1] not in _PLAIN_PNG_TYPES:
+            return None
+        depths.add(header[0])
+    if len(depths) != 1:
+        return None
+    return np.dtype(np.uint8 if depths.pop() == 8 else np.uint16)
+
+
 def png_bits(path: str | os.PathLike) -> int | None:
     """Bit depth of a PNG file (8 or 16), None for other formats."""
     path = Path(path)
@@ -670,6 +715,16 @@ class ImageSource:
         return _checked_image(read_raw_image(file, self.shape), file, self.shape,
                               self.channels, dtype)
 
+    def read_codes(self, file: Path, dtype) -> np.ndarray:
+        """One frame's integer codes as stored: (H, W) or (H, W, 3) of ``dtype`` (a
+        file of :func:`png_code_dtype`'s), checked as :meth:`read` checks it; its
+        values are ``codes / top`` (:func:`bigT.compensation.codes.code_values`)."""
+        image = _grey_or_rgb(read_raw_image(file, self.shape), file, self.channels)
+        if image.dtype != np.dtype(dtype):
+            raise ImageError(f"the file holds {image.dtype} values where its header "
+                             f"promised {np.dtype(dtype)}", file)
+        return _checked_shape(image, file, self.shape)
+
     def batches(self, size: int) -> Iterator[tuple[list[Path], np.ndarray]]:
         """Yield (files, frames) with frames of shape (k, H, W) (grey) or (k, H, W, 3)
         (colour), float64, k <= size."""
@@ -748,6 +803,22 @@ class ImageSink:
             out.append(write_image(self.target(src), frame, bits=bits, clean=not once,
                                    sync_folder=not once))
         return out
+
+    def takes_codes(self, dtype) -> bool:
+        """True when :meth:`write_codes` writes what :meth:`write` would for codes of
+        ``dtype`` (uint8 or uint16) read from the source's PNG frames: PNG files of the
+        same depth out (no other suffix nor depth asked for)."""
+        bits = 8 * np.dtype(dtype).itemsize
+        return (self.suffix is None and self.bits in (None, bits)
+                and all(self.target(f).suffix.lower() == ".png" for f in self.source.files))
+
+    def write_codes(self, files: Sequence[Path], codes: np.ndarray) -> list[Path]:
+        """:meth:`write` of integer codes (k, H, W) or (k, H, W, 3), uint8 or uint16, as
+        they are (the PNG :meth:`write` makes of ``codes / top``, byte for byte; see
+        :meth:`takes_codes`). Safe to call from several threads at once."""
+        once = self._synced_once
+        return [write_png_codes(self.target(src), frame, clean=not once, sync_folder=not once)
+                for src, frame in zip(files, codes)]
 
     @contextlib.contextmanager
     def synced_once(self) -> Iterator["ImageSink"]:

@@ -56,3 +56,32 @@ def scatter(Y, perm, lo, hi, do_lo, do_hi, top, out):
             f = min(max(f, zero), one) * top
             out[c, p] = np.rint(f)
     return below, above
+
+
+@njit(nogil=True, cache=True)
+def scatter_image(Y, perm, lo, hi, do_lo, do_hi, top, out):
+    """:func:`scatter` quantised as :mod:`bigT.images` writes a PNG instead of as the
+    video sink does: the clipped value (float64, stored float32, as the float frames
+    hold it), then in float64 NaN and values <= 0 to 0, values above 1 to ``top``, the
+    others ``rint(value * top)`` (:func:`bigT.images.quantise`), so the codes are
+    those of the float frames written by :func:`bigT.images.write_image`, bit for bit."""
+    n, k = Y.shape
+    below = 0
+    above = 0
+    for i in range(n):
+        p = perm[i]
+        for c in range(k):
+            v = np.float64(Y[i, c])
+            if do_lo and v < lo:
+                v = lo
+                below += 1
+            elif do_hi and v > hi:
+                v = hi
+                above += 1
+            g = np.float64(np.float32(v))
+            if not g > 0.0:  # NaN too, as np.fmax(NaN, 0)
+                g = 0.0
+            elif g > 1.0:
+                g = 1.0
+            out[c, p] = np.rint(g * top)
+    return below, above

@@ -32,7 +32,8 @@ import numpy as np
 from .. import config
 from ..atomic import refuse_overwriting_inputs
 from ..errors import ImageError, Option
-from ..images import ImageSink, ImageSource, declared_shape, is_image_file, read_image
+from ..images import (ImageSink, ImageSource, declared_shape, is_image_file, png_code_dtype,
+                      read_image)
 from ..schedule.stream import cache_budget, scheduler_runner
 from ..storage import as_store
 from .core import CompensationReport, choose_path, relight
@@ -207,6 +208,7 @@ class FileCompensation:
                              cache_bytes=cache_budget(cache_bytes))
         self._scheduler = scheduler
         self._stack: contextlib.ExitStack | None = None
+        self._image_code_dtype = False  # not known yet (image_code_dtype)
         self.runner = None
         self.compensator: Compensator | None = None
 
@@ -259,8 +261,8 @@ class FileCompensation:
         count = self.frames
         return self.residency.describe(min(self.batch, count or self.batch))
 
-    def run(self, *, overlap: bool = True,
-            on_batch: Callable[[int], None] | None = None) -> FileCompensationReport:
+    def run(self, *, overlap: bool = True, on_batch: Callable[[int], None] | None = None,
+            codes: bool = True) -> FileCompensationReport:
         """Compensate every frame and write the output.
 
         Parameters
@@ -269,11 +271,17 @@ class FileCompensation:
             Read the next batch and write the last one while this one is computed.
         on_batch : callable, optional
             Called with the number of frames of each batch done (a progress bar).
+        codes : bool
+            Integer codes through the products where they give the same output
+            (:attr:`takes_codes`, :attr:`image_code_dtype`); False: the float frames
+            always (the reference those paths are tested against).
         """
         comp = self._entered()
         encoding, projection = self.encoding, self.projection
-        if self.takes_codes:
+        if codes and self.takes_codes:
             stream = self._run_codes(comp, overlap, on_batch)
+        elif codes and self.image_code_dtype is not None:
+            stream = self._run_image_codes(comp, overlap, on_batch)
         else:
             stream = self._run_frames(comp, overlap, on_batch)
         encoder = projection.encoder
@@ -292,6 +300,54 @@ class FileCompensation:
         return (self.video_in and self._sink.video is not None and comp.takes_codes
                 and self.encoding.linear and projection.geometry is None
                 and projection.encoder is None)
+
+    @property
+    def image_code_dtype(self) -> np.dtype | None:
+        """The integer type (uint8 or uint16) of PNG frames whose codes go through the
+        products as they are and come out as the codes of PNG files of the same depth
+        (:meth:`Compensator.compensate_codes` with ``images``: the files the float
+        frames would give, byte for byte, without the float frames): X in memory,
+        linear light, no projector response nor rig geometry, every frame a grey or
+        RGB PNG of one depth (:func:`~bigT.images.png_code_dtype`) written at that
+        depth. None otherwise: the float frames run."""
+        comp = self._entered()
+        projection, sink = self.projection, self._sink
+        if (self.video_in or not sink.images or not comp.takes_codes
+                or not self.encoding.linear or projection.geometry is not None
+                or projection.encoder is not None):
+            return None
+        if self._image_code_dtype is False:  # the headers, read once
+            dtype = png_code_dtype(self.source.files)
+            self._image_code_dtype = (dtype if dtype is not None
+                                      and sink.image_sink.takes_codes(dtype) else None)
+        return self._image_code_dtype
+
+    def _run_image_codes(self, comp: Compensator, overlap: bool, on_batch) -> StreamReport:
+        """PNG codes decoded (on the codec pool with overlap) -> the products -> PNG
+        codes encoded: :meth:`_run_frames` of a plain PNG folder, its float frames,
+        their conversions and quantisation left out (two passes over a frame fewer
+        than six)."""
+        dtype, source = self.image_code_dtype, self.source
+        t0 = time.perf_counter()
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(self._sink)  # closes (a folder's fsync) after the pool
+            write = self._sink.image_sink.write_codes
+            pool = stack.enter_context(CodecPool()) if overlap else None
+            read = lambda file: source.read_codes(file, dtype)  # noqa: E731
+            if pool is not None:
+                stack.enter_context(comp.products_on(pool.product_threads(comp.threads)))
+                batches = decoded_ahead(pool, source, self.batch, read=read)
+                behind = EncodedBehind(pool, write)
+                write = behind.write
+            else:
+                batches, behind = image_batches(source, self.batch, read), None
+            stream = run_stream(batches,
+                                lambda codes: comp.compensate_codes(codes, dtype, images=True),
+                                write, batch=self.batch, overlap=overlap, on_batch=on_batch)
+            written = behind.finish() if behind is not None else None
+        if written is not None:  # the seconds up to the folder's fsync, on closing
+            stream = with_encoding_times(stream, written, time.perf_counter() - t0)
+        return stream
 
     def _run_codes(self, comp: Compensator, overlap: bool, on_batch) -> StreamReport:
         """Codes decoded by ffmpeg -> the products -> codes encoded by ffmpeg (the
@@ -686,6 +742,12 @@ class _Sink:
     def video(self) -> VideoSink | None:
         """The video written, or None for images."""
         return self._video
+
+    @property
+    def image_sink(self) -> ImageSink | None:
+        """The image files written (None for a video): its ``write_codes`` within
+        ``with``."""
+        return self._images
 
     def __enter__(self):
         if self._video is not None:

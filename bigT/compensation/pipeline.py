@@ -101,8 +101,9 @@ class CodecPool:
         return self._executor.submit(fn, *args)
 
 
-def decoded_ahead(pool: CodecPool, source, batch: int,
-                  ahead: int | None = None) -> Iterator[tuple[list[Path], np.ndarray]]:
+def decoded_ahead(pool: CodecPool, source, batch: int, ahead: int | None = None,
+                  read: Callable[[Path], np.ndarray] | None = None
+                  ) -> Iterator[tuple[list[Path], np.ndarray]]:
     """The (files, frames) batches of ``source`` in order, each frame decoded on
     ``pool`` up to ``ahead`` frames before it is yielded.
 
@@ -113,12 +114,15 @@ def decoded_ahead(pool: CodecPool, source, batch: int,
     batch : int, frames per batch
     ahead : int, frames decoded and not yet yielded, at most (at least one batch;
         default ``pool.frames_in_flight``)
+    read : file -> frame, optional (default the float32 frame,
+        ``source.read(file, np.float32)``; ``source.read_codes`` for the codes)
 
     Yields
     ------
     files : list of Path, k <= batch
     frames : ndarray, shape (k, H, W) or (k, H, W, 3), float32; the values of
-        :func:`~bigT.compensation.realtime.image_batches`, bit for bit
+        :func:`~bigT.compensation.realtime.image_batches`, bit for bit (or what
+        ``read`` gives)
     """
     files = list(source.files)
     batch = max(1, int(batch))
@@ -126,8 +130,9 @@ def decoded_ahead(pool: CodecPool, source, batch: int,
     pending: collections.deque[Future] = collections.deque()
     following = iter(files)
 
-    def read(file: Path) -> np.ndarray:
-        return source.read(file, np.float32)  # the codes divided in float32: one pass
+    if read is None:
+        def read(file: Path) -> np.ndarray:
+            return source.read(file, np.float32)  # the codes divided in float32: one pass
 
     def top_up() -> None:
         while len(pending) < ahead:

@@ -191,12 +191,14 @@ class Compensator:
         """True when :meth:`compensate_codes` runs: X held in memory."""
         return self.matrix is not None
 
-    def compensate_codes(self, codes: np.ndarray, dtype) -> np.ndarray:
+    def compensate_codes(self, codes: np.ndarray, dtype, images: bool = False) -> np.ndarray:
         """(K, *frame_shape) integer codes of linear light (a video's uint8 or uint16)
         -> the projector's codes of ``dtype``, clipped and quantised: the frames
         :meth:`__call__` gives for ``codes / top``, quantised as the video sink does,
         in two passes over the frames instead of some eight
-        (:mod:`bigT.compensation.codes`). X must be held in memory."""
+        (:mod:`bigT.compensation.codes`); with ``images``, the codes of PNG files read
+        and written by :mod:`bigT.images` (its division and its quantisation). X must
+        be held in memory."""
         if self.matrix is None:
             raise RuntimeError("compensate_codes needs X held in memory (takes_codes)")
         if self._perm is None:
@@ -205,10 +207,10 @@ class Compensator:
             self._perm = self.order.permutation.astype(np.int32)
         threads = self.threads
         B, Y = self._batch_buffers(codes.shape[0])
-        gather_codes(codes, self._perm, threads, out=B)
+        gather_codes(codes, self._perm, threads, out=B, images=images)
         self.matrix.matmul(B, out=Y, n_threads=threads)
         out, below, above = scatter_codes(Y, self._perm, self.clip, self.order.frame_shape,
-                                          dtype, threads)
+                                          dtype, threads, images=images)
         self.report.add_clipped(Y, self.clip, self.order.channels, below, above, out.size)
         return out
 
@@ -438,14 +440,17 @@ def _overlapped(it: Iterator, compute, finish, depth: int) -> None:
         raise stages.error
 
 
-def image_batches(source, size: int) -> Iterator[tuple[list, np.ndarray]]:
+def image_batches(source, size: int, read: Callable | None = None
+                  ) -> Iterator[tuple[list, np.ndarray]]:
     """(files, frames) batches of a :class:`bigT.images.ImageSource`, frames float32
-    (the values of its float64 batches cast, read in float32 straight)."""
+    (the values of its float64 batches cast, read in float32 straight), or what
+    ``read(file)`` gives (the codes)."""
     files = list(source.files)
     size = max(1, int(size))
+    read = read or (lambda f: source.read(f, np.float32))
     for start in range(0, len(files), size):
         chunk = files[start:start + size]
-        yield chunk, np.stack([source.read(f, np.float32) for f in chunk])
+        yield chunk, np.stack([read(f) for f in chunk])
 
 
 def video_batches(source, size: int) -> Iterator[tuple[list, np.ndarray]]:

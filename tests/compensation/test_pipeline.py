@@ -182,15 +182,15 @@ def test_an_interrupted_run_leaves_complete_files_only(grey, tmp_path, monkeypat
     from bigT.compensation import realtime
 
     calls = [0]
-    compute = realtime.Compensator.__call__
+    compute = realtime.Compensator.compensate_codes  # a PNG folder's codes path
 
-    def interrupted(self, frames):  # Ctrl-C in the products, frames being encoded
+    def interrupted(self, *args, **kwargs):  # Ctrl-C in the products, frames being encoded
         calls[0] += 1
         if calls[0] == 5:
             raise KeyboardInterrupt
-        return compute(self, frames)
+        return compute(self, *args, **kwargs)
 
-    monkeypatch.setattr(realtime.Compensator, "__call__", interrupted)
+    monkeypatch.setattr(realtime.Compensator, "compensate_codes", interrupted)
     with FileCompensation(X, folder, tmp_path / "out", batch=1) as job:
         with pytest.raises(KeyboardInterrupt):
             job.run()
@@ -276,9 +276,9 @@ def test_the_products_leave_a_core_to_the_codecs(grey, tmp_path, monkeypatch):
 
     X, folder, _ = grey
     seen = []
-    compute = realtime.Compensator.__call__
-    monkeypatch.setattr(realtime.Compensator, "__call__",
-                        lambda self, frames: seen.append(self.threads) or compute(self, frames))
+    compute = realtime.Compensator.compensate_codes  # a PNG folder's codes path
+    monkeypatch.setattr(realtime.Compensator, "compensate_codes",
+                        lambda self, *a, **k: seen.append(self.threads) or compute(self, *a, **k))
     with FileCompensation(X, folder, tmp_path / "pooled", batch=1) as job:
         job.compensator.threads = 4
         job.run()
@@ -289,3 +289,76 @@ def test_the_products_leave_a_core_to_the_codecs(grey, tmp_path, monkeypatch):
             serial.run(overlap=False)
         assert set(seen) == {4}
     assert _files(tmp_path / "pooled") == _files(tmp_path / "serial")
+
+
+@pytest.mark.parametrize("scene", ["grey", "colour"])
+@pytest.mark.parametrize("bits", [8, 16])
+@pytest.mark.parametrize("clip", [(0, 1), (0.2, 0.5), (0, None), None])
+@pytest.mark.parametrize("overlap", [True, False])
+def test_png_codes_path_writes_the_float_paths_files(request, tmp_path, scene, bits, clip,
+                                                     overlap):
+    """A folder of plain PNG frames, X in memory, linear light: the codes go through the
+    products as they are (FileCompensation.image_code_dtype) and the files written are
+    the float frames', byte for byte, with the same clip counts."""
+    X, _, _ = request.getfixturevalue(scene)
+    shape = X.pixel_order.frame_shape
+    folder = _folder(tmp_path / f"in{bits}", shape, bits=bits, seed=bits)
+    # codes at the ends and past the clip, so that every branch of the quantisation runs
+    write_image(folder / "frame900.png", np.where(np.indices(shape).sum(0) % 2, 1.0, 0.0),
+                bits=bits)
+    reports = {}
+    for codes in (True, False):
+        with FileCompensation(X, folder, tmp_path / f"o{codes}", batch=4, clip=clip,
+                              encoding="linear") as job:
+            assert job.image_code_dtype == np.dtype(f"uint{bits}")
+            reports[codes] = job.run(codes=codes, overlap=overlap).compensation
+    assert _files(tmp_path / "oTrue") == _files(tmp_path / "oFalse")
+    assert [(r.clipped_low, r.clipped_high, r.clipped_low_by_channel, r.pixels)
+            for r in reports.values()] == [(reports[False].clipped_low,
+                                            reports[False].clipped_high,
+                                            reports[False].clipped_low_by_channel,
+                                            reports[False].pixels)] * 2
+
+
+def test_png_codes_path_only_where_it_gives_the_same_files(grey, tmp_path):
+    """Another depth asked for, another suffix, X streamed, frames of mixed depths, a
+    palette or an alpha channel: the float frames run."""
+    from PIL import Image
+
+    X, folder, _ = grey
+    for options in ({"bits": 8}, {"resident": False}):
+        with FileCompensation(X, folder, tmp_path / "o", **options) as job:
+            assert job.image_code_dtype is None
+    shape = X.pixel_order.image_shape
+    mixed = _folder(tmp_path / "mixed", shape, frames=2)
+    write_image(mixed / "frame009.png", np.full(shape, 0.5), bits=8)
+    palette = _folder(tmp_path / "palette", shape, frames=2, bits=8)
+    Image.fromarray(np.zeros(shape, np.uint8)).convert("P").save(palette / "frame000.png")
+    alpha = _folder(tmp_path / "alpha", shape, frames=2, bits=8)
+    Image.fromarray(np.zeros(shape, np.uint8)).convert("LA").save(alpha / "frame000.png")
+    for inputs in (mixed, palette, alpha):
+        with FileCompensation(X, inputs, tmp_path / f"o-{inputs.name}") as job:
+            assert job.image_code_dtype is None
+            if inputs is not palette:  # (whose palette reads as RGB: refused, as before)
+                job.run()  # and still runs, on the float frames
+
+
+def test_image_codes_quantise_as_write_image():
+    """The codes kernels' image arithmetic is bigT.images': a code's value divided in
+    float32 as the reader divides it, and the quantisation of write_image (NaN, -0,
+    negatives, values past 1, infinities and the half-codes between)."""
+    from bigT.compensation.codes import code_values, scatter_codes
+    from bigT.images import _quantised, _to_unit
+
+    for dtype in (np.uint8, np.uint16):
+        codes = np.arange(np.iinfo(dtype).max + 1, dtype=dtype)
+        assert np.array_equal(code_values(dtype, images=True), _to_unit(codes, "", np.float32))
+        top = float(np.iinfo(dtype).max)
+        halves = ((np.arange(2000) + 0.5) / top).astype(np.float32)
+        Y = np.concatenate([halves, np.nextafter(halves, 1), np.nextafter(halves, 0),
+                            np.float32([np.nan, -0.0, -1e-9, 1.0, 1 + 1e-7, np.inf, -np.inf])])
+        Y = Y[:, None].copy()
+        perm = np.arange(Y.shape[0])
+        got, below, above = scatter_codes(Y, perm, None, (Y.shape[0],), dtype, images=True)
+        np.testing.assert_array_equal(got[0], _quantised(Y[:, 0], 8 * np.dtype(dtype).itemsize))
+        assert (below, above) == (0, 0)
