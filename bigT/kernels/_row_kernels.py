@@ -234,3 +234,32 @@ def scale_off_diagonal_into_internal(indptr, indices, data, d, offset, out_p, ro
         if q != end:
             return False
     return True
+
+
+@njit(nogil=True, cache=True)
+def checked_tile_counts_internal(indptr, indices, data, n_cols, tile_size, counts):
+    """Whether a tile row's CSR arrays hold together (``indptr`` monotone from 0 to
+    len(indices), each row's columns strictly increasing inside ``0:n_cols``, every
+    value finite), counting meanwhile the entries of each tile column into ``counts``
+    (n_cols / tile_size rounded up,): one pass instead of numpy's five (a reduction
+    or a temporary as long as the row each)."""
+    nnz = indices.shape[0]
+    rows = indptr.shape[0] - 1
+    if indptr[0] != 0 or indptr[rows] != nnz:
+        return False
+    for i in range(rows):  # first: every row's range inside the arrays
+        if indptr[i + 1] < indptr[i]:
+            return False
+    for i in range(rows):
+        prev = -1
+        tile, bound = -1, 0  # the tile column of the last entry, and where it ends
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j <= prev or j >= n_cols or not np.isfinite(data[p]):
+                return False
+            prev = j
+            if j >= bound:  # columns increase: a division per tile, not per entry
+                tile = j // tile_size
+                bound = (tile + 1) * tile_size
+            counts[tile] += 1
+    return True

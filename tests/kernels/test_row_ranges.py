@@ -316,3 +316,18 @@ def test_scaled_off_diagonal_rows_leaves_what_it_cannot_trust(monkeypatch, damag
     else:
         d = d.astype(np.float32)
     assert scaled_off_diagonal_rows(blocks, starts, d, 2) is None
+
+
+def test_checked_tile_counts_counts_each_tile_column(backend):
+    """A sound row's entries per tile column, as numpy's bincount of the tiles; None
+    for a row whose columns go down (the reader's numpy checks then say why)."""
+    from bigT.kernels.row_ranges import checked_tile_counts
+
+    A = _random(50, 95, 0.2, 15)
+    indptr = A.indptr.astype(np.int64)
+    got = checked_tile_counts(indptr, A.indices, A.data, 95, 10)
+    np.testing.assert_array_equal(got, np.bincount(A.indices // 10, minlength=10))
+    indices = A.indices.copy()
+    p = int(indptr[np.flatnonzero(np.diff(indptr) >= 2)[0]])
+    indices[p], indices[p + 1] = indices[p + 1], indices[p]
+    assert checked_tile_counts(indptr, indices, A.data, 95, 10) is None
