@@ -38,7 +38,8 @@ import scipy.sparse as sp
 
 from ..kernels import BlockDiagonal, prune, scale_rows, spmm_dense, workspace_bytes
 from ..kernels.row_ranges import (narrow_columns, prune_rows, restrict_to_used_rows,
-                                  row_view, stack_rows, tile_pairs)
+                                  row_view, scaled_off_diagonal_rows, stack_rows,
+                                  tile_pairs)
 from ..kernels.threads import map_all, shared_pool
 from ..schedule import blocks
 from ..schedule.memory import stored_bytes
@@ -86,23 +87,33 @@ class ResidentMatrices:
 
     def _make_M(self) -> sp.csr_array:
         """M, shape (n, n), sorted: each tile row of T made into M's rows as a task makes
-        them (:func:`bigT.schedule.blocks.m_rows`), ``threads`` tile rows at once, then
-        the rows stacked (one copy). T's rows are those the run set-up read for F
-        (``layout.T_rows``, each let go of once made into M's), else read here (a read
-        decodes, checks and joins the row's tiles, mostly in numpy and numba, which let
-        go of the interpreter)."""
+        them (:func:`bigT.schedule.blocks.m_rows`). T's rows are those the run set-up
+        read for F (``layout.T_rows``, let go of here), else read here, ``threads`` at
+        once (a read decodes, checks and joins the row's tiles, mostly in numpy and
+        numba, which let go of the interpreter). A grey M with F = diag T is written
+        straight into its arrays (:func:`~bigT.kernels.row_ranges.scaled_off_diagonal_rows`:
+        the same entries without a block per tile row, nor stacking them on one
+        thread); otherwise, or where T's rows are not as its reader checks them,
+        ``threads`` tile rows at once, then the rows stacked (one copy)."""
         lay = self.layout
         finv = lay.fb.finv.astype(self.dtype)
         T_row = lay.T.get_tile_row if lay.T_rows is None else lay.T_rows.take
+        pool = shared_pool("M", self.threads)
+        rows = map_all(pool, T_row, range(lay.T.grid[0]))
+        starts = [lay.T.tile_row_range(i)[0] for i in range(lay.T.grid[0])]
+        if lay.fb.channels == 1 and lay.fb.zero_diagonal:
+            M = scaled_off_diagonal_rows(rows, starts, -finv, self.threads)
+            if M is not None:
+                return M
 
         def m_block(i: int) -> sp.csr_array:  # T's tile row i (its tiling, not X's)
             start, stop = lay.T.tile_row_range(i)
-            return blocks.m_rows(T_rows=T_row(i), start=start, finv=finv,
+            T_rows, rows[i] = rows[i], None  # let go of as its rows of M are made
+            return blocks.m_rows(T_rows=T_rows, start=start, finv=finv,
                                  active_rows=lay.fb.active[start:stop],
                                  zero_diagonal=lay.fb.zero_diagonal)
 
-        M = stack_rows(map_all(shared_pool("M", self.threads), m_block,
-                               range(lay.T.grid[0])))
+        M = stack_rows(map_all(pool, m_block, range(lay.T.grid[0])))
         M.has_sorted_indices = True
         return M
 

@@ -186,3 +186,80 @@ def select_by_column_into_internal(indptr, indices, data, keep, r0, r1, out_p, o
                 out_j[pos] = indices[p]
                 out_v[pos] = data[p]
                 pos += 1
+
+
+@njit(nogil=True, cache=True)
+def off_diagonal_per_row_internal(indptr, indices, offset, out):
+    """out[i] = the entries of row i outside column i + ``offset``, for every row of a
+    row block whose rows are sorted (a binary search a row, not a pass over them:
+    :func:`scale_off_diagonal_into_internal` checks the order as it writes)."""
+    for i in range(indptr.shape[0] - 1):
+        lo, hi = indptr[i], indptr[i + 1]
+        target = i + offset
+        a, b = lo, hi
+        while a < b:
+            mid = (a + b) // 2
+            if indices[mid] < target:
+                a = mid + 1
+            else:
+                b = mid
+        out[i] = hi - lo - (1 if a < hi and indices[a] == target else 0)
+
+
+@njit(nogil=True, cache=True)
+def scale_off_diagonal_into_internal(indptr, indices, data, d, offset, out_p, row0,
+                                     out_j, out_v):
+    """The rows of a row block starting at global row ``offset`` written as
+    ``scale_cols_off_diagonal_internal`` writes them (each entry times d of its column,
+    the one in column i + offset left out) at rows ``row0:`` of the result, whose row
+    pointer ``out_p`` is already known. False, with rows left half written, where a
+    row's columns do not increase strictly, leave ``0:len(d)``, or do not fill the
+    row's place (its count was made for sorted rows)."""
+    n_cols = d.shape[0]
+    for i in range(indptr.shape[0] - 1):
+        q, end = out_p[row0 + i], out_p[row0 + i + 1]
+        diag = i + offset
+        prev = -1
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j <= prev or j >= n_cols:
+                return False
+            prev = j
+            if j != diag:
+                if q >= end:
+                    return False
+                out_j[q] = j
+                out_v[q] = data[p] * d[j]
+                q += 1
+        if q != end:
+            return False
+    return True
+
+
+@njit(nogil=True, cache=True)
+def checked_tile_counts_internal(indptr, indices, data, n_cols, tile_size, counts):
+    """Whether a tile row's CSR arrays hold together (``indptr`` monotone from 0 to
+    len(indices), each row's columns strictly increasing inside ``0:n_cols``, every
+    value finite), counting meanwhile the entries of each tile column into ``counts``
+    (n_cols / tile_size rounded up,): one pass instead of numpy's five (a reduction
+    or a temporary as long as the row each)."""
+    nnz = indices.shape[0]
+    rows = indptr.shape[0] - 1
+    if indptr[0] != 0 or indptr[rows] != nnz:
+        return False
+    for i in range(rows):  # first: every row's range inside the arrays
+        if indptr[i + 1] < indptr[i]:
+            return False
+    for i in range(rows):
+        prev = -1
+        tile, bound = -1, 0  # the tile column of the last entry, and where it ends
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j <= prev or j >= n_cols or not np.isfinite(data[p]):
+                return False
+            prev = j
+            if j >= bound:  # columns increase: a division per tile, not per entry
+                tile = j // tile_size
+                bound = (tile + 1) * tile_size
+            counts[tile] += 1
+    return True

@@ -112,6 +112,83 @@ def stack_rows(pieces: list[sp.csr_array]) -> sp.csr_array:
     return out
 
 
+def scaled_off_diagonal_rows(blocks: list[sp.csr_array], starts: list[int],
+                             d: np.ndarray, n_threads: int) -> sp.csr_array | None:
+    """The row blocks ``blocks`` (each (r_b, n), global columns, block b starting at
+    global row ``starts[b]``) stacked, each entry times d of its column and the
+    main diagonal's entries left out: the blocks of
+    :func:`bigT.kernels.scale_cols_off_diagonal` (of each block at its offset) then
+    :func:`stack_rows`, bit for bit, but written straight into arrays of the result's
+    size, block by block on ``n_threads`` threads.
+
+    Why: M = -T F^-1 off the diagonal, in memory, from T's tile rows (the dense
+    384x512 corner: 6*10^7 entries in 24 tile rows). Each block's kernel call checked
+    the rows again (the store's reader has), wrote a block as long as T's, and the
+    stacking copied all of them once more on one thread (0.6 s of the run's set-up).
+    Here each row's place is counted first (a binary search for its diagonal entry),
+    then each block written in place, its rows checked as they are written.
+
+    Returns
+    -------
+    csr_array, shape (sum r_b, n), canonical; or None where the blocks are small (the
+    one-thread numpy forms are quicker than loading the kernels), not all of d's dtype,
+    or not sorted, duplicate-free and in range (the caller then makes it block by
+    block, which checks them and says what is wrong).
+    """
+    d = np.asarray(d)
+    if not blocks:
+        return None
+    n_cols = blocks[0].shape[1]
+    nnz_in = sum(int(B.indptr[-1]) for B in blocks)
+    if (_small_enough(nnz_in) or d.shape != (n_cols,) or d.dtype.kind != "f"
+            or any(B.dtype != d.dtype or B.shape[1] != n_cols or B.format != "csr"
+                   for B in blocks)):
+        return None
+    from ._row_kernels import off_diagonal_per_row_internal, scale_off_diagonal_into_internal
+
+    firsts = np.cumsum([0] + [B.shape[0] for B in blocks])  # each block's first row here
+    counts = np.zeros(int(firsts[-1]) + 1, np.int64)
+    for B, start, r0 in zip(blocks, starts, firsts):
+        off_diagonal_per_row_internal(B.indptr, B.indices, np.int64(start),
+                                      counts[r0 + 1:r0 + 1 + B.shape[0]])
+    indptr = np.cumsum(counts)
+    nnz = int(indptr[-1])
+    # stack_rows' index dtype for blocks narrowed to int32 (the kernel's results)
+    idt = np.int32 if nnz < np.iinfo(np.int32).max and n_cols <= 2**31 else np.int64
+    indptr = indptr.astype(idt)
+    indices, data = np.empty(nnz, idt), np.empty(nnz, d.dtype)
+
+    def write(b0: int, b1: int) -> bool:
+        B = blocks[b0]
+        return bool(scale_off_diagonal_into_internal(
+            B.indptr, B.indices, B.data, d, np.int64(starts[b0]), indptr,
+            np.int64(firsts[b0]), indices, data))
+
+    if not all(run_on_threads(write, [(b, b + 1) for b in range(len(blocks))], n_threads)):
+        return None
+    out = sp.csr_array((data, indices, indptr), shape=(int(firsts[-1]), n_cols), copy=False)
+    out.has_sorted_indices = True
+    out.has_canonical_format = True
+    return out
+
+
+def checked_tile_counts(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
+                        n_cols: int, tile_size: int) -> np.ndarray | None:
+    """The entries of each tile column of a tile row, shape (ceil(n_cols / tile_size),)
+    int64, where its CSR arrays hold together: ``indptr`` (rows + 1,) monotone from 0
+    to len(indices), each row's ``indices`` (nnz,) strictly increasing in
+    ``0:n_cols``, every value of ``data`` (nnz,) finite; else None (the caller's own
+    checks then say what is wrong). One pass on the numba kernels: the store's
+    reader checks every tile row it reads (the dense 384x512 corner's T: 6*10^7
+    entries, ~0.4 s in numpy's reductions, each a pass over the row)."""
+    from ._row_kernels import checked_tile_counts_internal  # numba: only for big rows
+
+    counts = np.zeros(-(-int(n_cols) // int(tile_size)), np.int64)
+    ok = checked_tile_counts_internal(indptr, indices, data, np.int64(n_cols),
+                                      np.int64(tile_size), counts)
+    return counts if ok else None
+
+
 def prune_rows(A: sp.csr_array, threshold: float, n_threads: int) -> sp.csr_array:
     """:func:`bigT.kernels.prune` of A (no ``top_k``), shape (m, n), on ``n_threads``
     row ranges at once, written straight into arrays of the result's size: one pass

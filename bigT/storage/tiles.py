@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from .. import config
 from ..errors import BigTError, CorruptStoreError
 from . import _format as fmt
 from .objects import ObjectPath, concurrently
@@ -171,8 +172,8 @@ class RowReader:
             raise row_error(self._path, i, f"arrays of types {indptr.dtype}, {indices.dtype}, "
                                            f"{data.dtype}: the format has an int64 indptr, "
                                            f"integer indices and {self._attrs.dtype} data")
-        problem = (_csr_problem(indptr, indices, data, n_cols)
-                   or _tile_count_problem(indices, self._attrs.tile_size, columns, counts))
+        problem = _row_problem(indptr, indices, data, n_cols, self._attrs.tile_size,
+                               columns, counts)
         if problem:
             raise row_error(self._path, i, problem)
         if nnz < np.iinfo(np.int32).max and indices.dtype == np.int32:
@@ -206,6 +207,24 @@ class RowReader:
 def row_error(path: Path, i: int, problem: str) -> CorruptStoreError:
     """The error of a bad tile row ``i`` of the store at ``path``."""
     return CorruptStoreError(f"tile row {i}: {problem}", path)
+
+
+def _row_problem(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, cols: int,
+                 tile_size: int, columns: np.ndarray, counts: np.ndarray) -> str | None:
+    """What is wrong with a tile row's arrays (:func:`_csr_problem`, then
+    :func:`_tile_count_problem`), or None. A big row is checked first in one pass of
+    the kernels (:func:`bigT.kernels.row_ranges.checked_tile_counts`); only a row it
+    finds wrong goes through numpy's checks, which say what."""
+    if indices.size > config.KERNEL_NUMPY_MAX_WORK:
+        from ..kernels.row_ranges import checked_tile_counts  # numba: only for big rows
+
+        found = checked_tile_counts(indptr, indices, data, cols, tile_size)
+        if found is not None:
+            present = np.flatnonzero(found)
+            if np.array_equal(present, columns) and np.array_equal(found[present], counts):
+                return None
+    return (_csr_problem(indptr, indices, data, cols)
+            or _tile_count_problem(indices, tile_size, columns, counts))
 
 
 def _tile_count_problem(indices: np.ndarray, tile_size: int, columns: np.ndarray,

@@ -404,3 +404,29 @@ def test_a_small_run_fsyncs_what_publishing_needs_once(tmp_path, make_store, mon
                                     in_memory=True, progress=False)
     assert every.terms == report.terms
     assert np.array_equal(dense(out), dense(tmp_path / "every.zarr"))
+
+
+def test_M_written_in_place_is_the_stacked_blocks(tmp_path, make_store, monkeypatch):
+    """A grey M with F = diag T is written straight into its arrays
+    (bigT.kernels.row_ranges.scaled_off_diagonal_rows), not made block by block and
+    stacked: the same M and the same X, bit for bit, as the blocks' path."""
+    from bigT import config
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)  # the kernels, not numpy
+    A = random_dominant(96, seed=6, density=0.3, margin=0.8)
+    T = make_store(A, tile_size=16)
+    made, real = [], resident.ResidentMatrices._make_M
+    monkeypatch.setattr(resident.ResidentMatrices, "_make_M",
+                        lambda self: made.append(real(self)) or made[-1])
+    kwargs = dict(terms=3, in_memory=True, progress=False, **METHOD_OPTIONS["power"])
+    bigT.stratified_inverse(T, tmp_path / "a.zarr", **kwargs)
+    written = _counting(monkeypatch, resident, "scaled_off_diagonal_rows")
+    monkeypatch.setattr(resident, "scaled_off_diagonal_rows", lambda *args: None)
+    bigT.stratified_inverse(T, tmp_path / "b.zarr", **kwargs)
+    assert written == []  # the second run made M block by block
+    fast, stacked = made
+    assert fast.has_canonical_format
+    for name in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(fast, name), getattr(stacked, name)[:fast.indptr[-1]
+                                                                           if name != "indptr" else None])
+    assert np.array_equal(dense(tmp_path / "a.zarr"), dense(tmp_path / "b.zarr"))

@@ -255,3 +255,79 @@ def test_shared_pools_are_kept_and_map_all_waits_for_every_task():
     with pytest.raises(ValueError, match="first"):
         map_all(pool, task, range(2))
     assert finished.is_set()
+
+
+def _blocks_with_diagonal(n, block_rows, dtype, seed):
+    """Row blocks of a random (n, n) matrix holding most of its diagonal, global
+    columns, and each block's first row."""
+    A = _random(n, n, 0.1, seed, dtype=dtype).tolil()
+    rng = np.random.default_rng(seed)
+    for i in np.flatnonzero(rng.random(n) < 0.8):
+        A[i, i] = 1.0 + rng.random()
+    A = sp.csr_array(A)
+    starts = list(range(0, n, block_rows))
+    return [sp.csr_array(A[s:s + block_rows]) for s in starts], starts
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("threads", [1, 3])
+def test_scaled_off_diagonal_rows_is_the_blocks_stacked(backend, dtype, threads):
+    """The stacked off-diagonal scaling is what each block's scale_cols_off_diagonal
+    (M = -T F^-1's kernel) stacked gives, bit for bit, canonical; below the numpy
+    limit it is left to them (None)."""
+    from bigT.kernels import scale_cols_off_diagonal
+    from bigT.kernels.row_ranges import scaled_off_diagonal_rows
+
+    blocks, starts = _blocks_with_diagonal(130, 32, dtype, 12)
+    d = -np.random.default_rng(13).random(130).astype(dtype)
+    got = scaled_off_diagonal_rows(blocks, starts, d, threads)
+    if backend == "numpy":
+        assert got is None
+        return
+    want = stack_rows([scale_cols_off_diagonal(B, d, s) for B, s in zip(blocks, starts)])
+    assert got.shape == want.shape and got.has_canonical_format
+    assert got.dtype == want.dtype and got.indices.dtype == want.indices.dtype
+    np.testing.assert_array_equal(got.indptr, want.indptr)
+    np.testing.assert_array_equal(got.indices, want.indices[:want.nnz])
+    np.testing.assert_array_equal(got.data.view(np.uint8), want.data[:want.nnz].view(np.uint8))
+    assert not got.diagonal().any() and got.nnz < sum(B.nnz for B in blocks)
+
+
+@pytest.mark.parametrize("damage", ["unsorted", "duplicate", "out of range", "dtype"])
+def test_scaled_off_diagonal_rows_leaves_what_it_cannot_trust(monkeypatch, damage):
+    """Rows that are not sorted and duplicate-free, a column out of range, or blocks not
+    of d's dtype: None (the caller makes M block by block, whose checks say what is
+    wrong), never a wrong M."""
+    from bigT import config
+    from bigT.kernels.row_ranges import scaled_off_diagonal_rows
+
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", -1)
+    blocks, starts = _blocks_with_diagonal(64, 32, np.float64, 14)
+    d = np.ones(64)
+    B = blocks[1]
+    row = int(np.flatnonzero(np.diff(B.indptr) >= 2)[0])
+    p = int(B.indptr[row])
+    if damage == "unsorted":
+        B.indices[p], B.indices[p + 1] = B.indices[p + 1], B.indices[p]
+    elif damage == "duplicate":
+        B.indices[p + 1] = B.indices[p]
+    elif damage == "out of range":
+        B.indices[int(B.indptr[-1]) - 1] = 64
+    else:
+        d = d.astype(np.float32)
+    assert scaled_off_diagonal_rows(blocks, starts, d, 2) is None
+
+
+def test_checked_tile_counts_counts_each_tile_column(backend):
+    """A sound row's entries per tile column, as numpy's bincount of the tiles; None
+    for a row whose columns go down (the reader's numpy checks then say why)."""
+    from bigT.kernels.row_ranges import checked_tile_counts
+
+    A = _random(50, 95, 0.2, 15)
+    indptr = A.indptr.astype(np.int64)
+    got = checked_tile_counts(indptr, A.indices, A.data, 95, 10)
+    np.testing.assert_array_equal(got, np.bincount(A.indices // 10, minlength=10))
+    indices = A.indices.copy()
+    p = int(indptr[np.flatnonzero(np.diff(indptr) >= 2)[0]])
+    indices[p], indices[p + 1] = indices[p + 1], indices[p]
+    assert checked_tile_counts(indptr, indices, A.data, 95, 10) is None

@@ -179,3 +179,40 @@ def test_deleted_middle_chunk_of_multichunk_tile(tmp_path, monkeypatch):
     os.remove(S.path / "rows" / "0" / "indptr" / "c" / "1")
     with pytest.raises(CorruptStoreError, match=r"tile row 0: indptr"):
         open_store(S.path).get_tile(0, 1)
+
+
+@pytest.mark.parametrize("damage", [None, "indptr", "range", "unsorted", "duplicate",
+                                    "non-finite", "tile counts"])
+def test_a_big_row_checked_by_the_kernel_says_what_numpy_says(monkeypatch, damage):
+    """A tile row past config.KERNEL_NUMPY_MAX_WORK is checked in one pass of the kernels
+    (bigT.kernels.row_ranges.checked_tile_counts); a damaged one gets numpy's own
+    message, a sound one none, whichever checks it."""
+    from bigT import config
+    from bigT.storage import tiles
+
+    A = sp.csr_array(sp.random(20, 40, density=0.3, format="csr", random_state=4))
+    A.sort_indices()
+    indptr, indices, data = A.indptr.astype(np.int64), A.indices.copy(), A.data.copy()
+    counts = np.bincount(indices // 10, minlength=4)
+    columns = np.flatnonzero(counts)
+    counts = counts[columns]
+    row = int(np.flatnonzero(np.diff(indptr) >= 2)[0])
+    p = int(indptr[row])
+    if damage == "indptr":
+        indptr[row + 1] = indptr[row] - 1
+    elif damage == "range":
+        indices[-1] = 40
+    elif damage == "unsorted":
+        indices[p], indices[p + 1] = indices[p + 1], indices[p]
+    elif damage == "duplicate":
+        indices[p + 1] = indices[p]
+    elif damage == "non-finite":
+        data[p] = np.nan
+    elif damage == "tile counts":
+        counts = counts + 1
+    args = (indptr, indices, data, 40, 10, columns, counts)
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 10**9)
+    by_numpy = tiles._row_problem(*args)
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", -1)
+    assert tiles._row_problem(*args) == by_numpy
+    assert (by_numpy is None) == (damage is None)
