@@ -140,8 +140,9 @@ def fsync_dir(path: str | os.PathLike) -> None:
 #: where one after the other each waits for a commit of its own, and, while other
 #: processes write, for the journal's batching delay too: a tile row's 12 fsyncs took
 #: 30-50 ms one after the other and 1-1.6 ms together on this project's machine under
-#: load (issue #30: most of the write of an n = 1000 term).
-FSYNC_THREADS = 8
+#: load (issue #30: most of the write of an n = 1000 term); 2, 4 and 8 threads alike
+#: took 1-1.5 ms.
+FSYNC_THREADS = 4
 _FSYNC_POOL: list[ThreadPoolExecutor] = []  # made on first use, kept for the process
 _FSYNC_LOCK = threading.Lock()
 
@@ -157,6 +158,19 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_fsync_pool)
 
 
+def _started_pool(n: int, prefix: str) -> ThreadPoolExecutor:
+    """A pool of ``n`` threads, all started now (each held at a barrier until the last
+    one starts): a pool starts its threads as tasks find none idle, so one started
+    lazily might start another in a later run, which a run of the same size should
+    not (tests/algorithms: a second small run starts no thread)."""
+    pool = ThreadPoolExecutor(n, thread_name_prefix=prefix)
+    barrier = threading.Barrier(n + 1)
+    for _ in range(n):
+        pool.submit(barrier.wait)
+    barrier.wait()
+    return pool
+
+
 def _fsync_together(func, paths: list[str]) -> None:
     """``func(path)`` for every path at once on the fsync threads (in this thread when
     there is one); returns when all are done, raising the first error in order."""
@@ -166,7 +180,7 @@ def _fsync_together(func, paths: list[str]) -> None:
         return
     with _FSYNC_LOCK:
         if not _FSYNC_POOL:
-            _FSYNC_POOL.append(ThreadPoolExecutor(FSYNC_THREADS, thread_name_prefix="bigT-fsync"))
+            _FSYNC_POOL.append(_started_pool(FSYNC_THREADS, "bigT-fsync"))
         pool = _FSYNC_POOL[0]
     futures = [pool.submit(func, path) for path in paths]
     wait(futures)
