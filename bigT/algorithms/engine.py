@@ -67,6 +67,12 @@ from .probes import ProbedResidual, TermResidual
 #: every term written and published as it is computed.
 PUBLISH_INTERVAL_SECONDS = 30.0
 
+#: In memory, the heap's freed pages are handed back before a term
+#: (:func:`~bigT.schedule.memory.return_freed_memory`) only when the matrices held
+#: take at least this many bytes: below it the pages are few, and at n = 1000 the
+#: seven calls cost more than the terms' products' bookkeeping (issue #30).
+TRIM_MIN_BYTES = 64 << 20
+
 
 class InverseEngine:
     """One run of :func:`stratified_inverse` on ``T`` into ``store``.
@@ -117,6 +123,10 @@ class InverseEngine:
         self.XZ: np.ndarray | None = None  # X Z for the term held (None: X is read)
         self._published_at = time.perf_counter()  # the last publication (or the start)
         self._held_unpublished = False  # in memory: the term held not written yet
+        # whether a term was written or published since the store's last clean: in
+        # memory a term the run goes past writes nothing, so nothing needs cleaning
+        # before the next one (the run's end cleans whatever readers let go meanwhile)
+        self._wrote_since_clean = True
 
     def run(self, t_start: float) -> InverseReport:
         """Estimate rho (refusing a diverging series), compute the terms, report."""
@@ -181,6 +191,7 @@ class InverseEngine:
 
     def _term_zero(self) -> None:
         self.store.clean(keep={0})
+        self._wrote_since_clean = False
         t0 = time.perf_counter()
         write = self._writes(0)
         stats = self.passes.run(TERM_ZERO, 0, self._series_metadata(), write=write)
@@ -196,8 +207,11 @@ class InverseEngine:
         if time.perf_counter() - self._published_at >= PUBLISH_INTERVAL_SECONDS:
             self._publish_held()
         self.passes.warn_row_width(held, k, self.record.history)
-        self.store.clean(keep={self.record.dir, k})
-        return_freed_memory()  # the last term's temporaries: each term starts from what it holds
+        if self._wrote_since_clean or not self.path.in_memory:
+            self.store.clean(keep={self.record.dir, k})
+            self._wrote_since_clean = False
+        if not self.path.in_memory or self.passes.matrices.bytes_held() >= TRIM_MIN_BYTES:
+            return_freed_memory()  # the last term's temporaries: each term starts from what it holds
         t0 = time.perf_counter()
         stats = []
         write = self._writes(k)
@@ -336,6 +350,7 @@ class InverseEngine:
         self.record = publish_held(self.store, self.record, X, self._series_metadata())
         self._published_at = time.perf_counter()
         self._held_unpublished = False
+        self._wrote_since_clean = True
         self.passes.forget_unwritten(before=self.record.term + 1)
         if before is not None and before != self.record.term:
             let_go_of_term(self.store, self.runner, before)

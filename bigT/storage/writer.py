@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config
-from ..atomic import atomic_write_json, fsync_dir, fsync_tree
+from ..atomic import atomic_write_json, fsync_dir, fsync_tree, fsync_trees
 from ..errors import (
     BigTError,
     DiskFullError,
@@ -439,8 +439,8 @@ def finalize_store(path, zstd_level=None, metadata: dict | None = None) -> Block
     try:
         for name, values in zip(fmt.INDEX_ARRAYS, (tile_indptr, tile_indices, tile_nnz)):
             fmt.write_array_files(path, name, values, fmt.FILL_INT, zstd_level)
-            if durable() and local:
-                fsync_tree(path / name)
+        if durable() and local:  # the three arrays' fsyncs in one pass
+            fsync_trees([path / name for name in fmt.INDEX_ARRAYS])
         if durable() and local:
             fsync_dir(path)  # the arrays' names, before the flag that says they are there
         write_root_attrs(path, attrs.replace(nnz=int(tile_nnz.sum()), complete=True,

@@ -430,3 +430,34 @@ def test_M_written_in_place_is_the_stacked_blocks(tmp_path, make_store, monkeypa
         assert np.array_equal(getattr(fast, name), getattr(stacked, name)[:fast.indptr[-1]
                                                                            if name != "indptr" else None])
     assert np.array_equal(dense(tmp_path / "a.zarr"), dense(tmp_path / "b.zarr"))
+
+
+def test_terms_gone_past_in_memory_clean_and_trim_nothing(tmp_path, make_store, monkeypatch):
+    """A small run in memory scans its store for terms to delete at term 0 and at its
+    end only (a term it goes past writes nothing; a published one is cleaned after),
+    and hands no heap pages back (bigT before did both before every term: 7 scans
+    and 7 ``malloc_trim`` at n = 1000, issue #30); a term directory a crash left is
+    still gone when the run ends, and out of core every term still cleans."""
+    from bigT.storage import InverseStore
+
+    A = random_dominant(96, seed=4, density=0.2)
+    T = make_store(A, tile_size=16)
+    options = dict(terms=2, prune=1e-6, progress=False, in_memory=True)
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", **options)
+    (tmp_path / "X.zarr" / "t0009" / "X").mkdir(parents=True)  # a crashed run's litter
+    cleans = _counting(monkeypatch, InverseStore, "clean")
+    trims = _counting(monkeypatch, engine, "return_freed_memory")
+    monkeypatch.setattr(engine, "PUBLISH_INTERVAL_SECONDS", 1e9)  # the last term only
+    bigT.stratified_inverse(T, tmp_path / "X.zarr", **{**options, "terms": 6})
+    assert (len(cleans), len(trims)) == (2, 0)  # resumed: before term 3, at the end
+    assert not (tmp_path / "X.zarr" / "t0009").exists()
+    cleans.clear()
+    bigT.stratified_inverse(T, tmp_path / "Y.zarr", **{**options, "terms": 4})
+    assert len(cleans) == 2  # term 0 and the end
+    monkeypatch.setattr(engine, "TRIM_MIN_BYTES", 0)  # matrices this size or more
+    bigT.stratified_inverse(T, tmp_path / "Z.zarr", **{**options, "terms": 4})
+    assert len(trims) == 4  # before terms 1-4
+    cleans.clear()
+    bigT.stratified_inverse(T, tmp_path / "W.zarr", **{**options, "terms": 4,
+                                                          "in_memory": False})
+    assert len(cleans) == 6  # term 0, before terms 1-4, the end

@@ -8,6 +8,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bigT import config
 from bigT.errors import InvalidMatrixError, ShapeMismatchError
 from bigT.kernels import (
     add_diag_scaled,
@@ -371,6 +372,44 @@ def test_spmm_dense_absolute(shape, k, da):
     np.testing.assert_array_equal(A.data, before)
     np.testing.assert_allclose(spmm_dense(A, X, n_threads=2), _dense64(A) @ X,
                                rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [2, 3, 4, 5, 8, 9])
+@pytest.mark.parametrize("da,dx", [(np.float32, np.float32), (np.float32, np.float64),
+                                   (np.float64, np.float64)])
+@pytest.mark.parametrize("absolute", [False, True])
+def test_spmm_dense_sums_each_column_in_row_order(monkeypatch, k, da, dx, absolute):
+    """For k > 1 each entry of A @ X is the sum of its row's terms taken in the row's
+    order, in X's dtype, then added to ``out``: the same bits as a sequential loop
+    (the kernel sums four columns at a time in registers; the residual estimates
+    compare terms by these sums)."""
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)  # the numba kernel
+    rng = np.random.default_rng(17 + k)
+    A = sp.random_array((300, 200), density=0.2, format="csr", rng=rng,
+                        data_sampler=rng.standard_normal).astype(da)
+    X = rng.standard_normal((200, k)).astype(dx)
+    out0 = rng.standard_normal((300, k)).astype(dx)
+    got = spmm_dense(A, X, out=out0.copy(), n_threads=2, absolute=absolute)
+    want = out0.copy()
+    for i in range(A.shape[0]):
+        lo, hi = A.indptr[i], A.indptr[i + 1]
+        if hi == lo:
+            continue
+        a = np.abs(A.data[lo:hi]) if absolute else A.data[lo:hi]
+        terms = a[:, None].astype(dx) * X[A.indices[lo:hi]]
+        want[i] += np.add.accumulate(terms, axis=0)[-1]  # strictly in order
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("k", [1, 2, 4, 6])
+def test_spmm_dense_kernel_refuses_bad_index(monkeypatch, k):
+    """The numba kernel's index check, fused into the first columns' loop for k >= 4:
+    an index out of range is reported, its row and the rows after it not added."""
+    monkeypatch.setattr(config, "KERNEL_NUMPY_MAX_WORK", 0)
+    bad = sp.csr_array((np.array([1.0, 2.0, 3.0]), np.array([0, 1, 7]),
+                        np.array([0, 1, 3, 3])), shape=(3, 3))
+    with pytest.raises(InvalidMatrixError, match="column index out of range"):
+        spmm_dense(bad, np.ones((3, k)), n_threads=1)
 
 
 def test_spmm_dense_checks():
