@@ -43,7 +43,7 @@ from .locks import (
     remove_unless_read,
 )
 from .objects import ObjectPath, as_location
-from .replace import remove_tree
+from .replace import durable, remove_tree
 from .writer import (
     clean_partial_rows,
     create_store,
@@ -219,10 +219,11 @@ class InverseStore:
         return None if raw is None else InverseRecord.from_dict(raw, self.path)
 
     def save(self, record: InverseRecord) -> None:
-        """Replace the record in the root's attributes (one atomic rename)."""
+        """Replace the record in the root's attributes (one atomic rename), fsynced as
+        ``config.DURABILITY`` says (like every other write of the stores)."""
         root = self._root() or fmt.group_json({})
         root.setdefault("attributes", {})[INVERSE_ATTR] = record.to_dict()
-        fmt.write_json(self.path / "zarr.json", root)
+        fmt.write_json(self.path / "zarr.json", root, durable())
 
     def open_or_create(self, params: Mapping, overwrite: bool = False,
                        fresh: Callable[[InverseRecord], InverseRecord] | None = None

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+import bigT
 from bigT import config
 from bigT.atomic import _host_tag, dead_writers_siblings, hidden_sibling
 from bigT.cli import main
@@ -348,3 +349,16 @@ def test_a_term_stores_header_is_left_to_finalize_and_remade_when_a_power_cut_lo
     assert any(e.op == "fsync" and e.path == str(path) for e in recorded[:flag])
     np.testing.assert_array_equal(X.to_scipy().toarray(), A.toarray())
     inverse.close()
+
+
+@needs_proc_fds
+def test_durability_none_runs_a_whole_inverse_without_an_fsync(tmp_path, recorded, monkeypatch):
+    """Not only the store writers: the inverse's record (its root attributes, saved at
+    the spectral radius and at each publication) follows config.DURABILITY too."""
+    monkeypatch.setattr(config, "DURABILITY", "none")
+    A = sp.random(40, 40, density=0.2, random_state=np.random.default_rng(3), format="csr")
+    T = sp.csr_array(sp.eye(40) + 0.5 * A / A.sum(axis=0).max())  # rho(M) < 1
+    S = from_scipy(T, tmp_path / "S.zarr", tile_size=16)
+    report = bigT.stratified_inverse(S, tmp_path / "X.zarr", terms=2, prune=0, progress=False)
+    assert report.terms == 2
+    assert not [e for e in recorded if e.op == "fsync"]
