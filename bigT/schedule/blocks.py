@@ -76,7 +76,8 @@ def diag_rows(start: int, stop: int, n: int, values: np.ndarray, dtype) -> sp.cs
 
 
 def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.ndarray,
-           zero_diagonal: bool, minus_finv: np.ndarray | None = None) -> sp.csr_array:
+           zero_diagonal: bool, minus_finv: np.ndarray | None = None,
+           checked: bool = True) -> sp.csr_array:
     """Rows ``start:start + r`` of M = D - T F^-1 from the same rows of T.
 
     Parameters
@@ -94,6 +95,10 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
         -finv in T_rows' dtype, made once by a caller that makes many row blocks (it is
         as long as a row: at full HD, 254 tasks each negating 2*10^6 entries cost
         ~0.2 s).
+    checked : bool
+        False: T_rows are as the store's reader returned them (checked there) and finv
+        is the engine's, checked once: the grey kernel does not check them again
+        (:func:`bigT.kernels.scale_cols_off_diagonal`).
 
     Returns
     -------
@@ -106,7 +111,7 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
         minus_finv = -np.asarray(finv, dtype=T_rows.dtype)
     # one pass, no COO round trip: a tile row of a big T has ~10^7 entries and every
     # extra copy of them counts against the memory limit
-    M = scale_cols_off_diagonal(T_rows, minus_finv, start)
+    M = scale_cols_off_diagonal(T_rows, minus_finv, start, checked=checked)
     if not zero_diagonal:
         r = T_rows.shape[0]
         d = (np.asarray(active_rows, dtype=M.dtype)

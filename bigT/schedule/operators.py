@@ -206,7 +206,8 @@ class MOperand:
     def _make_rows(self, a, b):
         return blocks.m_rows(T_rows=self._T_rows(a, b, take=True), start=a,
                              finv=self.finv, active_rows=self.active[a:b],
-                             zero_diagonal=self.zero_diagonal, minus_finv=self._minus_finv)
+                             zero_diagonal=self.zero_diagonal, minus_finv=self._minus_finv,
+                             checked=False)  # T's rows checked by its reader, F^-1 by F's
 
     def rows(self, a: int, b: int) -> sp.csr_array:
         """Rows ``a:b`` of M, shape (b - a, n), global columns."""
