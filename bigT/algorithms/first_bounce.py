@@ -50,6 +50,10 @@ class FirstBounce:
     digest : str, hash of f, recorded in the inverse's metadata
     ill_conditioned : int, of the excluded pixels, those left out for their colour
         block (``"diag-skip-ill"``)
+    smallest_entry : float or None
+        T's smallest entry capped at 0 (< 0: T has a negative entry), learned by the
+        read that gave T's diagonal when it saw every entry; None when not known
+        (:meth:`m_nonpositive`).
     """
 
     kind: str
@@ -59,6 +63,17 @@ class FirstBounce:
     excluded: int
     digest: str
     ill_conditioned: int = 0
+    smallest_entry: float | None = None
+
+    @property
+    def m_nonpositive(self) -> bool:
+        """Known without reading M that M = D - T F^-1 has no positive entry: grey,
+        F = diag T (M's diagonal is dropped, its off-diagonal entries are
+        T_ij * (-1/F_jj) with F_jj > 0 on the kept pixels, 0 elsewhere) and T has no
+        negative entry. False means not known (M may still have none: the caller
+        reads M's rows)."""
+        return (self.zero_diagonal and self.channels == 1
+                and self.smallest_entry is not None and self.smallest_entry >= 0)
 
     @property
     def zero_diagonal(self) -> bool:
@@ -127,12 +142,16 @@ def _empty_rows_and_cols(T, candidates: np.ndarray, rows=None) -> np.ndarray:
 
 def _pixel_namer(T):
     """``i -> "index 7"`` for a row of T in its stored order, or ``"pixel (y, x)"`` where
-    the store numbers pixels in another order than the row-major one users see."""
-    order = getattr(T, "pixel_order", None)
-    if order is None or np.array_equal(order.permutation, np.arange(order.n)):
-        return lambda i: f"index {i}"
-    W = order.image_shape[1]
-    return lambda i: "pixel (%d, %d)" % divmod(int(order.permutation[i]), W)
+    the store numbers pixels in another order than the row-major one users see. The
+    order's permutation (a sort of every pixel: 0.3 s at full HD) is made only when an
+    error names a pixel."""
+    def name(i) -> str:
+        order = getattr(T, "pixel_order", None)
+        if order is None or np.array_equal(order.permutation, np.arange(order.n)):
+            return f"index {i}"
+        return "pixel (%d, %d)" % divmod(int(order.permutation[i]), order.image_shape[1])
+
+    return name
 
 
 def _refuse_nonpositive(f: np.ndarray, active: np.ndarray, what: str, path,
@@ -244,13 +263,14 @@ def resolve_first_bounce(T, spec="diag") -> FirstBounce:
     return first_bounce_of_rows(T, spec, None)
 
 
-def first_bounce_of_rows(T, spec, rows) -> FirstBounce:
+def first_bounce_of_rows(T, spec, rows, keep=None) -> FirstBounce:
     """:func:`resolve_first_bounce`, T's diagonal (blocks) and, where the diagonal has
     zeros, its empty rows and columns taken from ``rows`` when given: T's tile rows
     already read (``rows[i]`` is ``T.get_tile_row(i)``, read on first use; the
     in-memory path makes M from the same rows), else read from T's store (its diagonal
     tiles, for the diagonal). The same F either way; a ``spec`` file is loaded first, so
-    that its errors come before T is read."""
+    that its errors come before T is read. ``keep(i, row)`` is handed the tile rows
+    read whole from the store (:meth:`bigT.storage.BlockCSR.diagonal_scan`)."""
     n = T.shape[0]
     source = None  # the --first-bounce file, named in the errors about its vector
     if isinstance(spec, (str, os.PathLike)) and str(spec) not in NAMED_FIRST_BOUNCES:
@@ -258,8 +278,8 @@ def first_bounce_of_rows(T, spec, rows) -> FirstBounce:
         spec = load_first_bounce(source)
     if getattr(T, "channels", 1) != 1:
         return _resolve_colour(T, spec, source, rows)
-    d = np.asarray(T.diagonal(output_order="matrix") if rows is None
-                   else _diagonal_of_rows(T, rows), dtype=np.float64)
+    d, smallest = _diagonal_and_smallest(T, rows, keep)
+    d = np.asarray(d, dtype=np.float64)
     if isinstance(spec, str):
         kind = spec
         f = d.copy() if kind != "identity" else np.ones(n)
@@ -284,22 +304,42 @@ def first_bounce_of_rows(T, spec, rows) -> FirstBounce:
     finv = np.zeros(n)
     finv[active] = 1.0 / f[active]
     digest = hashlib.sha1(np.ascontiguousarray(f).tobytes()).hexdigest()[:16]
-    return FirstBounce(kind, f, finv, active, int(len(excluded)), digest)
+    return FirstBounce(kind, f, finv, active, int(len(excluded)), digest,
+                       smallest_entry=smallest)
 
 
-def _diagonal_of_rows(T, rows) -> np.ndarray:
+def _diagonal_and_smallest(T, rows, keep=None) -> tuple[np.ndarray, float | None]:
+    """T's main diagonal in its stored order, shape (min(shape),), and its smallest
+    entry capped at 0 where the read saw every entry (else None): from T's store
+    (:meth:`bigT.storage.BlockCSR.diagonal_scan`, which hands ``keep`` the tile rows
+    it read whole), or from its tile rows ``rows``."""
+    if rows is not None:
+        return _diagonal_of_rows(T, rows)
+    scan = getattr(T, "diagonal_scan", None)
+    if scan is None:  # a store-like T without the scan: its diagonal only
+        return T.diagonal(output_order="matrix"), None
+    found = scan(output_order="matrix", keep=keep)
+    return found.diagonal, found.smallest
+
+
+def _diagonal_of_rows(T, rows) -> tuple[np.ndarray, float | None]:
     """T's main diagonal in its stored order, shape (min(shape),), T's dtype, from its
     tile rows ``rows`` (global columns): what ``T.diagonal(output_order="matrix")``
-    reads from the store."""
+    reads from the store; and the smallest entry of those rows capped at 0, None
+    where rows were left unseen (more rows than columns)."""
     n = min(T.shape)
     out = np.zeros(n, dtype=T.dtype)
+    smallest = 0.0
     for i in range(T.grid[0]):
         start, _ = T.tile_row_range(i)
         if start >= n:
             break
-        d = rows[i].diagonal(k=start)  # entries (r, start + r)
+        row = rows[i]
+        d = row.diagonal(k=start)  # entries (r, start + r)
         out[start:start + d.size] = d
-    return out
+        smallest = min(smallest, float(row.data[:row.indptr[-1]].min(initial=0.0)))
+    every_row = T.shape[0] <= T.shape[1]  # else the rows below min(shape) were not seen
+    return out, (smallest if every_row else None)
 
 
 def _resolve_colour(T, spec, source, rows=None) -> FirstBounce:

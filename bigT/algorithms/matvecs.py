@@ -42,8 +42,12 @@ class MatVecs:
 
     def m_nonpositive(self) -> bool:
         """Whether M = I - T F^-1 has no positive entry (a transport with no negative
-        entry and F = diag T): one pass over M's rows, which the spectral radius's
-        products then find in the tile cache."""
+        entry and F = diag T): known from the read of T's diagonal when it saw every
+        entry (:attr:`.first_bounce.FirstBounce.m_nonpositive`: no pass); else one pass
+        over M's rows (other first bounces, colour, a T with a negative entry, or a
+        store whose diagonal was read from its diagonal tiles only)."""
+        if self.layout.fb.m_nonpositive:
+            return True
         largest = self.apply_M(np.zeros((self.layout.n, 1)), largest=True)
         return bool(largest.max(initial=0.0) <= 0.0)
 

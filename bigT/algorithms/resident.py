@@ -179,7 +179,10 @@ class ResidentMatVecs:
         return self._product(self.matrices.M, V, absolute=True)
 
     def m_nonpositive(self) -> bool:
-        """Whether M has no positive entry."""
+        """Whether M has no positive entry: known from T's rows that gave F
+        (:attr:`.first_bounce.FirstBounce.m_nonpositive`), else read from M."""
+        if self.layout.fb.m_nonpositive:
+            return True
         return bool(self.matrices.M.data.max(initial=0.0) <= 0.0)
 
     def apply_X(self, X, V: np.ndarray) -> np.ndarray:

@@ -172,7 +172,10 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     # (a caller's, when it holds them: then out of core too, as they are read anyway)
     if T_rows is None and path.in_memory:
         T_rows = TileRows(T, runner.threads)
-    fb = first_bounce_of_rows(T, first_bounce, T_rows)
+    # out of core, the tile rows read for the diagonal are kept for M's rows to be made
+    # from (where the tasks run in this process): T is then decoded once before term 1
+    keep = runner.tile_row_keeper(T_path, policy) if T_rows is None else None
+    fb = first_bounce_of_rows(T, first_bounce, T_rows, keep)
     if not path.in_memory:
         T_rows = None  # the out-of-core tasks read T themselves
     created = not store.path.exists() or settings.overwrite

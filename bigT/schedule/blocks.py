@@ -76,7 +76,8 @@ def diag_rows(start: int, stop: int, n: int, values: np.ndarray, dtype) -> sp.cs
 
 
 def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.ndarray,
-           zero_diagonal: bool) -> sp.csr_array:
+           zero_diagonal: bool, minus_finv: np.ndarray | None = None,
+           checked: bool = True) -> sp.csr_array:
     """Rows ``start:start + r`` of M = D - T F^-1 from the same rows of T.
 
     Parameters
@@ -90,6 +91,14 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
         F = diag T: M's diagonal is exactly 1 - T_ii / T_ii = 0 and is dropped instead
         of being left as rounding noise (for a block-diagonal F = T's diagonal blocks,
         M's diagonal blocks are I - B B^-1 = 0: dropped the same way).
+    minus_finv : (n,) ndarray of T_rows' dtype, optional
+        -finv in T_rows' dtype, made once by a caller that makes many row blocks (it is
+        as long as a row: at full HD, 254 tasks each negating 2*10^6 entries cost
+        ~0.2 s).
+    checked : bool
+        False: T_rows are as the store's reader returned them (checked there) and finv
+        is the engine's, checked once: the grey kernel does not check them again
+        (:func:`bigT.kernels.scale_cols_off_diagonal`).
 
     Returns
     -------
@@ -98,10 +107,11 @@ def m_rows(T_rows: sp.csr_array, start: int, finv: np.ndarray, active_rows: np.n
     if np.ndim(finv) == 3:
         return _m_rows_blocks(T_rows, start, BlockDiagonal(finv), active_rows,
                               zero_diagonal)
-    minus_finv = -np.asarray(finv, dtype=T_rows.dtype)
+    if minus_finv is None or minus_finv.dtype != T_rows.dtype:
+        minus_finv = -np.asarray(finv, dtype=T_rows.dtype)
     # one pass, no COO round trip: a tile row of a big T has ~10^7 entries and every
     # extra copy of them counts against the memory limit
-    M = scale_cols_off_diagonal(T_rows, minus_finv, start)
+    M = scale_cols_off_diagonal(T_rows, minus_finv, start, checked=checked)
     if not zero_diagonal:
         r = T_rows.shape[0]
         d = (np.asarray(active_rows, dtype=M.dtype)

@@ -50,6 +50,29 @@ class TileCache:
                 self.used += size
         return value
 
+    def admit(self, key, value) -> bool:
+        """Keep ``value`` under ``key`` if it fits (an entry already there stays);
+        whether it is held now."""
+        size = nbytes(value)
+        with self._lock:
+            if key in self._d:
+                return True
+            if self.used + size > self.budget:
+                return False
+            self._d[key] = value
+            self.used += size
+            return True
+
+    def pop(self, key):
+        """The entry under ``key``, no longer held (None when absent): a value that is
+        used once, then replaced by what is made from it."""
+        with self._lock:
+            value = self._d.pop(key, None)
+            if value is not None:
+                self.used -= nbytes(value)
+                self.hits += 1
+            return value
+
     def lookup(self, key):
         """The entry under ``key``, or None (nothing is computed or admitted)."""
         with self._lock:

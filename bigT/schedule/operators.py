@@ -181,16 +181,33 @@ class MOperand:
         self.shape = tuple(T.shape)
         self.dtype = np.dtype(T.dtype)
         self._key = (str(T.path), version, "M", bool(zero_diagonal), digest)
+        self._version = version
+        # -F^-1 in T's dtype, once per operand (a pass's, in this process) rather than
+        # once per row block of M made (grey F; a colour F's blocks are applied as such)
+        self._minus_finv = None if np.ndim(finv) == 3 else -np.asarray(finv, dtype=self.dtype)
         row_nnz = np.add.reduceat(np.append(np.asarray(T.tile_nnz, dtype=np.int64), 0),
                                   np.asarray(T.tile_indptr)[:-1])
         # T F^-1 with a colour F spreads each entry of T over its pixel's b columns: a
         # row of M holds up to b times T's row's entries
         self._row_nnz = row_nnz * (np.diff(np.asarray(T.tile_indptr)) > 0) * _block_size(finv)
 
+    def _T_rows(self, a: int, b: int, take: bool) -> sp.csr_array:
+        """T's rows ``a:b``: a tile row kept in the cache by the read of T's diagonal
+        (:func:`t_row_key`; taken out of it when ``take``: M's rows made from it
+        replace it), else read from the store."""
+        i = a // self.T.tile_size
+        if self.T.tile_row_range(i) == (a, b):
+            key = t_row_key(self.T, self._version, i)
+            held = self.cache.pop(key) if take else self.cache.lookup(key)
+            if held is not None:
+                return held
+        return sp.csr_array(self.T.get_rows(a, b))
+
     def _make_rows(self, a, b):
-        return blocks.m_rows(T_rows=sp.csr_array(self.T.get_rows(a, b)), start=a,
+        return blocks.m_rows(T_rows=self._T_rows(a, b, take=True), start=a,
                              finv=self.finv, active_rows=self.active[a:b],
-                             zero_diagonal=self.zero_diagonal)
+                             zero_diagonal=self.zero_diagonal, minus_finv=self._minus_finv,
+                             checked=False)  # T's rows checked by its reader, F^-1 by F's
 
     def rows(self, a: int, b: int) -> sp.csr_array:
         """Rows ``a:b`` of M, shape (b - a, n), global columns."""
@@ -231,7 +248,7 @@ class MOperand:
         out = np.zeros((b - a, V.shape[1]), dtype=np.result_type(V.dtype, self.dtype))
         M_rows = self.cache.lookup(self._key + (int(a), int(b)))
         if M_rows is None and not self.cache.has_room(self.row_bytes(a, b)):
-            T_rows = sp.csr_array(self.T.get_rows(a, b))
+            T_rows = self._T_rows(a, b, take=False)
             if np.ndim(self.finv) == 3:
                 return self._matvec_from_T_blocks(T_rows, a, b, V, minus_finv_v, out)
             scaled = -(self.finv[:, None] * V) if minus_finv_v is None else minus_finv_v
@@ -259,6 +276,13 @@ class MOperand:
             out += V[a:b]
         out *= self.active[a:b, None]
         return out
+
+
+def t_row_key(T, version: tuple, i: int) -> tuple:
+    """The tile cache's key of T's tile row ``i`` (global columns) read whole before
+    any pass (for F's diagonal) and kept for M's rows to be made from
+    (:meth:`MOperand.rows`), ``version`` T's identity (the process's cache keys)."""
+    return (str(T.path), version, "T", int(i))
 
 
 def largest_row_entries(M: sp.csr_array) -> np.ndarray:

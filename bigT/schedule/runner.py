@@ -38,7 +38,8 @@ from ._backend import ObjectPath, as_location, is_url
 from .costs import CostLedger
 from .memory import MemoryPlan, peak_resident_bytes, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
-from .worker import STATE, end_pass, plan_on_worker, run_block, run_mapped_block
+from .worker import (STATE, end_pass, plan_on_worker, run_block, run_mapped_block,
+                     tile_row_keeper)
 
 
 def _bar(progress: bool, total: int, desc: str):
@@ -74,6 +75,11 @@ class ThreadRunner:
 
     def check_paths(self, paths) -> None:
         """Nothing to check: the tasks run here."""
+
+    def tile_row_keeper(self, T_path: str, policy: MemoryPolicy):
+        """``keep(i, row)`` for T's tile rows read in this process before any pass,
+        which the tasks, running here, then find (:func:`.worker.tile_row_keeper`)."""
+        return tile_row_keeper(T_path, policy)
 
     def map(self, spec: PassSpec, blocks: list[RowBlock], shared: dict, *,
             progress: bool = False, desc: str = "") -> list[BlockStats]:
@@ -168,6 +174,10 @@ class ClusterRunner:
     def plans(self, policy: MemoryPolicy) -> dict[str, MemoryPlan]:
         """Each live worker's plan, made on the worker from its own limit and threads."""
         return self._on_live_workers(plan_on_worker, policy)
+
+    def tile_row_keeper(self, T_path: str, policy: MemoryPolicy):
+        """None: the workers are other processes, which read T themselves."""
+        return None
 
     def check_paths(self, paths) -> None:
         """SchedulerError unless every live worker sees every path (a shared

@@ -30,7 +30,7 @@ from .cache import TileCache
 from .costs import shared_read_bytes, thread_io
 from .memory import (PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory, resident_bytes,
                      return_freed_memory)
-from .operators import MOperand, StoreOperand, needed_rows
+from .operators import MOperand, StoreOperand, needed_rows, t_row_key
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 
 #: Test hook: when set, called as ``task_hook(op, index)`` at the start of every task
@@ -194,6 +194,20 @@ def plan_on_worker(policy: MemoryPolicy, dask_worker=None) -> MemoryPlan:
 def end_pass(pass_id: str | None = None, forget=()) -> None:
     """Run on every process after a pass (:meth:`_ProcessState.end`)."""
     STATE.end(pass_id, forget)
+
+
+def tile_row_keeper(T_path: str, policy: MemoryPolicy):
+    """``keep(i, row)``: T's tile row ``i`` (global columns), read whole before any
+    pass (for F's diagonal, by a run whose tasks run in this process), held in this
+    process's tile cache while it fits what a mat-vec pass of M may cache
+    (:func:`_cache_budget`), so that the first pass to make M's rows (the spectral
+    radius's first product, else term 1's) makes them from it instead of reading and
+    decoding T again, and lets it go (:meth:`.operators.MOperand.rows`). Returns
+    whether it was kept."""
+    plan = STATE.plan(policy)
+    STATE.cache.resize(_cache_budget(plan, None, MATVEC_BLOCKS_HELD * policy.n_cols * 8))
+    T, version = STATE.store(T_path), _identity(T_path)
+    return lambda i, row: STATE.cache.admit(t_row_key(T, version, i), row)
 
 
 def worker_name() -> str:

@@ -21,6 +21,7 @@ matrix; the tile methods read S as stored.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,24 @@ from .tile_index import read_tile_index
 from .tiles import RowReader, TileReader
 
 # --- the store ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DiagonalScan:
+    """What reading a store's diagonal learned (:meth:`BlockCSR.diagonal_scan`).
+
+    Attributes
+    ----------
+    diagonal : ndarray, shape (min(shape),), the store's dtype
+    smallest : float or None
+        The smallest stored entry, capped at 0 (min(0, entries)): a value < 0 says
+        the matrix has a negative entry, 0.0 that it has none. None where the read
+        did not see every entry (diagonal tiles only, a tile row without one, a
+        factored colour store).
+    """
+
+    diagonal: np.ndarray
+    smallest: float | None
 
 #: Most tile rows ``diagonal`` reads at once (format 2): each is held whole.
 _DIAGONAL_READERS = 4
@@ -336,34 +355,55 @@ class BlockCSR:
         -------
         ndarray, shape (min(shape),), of the store's dtype
         """
+        return self.diagonal_scan(output_order).diagonal
+
+    def diagonal_scan(self, output_order: str = "row-major", keep=None) -> DiagonalScan:
+        """:meth:`diagonal`, and the smallest stored entry where the diagonal's read
+        saw every stored entry (format 2 reads each tile row that holds a diagonal
+        tile whole): a transport known to have no negative entry then costs no pass
+        of its own (:meth:`bigT.algorithms.matvecs.MatVecs.m_nonpositive`).
+        ``keep(i, row)``, when given, is handed each tile row read whole (global
+        columns, not to be modified), for a caller that uses it next."""
         order = reordering(self.pixel_order, output_order, "output_order")
+        smallest = None
         if self.mixing is None and self.row_layout:
-            diag = self._diagonal_of_rows()
+            diag, smallest = self._diagonal_of_rows(keep)
         elif self.mixing is None:
             diag = diagonal_of_tiles(self.attrs, self._diagonal_tile)
         else:
             diag = mixed_diagonal(self.mixing, self._stored_pixel_blocks()).astype(self.dtype)
-        return diag if order is None else diag[order.inverse_permutation]
+        return DiagonalScan(diag if order is None else diag[order.inverse_permutation],
+                            smallest)
 
-    def _diagonal_of_rows(self) -> np.ndarray:
+    def _diagonal_of_rows(self, keep=None) -> tuple[np.ndarray, float | None]:
         """Format 2: the main diagonal in the stored order, each tile row that holds
         its diagonal tile read whole; rows are read on a few threads (decoding and
-        checking release the GIL), since every entry of them is read."""
+        checking release the GIL), since every entry of them is read. Also the
+        smallest entry of those rows (0.0 for none), or None when a tile row holding
+        entries was not read (no diagonal tile): then it is not T's smallest."""
         from concurrent.futures import ThreadPoolExecutor
 
         n, ts = min(self.shape), self.tile_size
         out = np.zeros(n, dtype=self.dtype)
         rows = [i for i in range(min(self.grid)) if self._position(i, i) >= 0]
 
-        def part(i: int) -> tuple[int, np.ndarray]:
-            return i, self._read_row(i).diagonal(k=i * ts)  # entries (r, i ts + r)
+        def part(i: int) -> tuple[int, np.ndarray, float]:
+            row = self._read_row(i)
+            low = float(row.data.min(initial=0.0))  # an empty row: nothing below 0
+            if keep is not None:
+                keep(i, row)
+            return i, row.diagonal(k=i * ts), low  # entries (r, i ts + r)
 
         # a few threads: each holds a whole tile row
         workers = max(1, min(len(rows), os.cpu_count() or 1, _DIAGONAL_READERS))
+        smallest = 0.0
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            for i, d in pool.map(part, rows):
+            for i, d, low in pool.map(part, rows):
                 out[i * ts:i * ts + d.size] = d[:n - i * ts]
-        return out
+                smallest = min(smallest, low)
+        unread = np.diff(np.asarray(self.tile_indptr)) > 0
+        unread[rows] = False
+        return out, (None if unread.any() else smallest)
 
     def _diagonal_tile(self, i: int) -> sp.csr_array | None:
         """Tile (i, i), or None when it is not stored."""

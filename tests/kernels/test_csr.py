@@ -301,6 +301,10 @@ def test_scale_cols_off_diagonal(data, dtype):
     want[rows[on], rows[on] + offset] = 0.0
     np.testing.assert_allclose(S.toarray(), want, rtol=1e-6)
     assert S.nnz == A.nnz - np.count_nonzero(_dense64(A)[rows[on], rows[on] + offset])
+    if A.has_canonical_format:  # what checked=False trusts (a store's tile row)
+        U = scale_cols_off_diagonal(A, d, offset, checked=False)
+        for got, ref in ((U.indptr, S.indptr), (U.indices, S.indices), (U.data, S.data)):
+            assert got.dtype == ref.dtype and np.array_equal(got, ref)
 
 
 def test_elementwise_checks():

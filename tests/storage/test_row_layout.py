@@ -421,3 +421,37 @@ def test_row_arrays_of_another_type_are_refused(tmp_path):
             open_store(S.path).get_tile_row(0)
         assert "\n" not in str(err.value)
         from_scipy(A, tmp_path / "s.zarr", tile_size=TS, dtype="float64", overwrite=True)
+
+
+# --- (3) the diagonal's read and the smallest entry ------------------------------------
+
+@pytest.mark.parametrize("negative", [False, True])
+def test_the_diagonal_scan_sees_every_entry_of_a_format2_store(tmp_path, negative):
+    """Format 2 reads every tile row holding a diagonal tile whole: the scan reports the
+    smallest entry (capped at 0), and hands each row read to ``keep``; a tile row with
+    entries but no diagonal tile leaves the smallest unknown."""
+    A = _matrix().tolil()
+    if negative:
+        A[3, 40] = -0.25
+    A = sp.csr_array(A)
+    S = from_scipy(A, tmp_path / "A.zarr", tile_size=TS)
+    kept = {}
+    scan = S.diagonal_scan("matrix", keep=lambda i, row: kept.setdefault(i, row))
+    np.testing.assert_array_equal(scan.diagonal, A.diagonal())
+    assert scan.smallest == (-0.25 if negative else 0.0)
+    assert sorted(kept) == [i for i in range(S.grid[0]) if i != EMPTY_ROW]
+    for i, row in kept.items():
+        assert (row != S.get_tile_row(i)).nnz == 0
+    B = A.tolil()
+    B[0:TS, 0:TS] = 0  # tile row 0 keeps entries, but no diagonal tile
+    B = sp.csr_array(B)
+    B.eliminate_zeros()
+    assert from_scipy(B, tmp_path / "B.zarr", tile_size=TS).diagonal_scan().smallest is None
+
+
+def test_a_format1_store_reads_its_diagonal_tiles_only(format1):
+    """Format 1 reads only the diagonal tiles: the smallest entry is not known."""
+    path, A = format1
+    scan = open_store(path).diagonal_scan("matrix")
+    np.testing.assert_array_equal(scan.diagonal, A.diagonal())
+    assert scan.smallest is None
