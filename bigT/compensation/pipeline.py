@@ -15,7 +15,7 @@ products on the critical path at batch 1. The decoders and encoders release the 
   (:data:`FRAMES_IN_FLIGHT_PER_THREAD` a codec thread).
 
 Both keep at most a few frames in flight, so memory stays bounded whatever the length
-of the folder; the products leave a core to the codecs (:data:`CODEC_CORES`). Each
+of the folder; the products share the cores with the codecs (:data:`CODEC_CORES`). Each
 frame keeps its file name, and each file is written whole or not at all
 (:func:`bigT.atomic.atomic_output`, fsynced before its rename; the folder fsynced once
 when the run closes, :meth:`bigT.images.ImageSink.synced_once`): an interrupted run, or
@@ -50,14 +50,16 @@ CODEC_THREADS = max(2, min(4, os.cpu_count() or 1))
 FRAMES_IN_FLIGHT_PER_THREAD = 2
 #: Cores the products leave to the codecs while a pool decodes and encodes beside them
 #: (unless ``config.KERNEL_THREADS`` says how many threads the products take). The
-#: product with X in memory is bound by memory bandwidth: on the 2-core machine of the
-#: benchmarks, one 384x512 frame's (23 M entries) takes 23 ms of CPU on one thread but
-#: 34-44 ms on two (17-22 ms of wall time: the cores stall on the same memory), while
-#: the codecs are compute-bound (zlib, ~15 ms a frame) and run at full speed beside
-#: it. One thread for the products and the other core for the codecs did the folder of
-#: benchmarks/bench_video.py for 44-45 ms of CPU a frame instead of 57-60 (the same
-#: run, interleaved, a loaded machine), the frames identical.
-CODEC_CORES = 1
+#: product with X in memory is bound by memory bandwidth: one 384x512 frame's (23 M
+#: entries) takes 23 ms of CPU on one thread but more on two (the cores stall on the
+#: same memory), while the codecs are compute-bound (zlib, ~10 ms a frame). On a
+#: machine other work loads, one product thread beside the codecs cost the least CPU
+#: (44-45 ms a frame against 57-60); on the idle 2-core machine of the benchmarks the
+#: products on both cores finish sooner, the CPU spent notwithstanding: the folder of
+#: benchmarks/bench_video.py (240 16-bit frames, --batch 1) took 6.19-6.41 s against
+#: 6.72-6.99 s (three interleaved pairs, 46 against 43 ms of CPU a frame, the files
+#: identical). Wall time is what a user waits for: none left.
+CODEC_CORES = 0
 
 
 class CodecPool:

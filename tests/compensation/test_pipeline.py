@@ -255,14 +255,18 @@ def test_killed_writers_files_are_cleaned_once_per_folder(grey, tmp_path, monkey
     assert sorted(p.name for p in out.iterdir()) == [f"frame{i:03d}.png" for i in range(FRAMES)]
 
 
-def test_the_products_leave_a_core_to_the_codecs(grey, tmp_path, monkeypatch):
-    """With the codecs on a pool, the products take the cores less one (unless the
-    user set config.KERNEL_THREADS), and the compensator's own count comes back after
-    the run; the frames are the same whatever the count (rows are split, never a sum)."""
+def test_the_products_leave_codec_cores_to_the_codecs(grey, tmp_path, monkeypatch):
+    """With the codecs on a pool, the products take the cores less CODEC_CORES (none
+    by default: every core; unless the user set config.KERNEL_THREADS), and the
+    compensator's own count comes back after the run; the frames are the same whatever
+    the count (rows are split, never a sum)."""
     from bigT import config
     from bigT.compensation import pipeline, realtime
 
     pool = CodecPool(2)
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 2)
+    assert pipeline.CODEC_CORES == 0 and pool.product_threads(2) == 2
+    monkeypatch.setattr(pipeline, "CODEC_CORES", 1)
     monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 8)
     assert pool.product_threads(8) == 7
     monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 2)
