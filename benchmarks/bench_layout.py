@@ -174,6 +174,10 @@ def main(argv=None) -> None:
     p.add_argument("--scene", type=Path, default=None,
                    help="this tree's T, already built by the same recipe (the dense "
                         "corner of --size), instead of building it")
+    p.add_argument("--baseline-scene", type=Path, default=None,
+                   help="the baseline's T, already built (a baseline that reads the "
+                        "format of this tree's stores, e.g. an earlier commit of format 2: "
+                        "the same store as --scene)")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--whole", action="store_true",
                    help="no per-term callback: the run a user makes (in memory, the terms "
@@ -189,10 +193,13 @@ def main(argv=None) -> None:
     if args.baseline_commit is not None:
         trees.insert(0, (f"baseline {args.baseline_commit}",
                          export_commit(args.baseline_commit, args.workdir)))
-    if args.scene is not None and not (args.scene / "zarr.json").exists():
-        p.error(f"--scene {args.scene}: not a store (no zarr.json)")
-    scenes = {label: args.scene if label == "this tree" and args.scene is not None
-              else build_scene(args.size, args.workdir, label, tree) for label, tree in trees}
+    given = {"this tree": args.scene}
+    given.update({label: args.baseline_scene for label, _ in trees if label != "this tree"})
+    for path in given.values():
+        if path is not None and not (path / "zarr.json").exists():
+            p.error(f"{path}: not a store (no zarr.json)")
+    scenes = {label: given[label] or build_scene(args.size, args.workdir, label, tree)
+              for label, tree in trees}
     best: dict[str, dict] = {}
     for _ in range(args.repeats):
         for label, tree in trees:  # interleaved: drift hits both alike
