@@ -19,14 +19,14 @@ import json
 import os
 import re
 import socket
-import threading
 import uuid
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import wait
 from glob import escape as glob_escape
 from pathlib import Path, PurePosixPath
 from typing import Iterable, Iterator
 
 from .errors import DiskFullError, OutputError
+from .pools import named_pool
 
 
 def _host_tag() -> str:
@@ -141,34 +141,8 @@ def fsync_dir(path: str | os.PathLike) -> None:
 #: processes write, for the journal's batching delay too: a tile row's 12 fsyncs took
 #: 30-50 ms one after the other and 1-1.6 ms together on this project's machine under
 #: load (issue #30: most of the write of an n = 1000 term); 2, 4 and 8 threads alike
-#: took 1-1.5 ms.
+#: took 1-1.5 ms. All started when the pool is made (:func:`bigT.pools.named_pool`).
 FSYNC_THREADS = 4
-_FSYNC_POOL: list[ThreadPoolExecutor] = []  # made on first use, kept for the process
-_FSYNC_LOCK = threading.Lock()
-
-
-def _forget_fsync_pool() -> None:
-    # a forked child has none of its parent's threads
-    global _FSYNC_LOCK
-    _FSYNC_POOL.clear()
-    _FSYNC_LOCK = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_fsync_pool)
-
-
-def _started_pool(n: int, prefix: str) -> ThreadPoolExecutor:
-    """A pool of ``n`` threads, all started now (each held at a barrier until the last
-    one starts): a pool starts its threads as tasks find none idle, so one started
-    lazily might start another in a later run, which a run of the same size should
-    not (tests/algorithms: a second small run starts no thread)."""
-    pool = ThreadPoolExecutor(n, thread_name_prefix=prefix)
-    barrier = threading.Barrier(n + 1)
-    for _ in range(n):
-        pool.submit(barrier.wait)
-    barrier.wait()
-    return pool
 
 
 def _fsync_together(func, paths: list[str]) -> None:
@@ -178,10 +152,7 @@ def _fsync_together(func, paths: list[str]) -> None:
         for path in paths:
             func(path)
         return
-    with _FSYNC_LOCK:
-        if not _FSYNC_POOL:
-            _FSYNC_POOL.append(_started_pool(FSYNC_THREADS, "bigT-fsync"))
-        pool = _FSYNC_POOL[0]
+    pool = named_pool("fsync", FSYNC_THREADS, started=True)
     futures = [pool.submit(func, path) for path in paths]
     wait(futures)
     for future in futures:

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent / "bigT"
 #: The layers, lowest first, as docs/DESIGN.md draws them. A unit imports only units
 #: of lower layers (and itself).
 LAYERS = [
-    {"errors"},
+    {"errors", "pools"},  # pools: the process's named thread pools (kernels, fsyncs)
     # the package root re-exports the API lazily (importlib, at first use): statically
     # it imports only errors, and the CLI reads its __version__
     {"config", "atomic", "sizes", "progress", "colour", "__init__"},

@@ -21,25 +21,11 @@ submitted, as leaving a ``with ThreadPoolExecutor`` block did.
 from __future__ import annotations
 
 import os
-import threading
 from concurrent.futures import ThreadPoolExecutor, wait
 
 from .. import config
 from ..errors import BigTError
-
-_NAMED: dict[tuple[str, int], ThreadPoolExecutor] = {}
-_LOCK = threading.Lock()
-
-
-def _forget_pools() -> None:
-    # a forked child has none of its parent's threads: its pools are made anew
-    global _LOCK
-    _NAMED.clear()
-    _LOCK = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pools)
+from ..pools import named_pool
 
 
 def thread_count(n_threads: int | None = None) -> int:
@@ -62,14 +48,10 @@ def thread_pool(n: int) -> ThreadPoolExecutor:
 
 def shared_pool(name: str, n: int) -> ThreadPoolExecutor:
     """The process's pool ``name`` of ``n`` threads (threads ``bigT-{name}_i``), made on
-    first use and kept: its threads start once per process, not once per call. A task
-    submitted to it must not wait on another task of the same pool."""
-    n = max(1, int(n))
-    with _LOCK:
-        pool = _NAMED.get((name, n))
-        if pool is None:
-            pool = _NAMED[(name, n)] = ThreadPoolExecutor(n, thread_name_prefix=f"bigT-{name}")
-        return pool
+    first use and kept (:func:`bigT.pools.named_pool`): its threads start once per
+    process, not once per call. A task submitted to it must not wait on another task
+    of the same pool."""
+    return named_pool(name, n)
 
 
 def map_all(pool: ThreadPoolExecutor, func, items) -> list:
