@@ -196,6 +196,9 @@ def open_run(T: BlockCSR, store: InverseStore, series: SeriesMethod, runner, set
     if record.tile_size is None:  # a record saved without one (a run killed before)
         record = record.replace(tile_size=ts, excluded_pixels=fb.excluded)
         store.save(record.to_stored())
+    if keep is not None and record.tile_size != T.tile_size:
+        # the row blocks are not T's tile rows: no pass would take the rows kept
+        runner.forget_kept_tile_rows(T_path)
     n_blocks = -(-T.shape[0] // record.tile_size)
     kernel_threads = 1 if n_blocks >= runner.threads else runner.idle_kernel_threads
     return RunLayout(T, T_path, fb, policy, plans, record.tile_size, kernel_threads,

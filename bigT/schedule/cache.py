@@ -73,6 +73,13 @@ class TileCache:
                 self.hits += 1
             return value
 
+    def discard(self, key) -> None:
+        """Let go of the entry under ``key``, if held (not counted as a hit)."""
+        with self._lock:
+            value = self._d.pop(key, None)
+            if value is not None:
+                self.used -= nbytes(value)
+
     def lookup(self, key):
         """The entry under ``key``, or None (nothing is computed or admitted)."""
         with self._lock:

@@ -38,8 +38,8 @@ from ._backend import ObjectPath, as_location, is_url
 from .costs import CostLedger
 from .memory import MemoryPlan, peak_resident_bytes, plan_memory
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
-from .worker import (STATE, end_pass, plan_on_worker, run_block, run_mapped_block,
-                     tile_row_keeper)
+from .worker import (STATE, end_pass, forget_tile_rows, plan_on_worker, run_block,
+                     run_mapped_block, tile_row_keeper)
 
 
 def _bar(progress: bool, total: int, desc: str):
@@ -80,6 +80,10 @@ class ThreadRunner:
         """``keep(i, row)`` for T's tile rows read in this process before any pass,
         which the tasks, running here, then find (:func:`.worker.tile_row_keeper`)."""
         return tile_row_keeper(T_path, policy)
+
+    def forget_kept_tile_rows(self, T_path: str) -> None:
+        """Let go of what :meth:`tile_row_keeper` kept (:func:`.worker.forget_tile_rows`)."""
+        forget_tile_rows(T_path)
 
     def map(self, spec: PassSpec, blocks: list[RowBlock], shared: dict, *,
             progress: bool = False, desc: str = "") -> list[BlockStats]:
@@ -178,6 +182,9 @@ class ClusterRunner:
     def tile_row_keeper(self, T_path: str, policy: MemoryPolicy):
         """None: the workers are other processes, which read T themselves."""
         return None
+
+    def forget_kept_tile_rows(self, T_path: str) -> None:
+        """Nothing kept (:meth:`tile_row_keeper`)."""
 
     def check_paths(self, paths) -> None:
         """SchedulerError unless every live worker sees every path (a shared

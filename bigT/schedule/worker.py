@@ -210,6 +210,15 @@ def tile_row_keeper(T_path: str, policy: MemoryPolicy):
     return lambda i, row: STATE.cache.admit(t_row_key(T, version, i), row)
 
 
+def forget_tile_rows(T_path: str) -> None:
+    """Let go of T's tile rows :func:`tile_row_keeper` kept, where no pass will take
+    them: the run's row blocks are not T's tile rows (a tile size chosen smaller, or
+    recorded by an earlier run), so M's rows are read from the store."""
+    T, version = STATE.store(T_path), _identity(T_path)
+    for i in range(T.grid[0]):
+        STATE.cache.discard(t_row_key(T, version, i))
+
+
 def worker_name() -> str:
     return f"{os.getpid()}@{socket.gethostname()}"
 

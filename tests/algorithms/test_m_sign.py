@@ -121,3 +121,35 @@ def test_no_pass_of_its_own_and_t_decoded_once_before_term_one(tmp_path, make_st
     bigT.stratified_inverse(T, mem, terms=2, in_memory=True, progress=False)
     a, b = bigT.open(out).to_scipy(), bigT.open(mem).to_scipy()
     assert (a != b).nnz == 0
+
+
+def test_kept_T_rows_are_let_go_when_the_blocks_are_not_T_tile_rows(tmp_path, make_store,
+                                                                     monkeypatch):
+    """Out of core, the tile rows of T read for the diagonal are kept for M's rows only
+    while the run's row blocks are T's tile rows; where the tile size is chosen smaller
+    (few blocks a thread), no pass would take them, and they are let go of at once
+    rather than holding the cache's budget for the whole run."""
+    from bigT import config
+    from bigT.schedule.worker import STATE
+
+    A = _transport("nonnegative")
+    T = make_store(A, tile_size=64, dtype="float32")
+    kept = []  # T's rows in the cache at each product with M
+    real_apply = MatVecs.apply_M
+
+    def apply_M(self, V, largest=False):
+        kept.append(sum(len(k) == 4 and k[2] == "T" for k in list(STATE.cache._d)))
+        return real_apply(self, V, largest)
+
+    monkeypatch.setattr(MatVecs, "apply_M", apply_M)
+    for blocks, out in ((16, "X.zarr"), (1024, "Y.zarr")):  # rows 32 (64 halved), 64
+        monkeypatch.setattr(config, "MIN_BLOCK_ROWS", blocks)
+        kept.clear()
+        report = bigT.stratified_inverse(T, tmp_path / out, terms=2, in_memory=False,
+                                         progress=False)
+        assert report.engine_path == "out-of-core" and kept
+        if blocks == 16:
+            assert bigT.open(tmp_path / out).tile_size < T.tile_size
+            assert set(kept) == {0}  # let go of before the first product
+        else:
+            assert kept[0] > 0  # kept for the first product, which takes them
