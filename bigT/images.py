@@ -590,7 +590,10 @@ def png_code_dtype(files: Sequence[Path]) -> np.dtype | None:
     that differ): then only the float frames give their values."""
     depths = set()
     for f in files:
-        header = _png_header(Path(f)) if Path(f).suffix.lower() == ".png" else None
+        try:
+            header = _png_header(Path(f)) if Path(f).suffix.lower() == ".png" else None
+        except OSError:  # gone or unreadable: the float frames' reader says so, in one line
+            return None
         if header is None or header[0] not in (8, 16) or header[1] not in _PLAIN_PNG_TYPES:
             return None
         depths.add(header[0])

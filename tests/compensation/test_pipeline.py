@@ -366,3 +366,13 @@ def test_image_codes_quantise_as_write_image():
         got, below, above = scatter_codes(Y, perm, None, (Y.shape[0],), dtype, images=True)
         np.testing.assert_array_equal(got[0], _quantised(Y[:, 0], 8 * np.dtype(dtype).itemsize))
         assert (below, above) == (0, 0)
+
+
+def test_png_code_dtype_leaves_an_unreadable_frame_to_the_float_reader(tmp_path):
+    """A frame gone (or unreadable) when the headers are read: no codes path (None),
+    so the float frames' reader names the file in its one-line ImageError."""
+    from bigT.images import png_code_dtype, write_image
+
+    ok = write_image(tmp_path / "a.png", np.zeros((4, 4)), bits=16)
+    assert png_code_dtype([ok]) == np.dtype(np.uint16)
+    assert png_code_dtype([ok, tmp_path / "gone.png"]) is None
