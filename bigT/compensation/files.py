@@ -331,16 +331,9 @@ class FileCompensation:
         t0 = time.perf_counter()
         with contextlib.ExitStack() as stack:
             stack.enter_context(self._sink)  # closes (a folder's fsync) after the pool
-            write = self._sink.image_sink.write_codes
-            pool = stack.enter_context(CodecPool()) if overlap else None
             read = lambda file: source.read_codes(file, dtype)  # noqa: E731
-            if pool is not None:
-                stack.enter_context(comp.products_on(pool.product_threads(comp.threads)))
-                batches = decoded_ahead(pool, source, self.batch, read=read)
-                behind = EncodedBehind(pool, write)
-                write = behind.write
-            else:
-                batches, behind = image_batches(source, self.batch, read), None
+            batches, write, behind = self._image_stages(
+                stack, comp, overlap, self._sink.image_sink.write_codes, read)
             stream = run_stream(batches,
                                 lambda codes: comp.compensate_codes(codes, dtype, images=True),
                                 write, batch=self.batch, overlap=overlap, on_batch=on_batch)
@@ -368,18 +361,11 @@ class FileCompensation:
         with contextlib.ExitStack() as stack:
             # the sink first: it closes (a folder's fsync) after the pool's last file
             write = stack.enter_context(self._sink)
-            # image files decoded and encoded on a pool of threads with overlap (a
-            # video's are ffmpeg's, in its own processes)
-            pool = stack.enter_context(CodecPool()) if overlap and not self.video_in else None
-            if pool is not None:
-                stack.enter_context(comp.products_on(pool.product_threads(comp.threads)))
-            batches = (video_batches(self.source, self.batch) if self.video_in
-                       else image_batches(self.source, self.batch) if pool is None
-                       else decoded_ahead(pool, self.source, self.batch))
-            behind = (EncodedBehind(pool, write) if pool is not None and self._sink.images
-                      else None)
-            if behind is not None:
-                write = behind.write
+            # a video's frames are decoded and encoded by ffmpeg, in its own processes
+            if self.video_in:
+                batches, behind = video_batches(self.source, self.batch), None
+            else:
+                batches, write, behind = self._image_stages(stack, comp, overlap, write)
             # averaged onto the super-pixels in the reader's thread, expanded onto the
             # projector in the writer's, beside the products
             stream = run_stream(
@@ -390,6 +376,23 @@ class FileCompensation:
         if written is not None:  # the seconds up to the folder's fsync, on closing
             stream = with_encoding_times(stream, written, time.perf_counter() - t0)
         return stream
+
+    def _image_stages(self, stack: contextlib.ExitStack, comp: Compensator, overlap: bool,
+                      write, read=None):
+        """(batches, write, behind) of the image files read: with ``overlap``, decoded
+        ahead on a codec pool entered on ``stack`` (the products on the cores it
+        leaves) and, where the output is image files, encoded behind (``behind``, to
+        finish); else read in this thread (``behind`` None). ``read`` reads one file
+        (default the float32 frame)."""
+        pool = stack.enter_context(CodecPool()) if overlap else None
+        if pool is None:
+            return image_batches(self.source, self.batch, read), write, None
+        stack.enter_context(comp.products_on(pool.product_threads(comp.threads)))
+        batches = decoded_ahead(pool, self.source, self.batch, read=read)
+        if not self._sink.images:  # a video out: ffmpeg encodes
+            return batches, write, None
+        behind = EncodedBehind(pool, write)
+        return batches, behind.write, behind
 
     def _entered(self) -> Compensator:
         if self.compensator is None:
