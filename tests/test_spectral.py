@@ -93,7 +93,7 @@ def test_bracket_holds_the_perron_root(seed, rho_true):
     N = _perron(400, rho_true, seed)
     rho = _bracket(N)
     assert _holds(rho, _exact(N))
-    assert rho.products <= config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS + 1
+    assert rho.products <= config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS_LOW + 1
 
 
 def test_a_low_narrow_bracket_is_taken_else_arnoldi_refines():
@@ -123,6 +123,35 @@ def test_a_crowded_top_is_bracketed():
     N, exact = clustered_spectrum(0, 0.95)
     rho = _bracket(N)
     assert _holds(rho, exact) and rho.upper < 1
+
+
+def _open_cornell_box_m(tmp_path):
+    """M = I - T F^-1 (F = diag T) of the paper's open Cornell box at 24x30 patches,
+    with bench_paper's density for that size: a fifth of its patches see nothing, and
+    its four top eigenvalues lie within 0.1 % of each other."""
+    import scipy.sparse as sp
+
+    import bigT
+
+    scale = 5120 / (24 * 30)
+    scene = bigT.scenes.cornell(size=(24, 30), path=tmp_path / "box.zarr", preview=False,
+                                progress=False, ff_cut=5e-4 * scale, threshold=1.1e-4 * scale)
+    T = scene.T.to_scipy().tocsr().astype(np.float64)
+    M = -(T @ sp.diags(1 / T.diagonal())).toarray()
+    np.fill_diagonal(M, 0)
+    return M
+
+
+def test_the_open_cornell_box_is_bracketed_without_arnoldi(tmp_path, monkeypatch):
+    """The lower bound over several supports: with the corners' 1 % cut alone, the
+    box's bracket stalled well under rho and ARPACK took over (80 products in all)."""
+    M = _open_cornell_box_m(tmp_path)
+    rho = _radius(M)
+    assert rho.method == "collatz-wielandt" and _holds(rho, _exact(M))
+    assert rho.products <= config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS_LOW + 1
+    monkeypatch.setattr(config, "SPECTRAL_RADIUS_CW_SUPPORTS", (1e-2,))
+    one_cut = _radius(M)
+    assert one_cut.method == "arnoldi" and one_cut.products > 2 * rho.products
 
 
 def test_a_radius_above_one_is_held_above_one():
