@@ -53,13 +53,13 @@ from ..progress import progress_bar
 from ..storage import PixelOrder
 from ..storage import open as open_store
 from .correspondence import Correspondence
+from .formats import FORMATS
 from .manifest import Manifest, patterns_folder, read_manifest
 
 MARGIN = 0.05
 PEAK = 0.9
 WARP = 0.12  # amplitude of the warp, in super-pixels
 SIMULATION = "simulation.json"
-FORMATS = {"png16": ".png", "png8": ".png", "tif": ".tif", "npy": ".npy"}
 BATCH = 64
 
 

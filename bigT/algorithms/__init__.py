@@ -1,14 +1,27 @@
 """bigT.algorithms: the stratified inverse (paper eq. 13) and first-bounce recovery
-(eq. 33). See :mod:`bigT.algorithms.stratified` for the conventions."""
+(eq. 33). See :mod:`bigT.algorithms.stratified` for the conventions.
 
-from ..spectral import SpectralRadius, spectral_radius
-from .first_bounce import FirstBounce, recover_first_bounce, resolve_first_bounce
-from .methods import SeriesMethod
-from .records import SeriesRecord, TermRecord
-from .report import InverseReport
-from .residual import estimate_residual
-from .stratified import METHODS, stratified_inverse
-from .target import TargetReport, invert_to_target
+Each name is imported from its module on first use, so that a light module of this
+layer (:mod:`.defaults`, which ``bigT invert --help`` reads) is imported without the
+engine (numpy, scipy, the stores: ~0.5 s).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+#: Public name -> the module defining it, imported on first use.
+_LAZY = {
+    **dict.fromkeys(("SpectralRadius", "spectral_radius"), "bigT.spectral"),
+    **dict.fromkeys(("FirstBounce", "recover_first_bounce", "resolve_first_bounce"),
+                    "bigT.algorithms.first_bounce"),
+    "SeriesMethod": "bigT.algorithms.methods",
+    **dict.fromkeys(("SeriesRecord", "TermRecord"), "bigT.algorithms.records"),
+    "InverseReport": "bigT.algorithms.report",
+    "estimate_residual": "bigT.algorithms.residual",
+    **dict.fromkeys(("METHODS", "stratified_inverse"), "bigT.algorithms.stratified"),
+    **dict.fromkeys(("TargetReport", "invert_to_target"), "bigT.algorithms.target"),
+}
 
 __all__ = [
     "METHODS", "FirstBounce", "InverseReport", "SeriesMethod", "SeriesRecord",
@@ -16,3 +29,13 @@ __all__ = [
     "resolve_first_bounce", "spectral_radius", "stratified_inverse", "TargetReport",
     "invert_to_target",
 ]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'bigT.algorithms' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_LAZY))

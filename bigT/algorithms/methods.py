@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from ..schedule import blocks
 from ..kernels import prune, spmm_dense
 from ..schedule.worker import TaskContext
+from .defaults import METHOD_HELP
 
 
 @dataclass(frozen=True)
@@ -207,7 +208,7 @@ class Power(SeriesMethod):
     the shrinking P_{k-1} per term."""
 
     name = "power"
-    help = "P_k = M P_{k-1}, X_k = X_{k-1} + F^-1 P_k (default)"
+    help = METHOD_HELP[name]  # .defaults: the CLI lists them without importing this module
 
     def passes(self, held, k):
         inputs = (("X", "X", held),) if held == 0 else (("P", "P", held), ("X", "X", held))
@@ -225,7 +226,7 @@ class Horner(SeriesMethod):
     earlier pruning (docs/DESIGN.md, "Power against Horner")."""
 
     name = "horner"
-    help = "X_n = F^-1 + (I - F^-1 T) X_{n-1}"
+    help = METHOD_HELP[name]
 
     def passes(self, held, k):
         return [Pass("horner", horner_task, (("S", "X", held),), ("X",), right="S",
@@ -237,7 +238,7 @@ class NewtonSchulz(SeriesMethod):
     after j steps from X_0 = F^-1, X = T_{2^j - 1}^-1."""
 
     name = "newton-schulz"
-    help = "X <- X (2I - T X), bounces double per step"
+    help = METHOD_HELP[name]
 
     def next_term(self, held):
         return 2 * held + 1

@@ -35,6 +35,7 @@ from ..errors import NotSquareError
 from ..schedule.runner import open_runner, worker_path
 from ..sizes import parse_size
 from ..storage import InverseStore, as_store
+from . import defaults
 from .engine import InverseEngine
 from .global_mixing import global_mixing_inverse, with_colour_path
 from .methods import METHODS as SERIES_METHODS
@@ -46,9 +47,10 @@ from .settings import SeriesSettings, checked_method, checked_thresholds
 METHODS = tuple(SERIES_METHODS)
 
 
-def stratified_inverse(T, out, terms=4, prune=config.DEFAULT_PRUNE, tol=None,
-                       first_bounce="diag", method="power", client=None, memory_limit=None,
-                       progress=True, force=False, *, workers=2, seed=0,
+def stratified_inverse(T, out, terms=defaults.TERMS, prune=config.DEFAULT_PRUNE, tol=None,
+                       first_bounce=defaults.FIRST_BOUNCE, method=defaults.METHOD,
+                       client=None, memory_limit=None, progress=True, force=False, *,
+                       workers=defaults.WORKERS, seed=0,
                        scheduler=None, overwrite=False, prune_feed=None,
                        prune_operator=None, on_term=None, colour_path="auto",
                        mixing=None, in_memory=None, T_rows=None) -> InverseReport:

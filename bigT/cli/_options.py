@@ -11,7 +11,10 @@ Conventions
   (``bigT info X.zarr --json | jq .nnz``, ``> report.json``) as ``gh --json`` and
   ``pip list --format json`` do. (``invert --json FILE``, its older form, still writes
   FILE.)
-* A default the library has is read from the library's signature, never restated.
+* A default the library has is the library's own value, never restated: the constant
+  its signature takes, read from a module that imports nothing heavy
+  (:mod:`bigT.config`, :mod:`bigT.algorithms.defaults`), so that printing a help
+  imports no engine.
 * A renamed option keeps its old spelling as a hidden alias that still works and says,
   on standard error, what replaced it.
 """
@@ -19,18 +22,11 @@ Conventions
 from __future__ import annotations
 
 import argparse
-import inspect
 import sys
 from typing import Any, Callable
 
 from ..sizes import format_size
 from ._argtypes import integer, memory_size, scheduler_address, size_or_zero
-
-
-def library_default(function: Callable, name: str) -> Any:
-    """The default of ``function``'s parameter ``name``: what the command passes when
-    the option is not given (the option then is not passed at all)."""
-    return inspect.signature(function).parameters[name].default
 
 
 def add_progress(p: argparse.ArgumentParser) -> None:

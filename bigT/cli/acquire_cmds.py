@@ -136,14 +136,13 @@ def _register_simulate(sub) -> None:
                     "projector super-pixel seen by an uneven patch of camera pixels, with "
                     "noise, a black level and a gamma. The camera model goes to "
                     "CAPTURES_DIR/simulation.json.")
-    # the capture formats are bigT.acquisition.simulate's, which imports the stores
-    # (zarr, scipy): the options are added when this step runs or prints its help
+    # added when this step runs or prints its help: no other command's parser needs them
     p.defer(_simulate_options)
     p.set_defaults(func=simulate_cmd, command="acquire simulate")
 
 
 def _simulate_options(p) -> None:
-    from ..acquisition.simulate import FORMATS
+    from ..acquisition.formats import FORMATS  # light: not the simulator's imports
 
     p.add_argument("scene", metavar="SCENE.zarr")
     p.add_argument("patterns", metavar="PATTERNS_DIR")

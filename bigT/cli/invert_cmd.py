@@ -9,13 +9,7 @@ import sys
 from ..atomic import atomic_output, refuse_overwriting_inputs
 from ..errors import BigTError
 from ._argtypes import integer, number
-from ._options import (
-    add_memory_limit,
-    add_progress,
-    add_scheduler,
-    add_threads,
-    library_default,
-)
+from ._options import add_memory_limit, add_progress, add_scheduler, add_threads
 
 # The library's layers are imported inside each command's functions, where the
 # command runs: building the parser imports every command module, and a command
@@ -54,34 +48,30 @@ def register(subparsers) -> None:
                     "command again; the store always holds the last complete term. "
                     + DEFAULT_HELP.format(target=config.DEFAULT_TARGET_ERROR,
                                           levels=config.INVISIBLE_LEVELS))
-    # the options show the engine's defaults and method names, read from the library:
-    # added when invert runs or prints its help, since the engine imports the stores
-    # (zarr, scipy: ~0.3 s) that no other command's parser needs
+    # added when invert runs or prints its help: no other command's parser needs them
     p.defer(_add_options)
     p.set_defaults(func=invert_cmd)
 
 
 def _add_options(p) -> None:
     """``invert``'s arguments, their defaults and method names the library's own (one
-    source of truth)."""
+    source of truth: the engine's signature takes them from the light
+    :mod:`bigT.algorithms.defaults` and :mod:`bigT.config`, read here without importing
+    the engine, its numpy, scipy and stores)."""
     from .. import config
-    from ..algorithms import stratified_inverse
-    from ..algorithms.methods import METHODS
-
-    default = {name: library_default(stratified_inverse, name)
-               for name in ("terms", "prune", "method", "first_bounce", "workers")}
+    from ..algorithms import defaults
 
     p.add_argument("T", metavar="T.zarr")
     p.add_argument("-o", "--output", required=True, metavar="X.zarr",
                    help="the inverse store (created, or resumed when it holds the same "
                         "T and parameters)")
-    # an option not given is not passed: the library's default applies (shown here, read
-    # from its signature), and --target-error can tell what was given explicitly
+    # an option not given is not passed: the library's default applies (shown here, the
+    # values its signature takes), and --target-error can tell what was given explicitly
     p.add_argument("--terms", type=integer(0), default=None,
-                   help=TERMS_HELP.format(terms=default["terms"]))
+                   help=TERMS_HELP.format(terms=defaults.TERMS))
     p.add_argument("--prune", type=number(0), default=None,
                    help="drop entries below this (absolute, on the dimensionless terms "
-                        f"M^k) inside each product (default {default['prune']:g} in a "
+                        f"M^k) inside each product (default {config.DEFAULT_PRUNE:g} in a "
                         "fixed-setting run; with --target-error, the first prune tried, "
                         f"P_k fed on at {config.TARGET_FEED_RATIO:g}x it and M pruned at "
                         f"{config.TARGET_OPERATOR_RATIO:g}x it in the products)")
@@ -97,9 +87,10 @@ def _add_options(p) -> None:
                         "left out)")
     p.add_argument("--tol", type=number(0), default=None,
                    help="stop once the estimated ||I - T X||_F / sqrt(n) is below this")
-    p.add_argument("--method", choices=tuple(METHODS), default=None,
-                   help="; ".join(f"{m.name}: {m.help}" for m in METHODS.values())
-                   + f" (default {default['method']}; with --target-error, fixes the method instead of "
+    p.add_argument("--method", choices=tuple(defaults.METHOD_HELP), default=None,
+                   help="; ".join(f"{name}: {text}"
+                                  for name, text in defaults.METHOD_HELP.items())
+                   + f" (default {defaults.METHOD}; with --target-error, fixes the method instead of "
                      "choosing it)")
     p.add_argument("--target-error", type=number(0, 1, lo_open=True, hi_open=True),
                    default=None, metavar="E",
@@ -119,7 +110,7 @@ def _add_options(p) -> None:
                         "does not hold); 'general' the 3x3 block-diagonal engine; 'auto' "
                         "global when the mixing holds, else general (default). A grey T "
                         "ignores it")
-    p.add_argument("--first-bounce", default=default["first_bounce"],
+    p.add_argument("--first-bounce", default=defaults.FIRST_BOUNCE,
                    metavar="diag|diag-skip-ill|identity|FILE.npy",
                    help="F: diag(T), identity (the naive choice), or a .npy vector "
                         "(e.g. recovered from an earlier inverse, F_ii = 1 / X_ii); default "
@@ -129,7 +120,7 @@ def _add_options(p) -> None:
                         "ill-conditioned instead of refusing them")
     add_scheduler(p, "tasks", "; T and the output must be at the same paths on every "
                   "worker")
-    add_threads(p, default["workers"])
+    add_threads(p, defaults.WORKERS)
     add_memory_limit(
         p, default=None,
         bounds="bound the resident memory of the process running the tasks, e.g. 2GiB "
