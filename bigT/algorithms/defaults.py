@@ -3,9 +3,9 @@ the series methods it offers, as plain values.
 
 The engine's signature and :mod:`.methods` take them from here, and so does ``bigT
 invert --help``, which must not import the engine (numpy, scipy, the stores: ~0.5 s
-of a 0.1 s help) to print them. So this module imports nothing but :mod:`bigT.config`
-(whose ``DEFAULT_PRUNE`` is the prune's default), and ``bigT.algorithms`` imports its
-other modules only when one of their names is first used.
+of a 0.1 s help) to print them. So this module imports nothing (the prune's default is
+:data:`bigT.config.DEFAULT_PRUNE`, as light), and ``bigT.algorithms`` imports its other
+modules only when one of their names is first used.
 """
 
 from __future__ import annotations

@@ -87,10 +87,10 @@ class _Parser(argparse.ArgumentParser):
     first, which buries the line that says what is wrong). Sub-command parsers are
     made of this class too (``add_subparsers`` uses the parent's class).
 
-    Options that need a library layer to be described (``invert``'s defaults read from
-    the engine's signature, which imports the stores: zarr, scipy) are added by :meth:`defer`:
-    when this parser parses its arguments or prints its help, so that ``bigT info`` or
-    ``bigT --help`` never imports the engine to describe ``invert``."""
+    Options only one command needs (``invert``'s, which quote the engine's defaults from
+    the light :mod:`bigT.algorithms.defaults`) are added by :meth:`defer`: when this
+    parser parses its arguments or prints its help, so that ``bigT info`` or ``bigT
+    --help`` does not build ``invert``'s."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

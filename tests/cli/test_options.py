@@ -64,6 +64,19 @@ def test_help_shows_the_library_defaults_and_sizes():
     assert config.TO_SCIPY_MAX_BYTES == 4 << 30
 
 
+def test_the_methods_invert_offers_are_the_engine_s_in_its_order():
+    """The help lists the methods from bigT.algorithms.defaults (light); the engine
+    runs those of bigT.algorithms.methods: the same names, order and lines."""
+    from bigT.algorithms import defaults
+    from bigT.algorithms.methods import METHODS
+
+    method = next(a for a in build_parser()._actions if a.dest == "command").choices[
+        "invert"]._option_string_actions["--method"]
+    assert method.choices == tuple(METHODS) == tuple(defaults.METHOD_HELP)
+    assert [m.help for m in METHODS.values()] == list(defaults.METHOD_HELP.values())
+    assert all(f"{m.name}: {m.help}" in method.help for m in METHODS.values())
+
+
 def test_no_progress_is_one_option_everywhere():
     for argv in (["invert", "T", "-o", "X"], ["scene", "corner", "-o", "T"], ["verify", "S"],
                  ["relight", "T", "i", "-o", "o"], ["acquire", "simulate", "s", "p", "-o", "o",
