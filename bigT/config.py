@@ -109,12 +109,14 @@ SPECTRAL_RADIUS_RTOL = 1e-4
 #: and the operator products after which it gives up (an uncertain estimate).
 SPECTRAL_RADIUS_MAX_PRODUCTS = 600
 #: Where M = -|M| (a transport with no negative entry, F = diag T), the engine first
-#: brackets rho with Collatz-Wielandt bounds (bigT.spectral): at most this many
-#: products, stopping once the bracket's width is this fraction of its top,
-SPECTRAL_RADIUS_CW_MAX_PRODUCTS = 24
+#: brackets rho with Collatz-Wielandt bounds (bigT.spectral): about this many passes
+#: over M (block products: a power step's one vector, a lower bound's one per support;
+#: one lower-bound pass may follow the last), stopping once the bracket's width is
+#: this fraction of its top,
+SPECTRAL_RADIUS_CW_MAX_PASSES = 24
 #: (this many while the bracket's top is under SPECTRAL_RADIUS_CW_ACCEPT: ARPACK, its
-#: alternative, takes ~50),
-SPECTRAL_RADIUS_CW_MAX_PRODUCTS_LOW = 36
+#: alternative, takes ~50 products),
+SPECTRAL_RADIUS_CW_MAX_PASSES_LOW = 36
 SPECTRAL_RADIUS_CW_RTOL = 0.02
 #: A bracket wider than that is still taken when its top is under this (the series
 #: then at least halves its error per term: a few % on rho change nothing a user
@@ -123,9 +125,10 @@ SPECTRAL_RADIUS_CW_ACCEPT = 0.5
 #: ...when it is at most this fraction of its top wide (the lower bound still lags).
 SPECTRAL_RADIUS_CW_WIDE = 0.1
 #: the lower bound taken on the pixels whose power-iteration vector is at least one of
-#: these fractions of its largest entry, the best of them (one block product: 1 % was
-#: the best single cut on the corner scenes, 1e-9 on the open Cornell box),
-SPECTRAL_RADIUS_CW_SUPPORTS = (1e-2, 1e-4, 1e-6, 1e-9)
+#: these fractions of its largest entry, in (0, 1], the best of them (one block
+#: product: 1 % was the best single cut on the corner scenes, 1e-9 on the open
+#: Cornell box),
+SPECTRAL_RADIUS_CW_SUPPORTS = (1e-2, 1e-9)
 #: and the iteration shifted by this fraction of the upper bound (v <- |M| v + s v keeps
 #: v > 0 and breaks the +-rho oscillation of two walls that only see each other).
 SPECTRAL_RADIUS_CW_SHIFT = 0.1

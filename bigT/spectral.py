@@ -255,77 +255,91 @@ _ENTRY_ROUNDING = 2 * float(np.finfo(np.float32).eps)
 
 
 def _collatz_wielandt(apply_nonneg: BlockProduct, m: int,
-                      done: Callable[[float, float], bool] | None = None) -> SpectralRadius:
+                      done: Callable[[float, float], bool] | None = None,
+                      max_passes: int | None = None) -> SpectralRadius:
     """rho of a nonnegative operator A (``apply_nonneg`` multiplies it by (m, k)
     blocks) bracketed by Collatz-Wielandt bounds (module docstring): value +-
     uncertainty is the bracket. The iteration stops once ``done(hi, lo)``
-    (:func:`_narrow_enough` by default) or after the products allowed."""
+    (:func:`_narrow_enough` by default) or after ``max_passes`` block products
+    (default :func:`_passes_allowed`); ``products`` counts their vectors."""
     done = _narrow_enough if done is None else done
     v = np.ones(m)
     w = apply_nonneg(v[:, None])[:, 0]  # A v, shape (m,)
     if not w.any():
         return SpectralRadius(0.0, 0.0, 1, "collatz-wielandt")
-    products, hi, lo = 1, float((w / v).max()), 0.0
-    while products < _products_allowed(hi):
+    passes, products, hi, lo = 1, 1, float((w / v).max()), 0.0
+    while passes < (_passes_allowed(hi) if max_passes is None else max_passes):
         v = w + config.SPECTRAL_RADIUS_CW_SHIFT * hi * v
         v /= v.max()
         w = apply_nonneg(v[:, None])[:, 0]
+        passes += 1
         products += 1
         hi = min(hi, float((w / v).max()))
-        if products >= 8 and products % 4 == 0:
-            lo = max(lo, _subinvariant_bound(apply_nonneg, v))
-            products += 1
+        if passes >= 8 and passes % 4 == 0:
+            bound, columns = _subinvariant_bound(apply_nonneg, v)
+            lo = max(lo, bound)
+            passes += 1
+            products += columns
             if done(hi, lo):
                 break
     # the sums' rounding (as in _dense) and float32 entries' (module docstring)
-    hi *= 1 + m * np.finfo(np.float64).eps + _ENTRY_ROUNDING
-    lo *= 1 - _ENTRY_ROUNDING
+    rounding = m * np.finfo(np.float64).eps + _ENTRY_ROUNDING
+    hi *= 1 + rounding
+    lo *= 1 - rounding
     return SpectralRadius((hi + lo) / 2, (hi - lo) / 2, products, "collatz-wielandt")
 
 
-def _products_allowed(hi: float) -> int:
-    """The bracket's products allowed while its top is ``hi``: more while the top is
-    low (``config.SPECTRAL_RADIUS_CW_ACCEPT``), where the lower bound lags behind
-    only on the pixels the power steps reach last (the open Cornell box's: its bracket
-    closed after 33 products, where ARPACK took 53 more after 25); near 1, where
+def _passes_allowed(hi: float) -> int:
+    """The bracket's block products allowed while its top is ``hi`` (the last may be
+    followed by one lower-bound pass): more while the top is low
+    (``config.SPECTRAL_RADIUS_CW_ACCEPT``), where the lower bound lags behind only on
+    the pixels the power steps reach last (the open Cornell box's: its bracket closed
+    after 33 passes, where ARPACK took 53 more products after 25); near 1, where
     ARPACK decides anyway, the usual few."""
     if hi <= config.SPECTRAL_RADIUS_CW_ACCEPT:
-        return config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS_LOW
-    return config.SPECTRAL_RADIUS_CW_MAX_PRODUCTS
+        return config.SPECTRAL_RADIUS_CW_MAX_PASSES_LOW
+    return config.SPECTRAL_RADIUS_CW_MAX_PASSES
 
 
 def _abs_bound(apply_abs_active: BlockProduct, m: int) -> SpectralRadius:
     """The Collatz-Wielandt bracket of rho(|M|) (``apply_abs_active`` multiplies |M| by
     (m, k) blocks): its top bounds rho(M) from above (module docstring)."""
     # only the top matters (it is the bound reported): the bracket is narrowed
-    # whatever its height, not left wide when low as rho's own bracket may be
+    # whatever its height, not left wide when low as rho's own bracket may be; and
+    # its low top is taken as it stands (under ABS_ACCEPT), so no more passes than
+    # the usual are spent narrowing it
     bracket = _collatz_wielandt(apply_abs_active, m,
-                                lambda hi, lo: hi - lo <= config.SPECTRAL_RADIUS_CW_RTOL * hi)
+                                lambda hi, lo: hi - lo <= config.SPECTRAL_RADIUS_CW_RTOL * hi,
+                                max_passes=config.SPECTRAL_RADIUS_CW_MAX_PASSES)
     return dataclasses.replace(bracket, method=ABS_BOUND)
 
 
-def _subinvariant_bound(apply_nonneg: BlockProduct, v: np.ndarray) -> float:
+def _subinvariant_bound(apply_nonneg: BlockProduct, v: np.ndarray) -> tuple[float, int]:
     """lambda with A x >= lambda x for x = v (shape (m,), > 0) restricted to the pixels
     where v is at least a fraction c of its largest entry (0 elsewhere), the best over
     the fractions c of ``config.SPECTRAL_RADIUS_CW_SUPPORTS``: a lower bound on
-    rho(A), each x being >= 0 (one block product, one column per fraction).
+    rho(A), each x being >= 0 and nonzero (v's largest entry passes every c <= 1).
+    One block product, one column per fraction; returns (lambda, its columns).
 
     Why several: a pixel kept whose neighbours were cut loses their share of A x and
     pulls the bound down, while a pixel A barely reaches (v decaying towards 0 with
     each step) holds it near 0. Which cut sits between the two depends on the scene:
     1 % suits the wall corners, but on the paper's open Cornell box (a fifth of the
-    patches see nothing) it stalled at 0.257 for rho = 0.361, and ARPACK then took 50
-    more products; 1e-9 there gives 0.3608. The columns share one pass over A."""
+    patches see nothing) it stalled at 0.278 for rho = 0.361, and ARPACK then took 53
+    more products; 1e-9 there gives 0.337 after 33 passes (1e-4 and 1e-6 as well
+    changed no stop on the box or the corners)."""
     fractions = np.asarray(config.SPECTRAL_RADIUS_CW_SUPPORTS, dtype=np.float64)
+    if not np.all((fractions > 0) & (fractions <= 1)):
+        raise ValueError(f"config.SPECTRAL_RADIUS_CW_SUPPORTS must lie in (0, 1], got "
+                         f"{config.SPECTRAL_RADIUS_CW_SUPPORTS}")
     on = v[:, None] >= fractions[None, :] * v.max()  # (m, c)
     X = np.where(on, v[:, None], 0.0)
     Y = apply_nonneg(X)
     best = 0.0
     for j in range(len(fractions)):
         kept = on[:, j]
-        if kept.any():
-            best = max(best, float((Y[kept, j] / X[kept, j]).min()))
-    return best
+        best = max(best, float((Y[kept, j] / X[kept, j]).min()))
+    return best, len(fractions)
 
 
 def _arnoldi(apply_active: BlockProduct, m: int, rtol: float, max_products: int,
