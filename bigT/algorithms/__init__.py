@@ -9,6 +9,7 @@ engine (numpy, scipy, the stores: ~0.5 s).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 
 #: Public name -> the module defining it, imported on first use.
 _LAZY = {
@@ -34,6 +35,10 @@ __all__ = [
 def __getattr__(name: str):
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
+    # a submodule, as ``bigT.algorithms.stratified`` was reachable when this package
+    # imported them all
+    if importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module 'bigT.algorithms' has no attribute {name!r}")
 
 

@@ -36,6 +36,7 @@ import scipy.sparse as sp
 
 from .. import config
 from ..errors import BigTError
+from . import defaults
 
 #: ``colour_path`` values of :func:`~bigT.algorithms.stratified_inverse`.
 COLOUR_PATHS = ("auto", "general", "global")
@@ -297,7 +298,8 @@ def checked_colour_path(colour_path: str) -> str:
 
 
 def choose_colour_path(T, colour_path: str = "auto", mixing=None, *,
-                       first_bounce="diag", on_term=None, seed: int = 0) -> ColourPathChoice:
+                       first_bounce=defaults.FIRST_BOUNCE, on_term=None,
+                       seed: int = 0) -> ColourPathChoice:
     """The path the inverse of the colour ``T`` takes, and why.
 
     ``"general"``: the general engine (3x3 block-diagonal F). ``"global"`` and

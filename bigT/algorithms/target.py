@@ -99,6 +99,7 @@ from ..schedule.stream import compute_dtype, forget_tiles, stream_matmul
 from ..storage import as_store
 from ..storage import open as open_store
 from ..storage.frames import pixel_order_of, to_vectors
+from . import defaults
 from .fingerprint import recorded_setting
 from .first_bounce import first_bounce_of_rows, resolve_first_bounce
 from .run_setup import TileRows
@@ -632,8 +633,9 @@ def _verdict(m: TermErrors, target: float) -> tuple[str, str | None]:
 
 def invert_to_target(T, out, target: float, *, method: str | None = None,
                      prune: float | None = None, max_terms: int | None = None,
-                     first_bounce="diag", memory_limit=None, scheduler=None, workers=2,
-                     progress=False, overwrite=False, seed=0) -> TargetReport:
+                     first_bounce=defaults.FIRST_BOUNCE, memory_limit=None, scheduler=None,
+                     workers=defaults.WORKERS, progress=False, overwrite=False,
+                     seed=0) -> TargetReport:
     """The stratified inverse whose compensated images reach ``target`` at the least
     cost found (module docstring).
 
