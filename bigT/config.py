@@ -195,6 +195,14 @@ KERNEL_CHUNKS_PER_THREAD = 4
 KERNEL_NUMPY_MAX_WORK = 20_000
 #: Products with fewer multiply-adds than this run on the calling thread only.
 KERNEL_MIN_PARALLEL_WORK = 200_000
+#: ...and products of a sparse matrix with dense columns (spmm_dense) with fewer
+#: entries x columns than this: a multiply-add there costs a fifth of a sparse
+#: product's, so handing half to another thread pays later (measured idle on this
+#: project's 2-core machine, best of 300: 260 k, the n = 1000 corner's M times the 4
+#: residual probes, 0.23 ms on one thread against 0.47 ms on two; 420 k, the
+#: 5120-patch Cornell box's M times a vector, 0.62 against 0.69 ms; at 1.7 M they tie,
+#: 0.84 ms).
+SPMM_MIN_PARALLEL_WORK = 1_000_000
 #: spgemm emits a row by scanning its column span [lo, hi] of the dense accumulator
 #: (no sort) when span <= ratio * (multiply-adds of the row); otherwise it sorts the
 #: list of touched columns.

@@ -506,14 +506,26 @@ def spmm_dense_rows_internal(r0, r1, indptr, indices, data, x, out, absolute=Fal
             tmp[c0 + 2] = s2
             tmp[c0 + 3] = s3
             c0 += 4
-        for c in range(c0, k):
-            tmp[c] = 0.0
-        if c0 < k:
+        # then two at a time, alike (the row's indices are checked by now: above for
+        # k < 4, else by the first four's loop): k = 2 and 3 in a loop over a memory
+        # tmp ran 2.2x and 3.0x slower than k = 4 here (the spectral bracket's
+        # two-support bound is k = 2)
+        while c0 + 2 <= k:
+            s0 = zero
+            s1 = s0
             for p in range(start, stop):
                 a = _entry(data[p], absolute)
-                xrow = x[indices[p]]
-                for c in range(c0, k):
-                    tmp[c] += a * xrow[c]
+                j = indices[p]
+                s0 += a * x[j, c0]
+                s1 += a * x[j, c0 + 1]
+            tmp[c0] = s0
+            tmp[c0 + 1] = s1
+            c0 += 2
+        if c0 < k:  # the last column (k odd), alike
+            s0 = zero
+            for p in range(start, stop):
+                s0 += _entry(data[p], absolute) * x[indices[p], c0]
+            tmp[c0] = s0
         finite = True
         for c in range(k):
             finite &= np.isfinite(tmp[c])

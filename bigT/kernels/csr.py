@@ -546,7 +546,7 @@ def spmm_dense(A, X, out=None, *, n_threads=None, absolute=False):
     elif m and k and indices.shape[0]:
         K = _numba()
         n_threads = thread_count(n_threads)
-        if indices.shape[0] * k < config.KERNEL_MIN_PARALLEL_WORK:
+        if indices.shape[0] * k < config.SPMM_MIN_PARALLEL_WORK:
             n_threads = 1
         n_chunks = 1 if n_threads == 1 else n_threads * config.KERNEL_CHUNKS_PER_THREAD
         if n_chunks == 1:
