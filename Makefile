@@ -9,6 +9,11 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: demo test test-all bench bench-quick clean
 
+# numpy's huge-page advice off, as the bigT command sets it for itself
+# (bigT.cli._advise_no_huge_pages): the tests and benchmarks that call the library in
+# their own process run it as the command does
+export NUMPY_MADVISE_HUGEPAGE ?= 0
+
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip

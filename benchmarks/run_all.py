@@ -277,6 +277,9 @@ def run_one(todo: Step, out: Path) -> report.Run:
     print(f"== {name}: {' '.join(todo.shown)}  (-> {out / log}; estimated "
           f"~{todo.minutes:g} min)", flush=True)
     env = {**os.environ, "PYTHONWARNINGS": "ignore", OUT_ENV: str(out), NAME_ENV: name}
+    # the benchmarks that call the library in their own process run it as the bigT
+    # command does (bigT.cli._advise_no_huge_pages), their rivals in that process too
+    env.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     t0 = time.perf_counter()
     with open(out / log, "w") as f:
         proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

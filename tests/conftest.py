@@ -13,6 +13,9 @@ The durability tests record the fsyncs themselves (tests/reliability/test_durabi
 import os
 
 os.environ.setdefault("BIGT_IN_MEMORY", "0")
+# as the bigT command runs (bigT.cli._advise_no_huge_pages), here and in the processes
+# the tests start
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
 #: The suite's largest tests write a few hundred MB at once; a container's /dev/shm is
