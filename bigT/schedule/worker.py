@@ -29,7 +29,7 @@ from ._backend import (BlockDiagonal, KeptTiles, as_location, is_url, open_store
 from .cache import TileCache
 from .costs import shared_read_bytes, thread_io
 from .memory import (PARTIAL_BYTES_PER_ENTRY, MemoryPlan, plan_memory, resident_bytes,
-                     return_freed_memory)
+                     return_freed_memory_above)
 from .operators import MOperand, StoreOperand, needed_rows, t_row_key
 from .spec import BlockStats, MemoryPolicy, PassSpec, RowBlock
 
@@ -456,10 +456,11 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
         if budget is not None:
             ctx.cache.resize(budget)
         stats = spec.task(ctx)
-        del ctx
-        # the task's temporaries back to the system: else glibc's heap keeps them
-        # resident, and a term of many tasks outgrows the memory plan (4K corner)
-        return_freed_memory()
+        plan, ctx = ctx.plan, None
+        # the task's temporaries back to the system once the process holds most of its
+        # plan: else glibc's heap keeps them resident, and a term of many tasks outgrows
+        # the plan (4K corner); below it the next task reuses them (memory.TRIM_ABOVE_LIMIT_SHARE)
+        return_freed_memory_above(plan.trim_above)
     except BigTError:
         raise
     except OSError as exc:
