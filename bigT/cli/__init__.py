@@ -293,8 +293,10 @@ def _advise_no_huge_pages() -> None:
     384x512 corner's 4-term inverse (1.7 GiB peak) ran 13.9 s against 11.3-11.8 s
     (kernel time 8-9 s against 3.7-3.9 s), its products at the same speed.
     Set ``NUMPY_MADVISE_HUGEPAGE=1`` to keep numpy's default. A process that
-    imported numpy before (a caller of :func:`main` in Python) keeps its own."""
-    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+    imported numpy before (a caller of :func:`main` in Python) keeps its own, and its
+    environment is left as it was."""
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
 def main(argv: list[str] | None = None) -> int:

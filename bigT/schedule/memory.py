@@ -107,15 +107,21 @@ def return_freed_memory() -> None:
         libc.malloc_trim(0)
 
 
-#: Share of a ``memory_limit`` the process may hold before a task hands the heap's freed
-#: pages back. Why not after every task, as bigT did: the pages handed back are faulted
-#: in again by the next task (zeroed by the kernel, and on a virtual machine whose host
-#: takes free memory back, backed again by the host). The full-HD dense corner's 4-term
-#: inverse out of core, no limit, on this project's machine: 89.4 s (53.2 s of it in
-#: the kernel) trimming after each of its ~5000 tasks, 69.3 s (25.6 s) not, its peak
-#: 2.19 GB against 2.34 GB (issue #30). Under a limit the trim still keeps the heap's
-#: retained pages from growing past the plan (the 4K corner's 5.7 GiB under 4 GiB).
-TRIM_ABOVE_LIMIT_SHARE = 0.75
+#: Without a limit, the most freed memory a process keeps for its next tasks: this
+#: share of the memory available when the plan is made. Why keep any: the pages a trim
+#: hands back are faulted in again by the next task (zeroed by the kernel, and on a
+#: virtual machine whose host takes free memory back, backed again by the host). The
+#: full-HD dense corner's 4-term inverse out of core, no limit, on this project's
+#: machine: 89.4 s (53.2 s of it in the kernel) trimming after each of its ~5000 tasks,
+#: 69.3 s (25.6 s) not, its peak 2.19 GB against 2.34 GB (issue #30). Under a limit
+#: the plan sets the threshold (:func:`plan_memory`), so the heap's retained pages
+#: never push a task past it (the 4K corner's 5.7 GiB under 4 GiB, trimming never).
+UNLIMITED_RETAIN_SHARE = 0.25
+
+
+def _unlimited_trim_above(baseline: int) -> int:
+    available = available_memory()
+    return baseline + int(UNLIMITED_RETAIN_SHARE * (available or 0))
 
 
 def return_freed_memory_above(threshold: int) -> bool:
@@ -172,16 +178,9 @@ class MemoryPlan:
     whole_bytes: int
     work_bytes_per_task: int
     threads: int = 1
-
-    @property
-    def trim_above(self) -> int:
-        """Resident bytes above which a task hands freed memory back
-        (:func:`return_freed_memory_above`): :data:`TRIM_ABOVE_LIMIT_SHARE` of the
-        limit, or, with none, every part of the plan held at once."""
-        if self.limit is not None:
-            return int(TRIM_ABOVE_LIMIT_SHARE * self.limit)
-        return (self.baseline + self.threads * (self.fixed_per_task + self.work_bytes_per_task)
-                + self.cache_bytes + self.whole_bytes)
+    #: Resident bytes above which a task hands the heap's freed pages back
+    #: (:func:`return_freed_memory_above`; :func:`plan_memory` sets it): 0, always.
+    trim_above: int = 0
 
     def describe(self) -> str:
         mib = 1 << 20
@@ -219,9 +218,13 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     workers = max(1, int(workers))
     fixed = (M_ROW_BYTES_PER_ENTRY * int(max_tile_row_nnz)
              + workspace_bytes(int(n_cols), int(n_cols)))
-    baseline = resident_bytes() if baseline is None else int(baseline)
+    if baseline is None:
+        if limit is not None:  # what earlier work freed is not this run's baseline
+            return_freed_memory()
+        baseline = resident_bytes()
     if limit is None:
-        return MemoryPlan(None, baseline, fixed, 1 << 30, 1 << 30, 1 << 30, workers)
+        return MemoryPlan(None, baseline, fixed, 1 << 30, 1 << 30, 1 << 30, workers,
+                          trim_above=_unlimited_trim_above(baseline))
     headroom = config.MEMORY_HEADROOM_BYTES
     rest = int(limit) - baseline - headroom - workers * fixed
     minimum = workers * config.MEMORY_MIN_WORK_BYTES
@@ -241,7 +244,10 @@ def plan_memory(limit: int | None, workers: int, n_cols: int, max_tile_row_nnz: 
     cache = int(config.MEMORY_CACHE_SHARE * rest)
     whole = int(config.MEMORY_WHOLE_SHARE * rest)
     work = (rest - cache - whole) // workers
-    return MemoryPlan(int(limit), baseline, fixed, cache, whole, work, workers)
+    # a task ends with the heap's freed pages handed back unless a new task's fixed
+    # part and work share still fit under the limit beside what the process holds
+    return MemoryPlan(int(limit), baseline, fixed, cache, whole, work, workers,
+                      trim_above=max(0, int(limit) - headroom - fixed - work))
 
 
 #: A task holds its output tile rows whole until they are written (the previous X's

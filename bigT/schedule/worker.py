@@ -457,9 +457,10 @@ def run_block(spec: PassSpec, block: RowBlock, shared: dict) -> BlockStats:
             ctx.cache.resize(budget)
         stats = spec.task(ctx)
         plan, ctx = ctx.plan, None
-        # the task's temporaries back to the system once the process holds most of its
-        # plan: else glibc's heap keeps them resident, and a term of many tasks outgrows
-        # the plan (4K corner); below it the next task reuses them (memory.TRIM_ABOVE_LIMIT_SHARE)
+        # the task's temporaries back to the system once the next task's share would not
+        # fit beside what the process holds: else glibc's heap keeps them resident, and a
+        # term of many tasks outgrows the plan (4K corner); below it the next task reuses
+        # them (MemoryPlan.trim_above)
         return_freed_memory_above(plan.trim_above)
     except BigTError:
         raise

@@ -32,7 +32,10 @@ def _huge_pages_advised_after_a_command(tmp_path: Path, setting: str | None) -> 
               "with contextlib.redirect_stdout(io.StringIO()):\n"
               f"    assert main(['info', {str(store)!r}]) == 0\n"
               "assert 'numpy' in sys.modules\n"
-              "from numpy._core.multiarray import _get_madvise_hugepage\n"
+              "try:\n"
+              "    from numpy._core.multiarray import _get_madvise_hugepage\n"
+              "except ImportError:  # numpy 1.x\n"
+              "    from numpy.core.multiarray import _get_madvise_hugepage\n"
               "print(_get_madvise_hugepage())\n")
     proc = subprocess.run([sys.executable, "-c", script], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
@@ -49,3 +52,15 @@ def test_a_command_asks_numpy_for_no_huge_pages_unless_the_environment_says(tmp_
     assert not _huge_pages_advised_after_a_command(tmp_path, None)
     assert not _huge_pages_advised_after_a_command(tmp_path, "0")
     assert _huge_pages_advised_after_a_command(tmp_path, "1")
+
+
+def test_a_caller_that_imported_numpy_keeps_its_environment(monkeypatch):
+    """main() called from Python after numpy was imported changes nothing: the switch
+    is read at numpy's import, and the caller's later child processes keep its own
+    environment."""
+    from bigT.cli import _advise_no_huge_pages
+
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    assert "numpy" in sys.modules
+    _advise_no_huge_pages()
+    assert "NUMPY_MADVISE_HUGEPAGE" not in os.environ

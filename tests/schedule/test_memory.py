@@ -152,22 +152,36 @@ def test_freed_memory_is_handed_back_only_above_the_threshold(monkeypatch):
     assert trims == [1]
 
 
-def test_a_plan_trims_above_a_share_of_its_limit_or_past_all_its_parts():
+def test_a_plan_trims_when_a_new_task_would_not_fit_or_past_a_share_of_memory(monkeypatch):
+    """Under a limit a task hands freed pages back once a new task's fixed part and
+    work share no longer fit beside what the process holds (the limit kept as when
+    every task trimmed); with none, once the process holds a quarter of the memory
+    available when it planned more than its baseline."""
     limited = plan_memory(1024 * MiB, 2, n_cols=100_000, max_tile_row_nnz=1_000_000,
                           baseline=200 * MiB)
-    assert limited.trim_above == int(memory.TRIM_ABOVE_LIMIT_SHARE * 1024 * MiB)
-    assert limited.trim_above < 1024 * MiB  # the heap handed back before the limit
-    free = plan_memory(None, 2, n_cols=100_000, max_tile_row_nnz=1_000_000,
+    assert (limited.trim_above + limited.fixed_per_task + limited.work_bytes_per_task
+            + config.MEMORY_HEADROOM_BYTES) == 1024 * MiB
+    assert limited.baseline < limited.trim_above < 1024 * MiB
+    monkeypatch.setattr(memory, "available_memory", lambda: 8 << 30)
+    free = plan_memory(None, 16, n_cols=100_000, max_tile_row_nnz=1_000_000,
                        baseline=200 * MiB)
-    parts = (free.baseline + 2 * (free.fixed_per_task + free.work_bytes_per_task)
-             + free.cache_bytes + free.whole_bytes)
-    assert free.trim_above == parts
+    assert free.trim_above == 200 * MiB + 2 * (1 << 30)  # whatever the thread count
+
+
+def test_a_limited_plan_is_measured_after_a_trim(monkeypatch):
+    """What earlier work freed and the heap kept is no part of a new plan's baseline
+    (the plan would shrink its shares, or refuse the limit)."""
+    order = []
+    monkeypatch.setattr(memory, "return_freed_memory", lambda: order.append("trim"))
+    monkeypatch.setattr(memory, "resident_bytes", lambda: order.append("rss") or 100 * MiB)
+    plan_memory(1024 * MiB, 1, n_cols=1000, max_tile_row_nnz=1000)
+    assert order == ["trim", "rss"]
 
 
 def test_out_of_core_tasks_trim_only_over_their_plan(tmp_path, monkeypatch):
     """The tasks of a small out-of-core run hold far less than their plan's threshold:
-    none hands memory back; with the threshold at zero each one does. The inverse is
-    the same either way."""
+    none hands memory back; with the threshold below what the process holds each one
+    does. The inverse is the same either way."""
     import bigT
     from bigT.schedule import worker
     from bigT.storage import from_scipy
@@ -185,8 +199,8 @@ def test_out_of_core_tasks_trim_only_over_their_plan(tmp_path, monkeypatch):
     tasks = len(trimmed_by_task)
     assert tasks >= 3 * (96 // 16) and not any(trimmed_by_task)  # a pass a term at least
     trimmed_by_task.clear()
-    monkeypatch.setattr(memory, "TRIM_ABOVE_LIMIT_SHARE", 0.0)
-    forced = bigT.stratified_inverse(T, tmp_path / "b.zarr", memory_limit="2GiB", **options)
+    monkeypatch.setattr(memory, "UNLIMITED_RETAIN_SHARE", -1.0)  # a threshold below 0
+    forced = bigT.stratified_inverse(T, tmp_path / "b.zarr", **options)
     assert len(trimmed_by_task) == tasks and all(trimmed_by_task)
     assert quiet.terms == forced.terms == 3
     np.testing.assert_array_equal(bigT.open(tmp_path / "a.zarr").to_scipy().toarray(),
