@@ -169,6 +169,8 @@ class MemoryPlan:
     work_bytes_per_task : int
     threads : int
         Tasks in flight at once in the process.
+    trim_above : int
+        Resident bytes above which a task hands the heap's freed pages back.
     """
 
     limit: int | None
@@ -178,8 +180,8 @@ class MemoryPlan:
     whole_bytes: int
     work_bytes_per_task: int
     threads: int = 1
-    #: Resident bytes above which a task hands the heap's freed pages back
-    #: (:func:`return_freed_memory_above`; :func:`plan_memory` sets it): 0, always.
+    #: :func:`return_freed_memory_above`'s threshold, set by :func:`plan_memory`; a plan
+    #: made by hand trims after every task (0)
     trim_above: int = 0
 
     def describe(self) -> str:
